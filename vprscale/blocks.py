@@ -1,0 +1,40 @@
+"""Fixed absolute row blocks that make every result independent of chunking.
+
+All numerics that could depend on how rows are grouped (random draws, the running sums of
+the homogenisation, the partial sums of covariance matrices) are defined on blocks of
+``BLOCK`` rows at absolute positions. Dask chunks are whole numbers of blocks, so a
+different chunk size or worker count regroups the same block computations and gives the
+same bytes.
+"""
+
+from collections.abc import Iterator
+
+import numpy as np
+
+BLOCK = 16384
+
+
+def block_spans(start: int, stop: int, block: int = BLOCK) -> Iterator[tuple[int, int, int]]:
+    """Yield ``(block_index, lo, hi)`` for the absolute blocks intersecting ``[start, stop)``."""
+    b = start // block
+    while b * block < stop:
+        yield b, max(start, b * block), min(stop, (b + 1) * block)
+        b += 1
+
+
+def chunk_bounds(n: int, chunk_rows: int) -> list[tuple[int, int]]:
+    """Row ranges of consecutive chunks of ``chunk_rows`` (the last may be shorter)."""
+    return [(a, min(n, a + chunk_rows)) for a in range(0, n, chunk_rows)]
+
+
+def check_chunk_rows(chunk_rows: int) -> None:
+    """Chunks must be whole blocks so that results do not depend on the chunk size."""
+    from vprscale.errors import InputError
+
+    if chunk_rows <= 0 or chunk_rows % BLOCK:
+        raise InputError(f"--chunk-rows {chunk_rows}: must be a positive multiple of {BLOCK}")
+
+
+def block_rng(seed: int, stream: int, block: int) -> np.random.Generator:
+    """The generator for one block of one random stream: a pure function of its key."""
+    return np.random.Generator(np.random.Philox(key=[seed & (2**64 - 1), (stream << 40) | block]))

@@ -1,0 +1,317 @@
+"""``vprscale build``: stream the sources through SPEC §2 into ``<out>/<scale>.zarr``.
+
+Two passes over Deep1B. Pass 1 accumulates the moments of the homogenised rows for the
+exact PCA, while the FAS PCAs and the noise model are fitted; the fitted transforms are
+saved in the store. Pass 2 writes every output chunk in one task: homogenise, project,
+rescale, draw the query noise, and write the same row range of ``ref``, ``query_qm1``,
+``query_qm2``, ``gt`` and the part labels. Each Zarr chunk is written whole by exactly one
+task, so tasks never race and a resumed build simply rewrites unfinished chunks.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import dask
+import numpy as np
+import zarr
+
+import vprscale
+from vprscale.blocks import BLOCK, chunk_bounds
+from vprscale.cluster import cluster_peak_rss, dask_client
+from vprscale.errors import InputError
+from vprscale.homogenise import homogenised, window_mean
+from vprscale.merge import MergeTransform, noisy_rows, project_rows
+from vprscale.progress import Timings, run_tasks
+from vprscale.recipe import Recipe, load_recipe
+from vprscale.sources.base import RowSource
+from vprscale.sources.deep1b import open_deep1b
+from vprscale.sources.fas import Traverse, open_fas
+from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
+from vprscale.store import ATTR, PartialOutput, check_writable, exclusive
+
+NOISE_LEVELS = {"query_qm1": 1.0, "query_qm2": 2.0}
+DEEP1B, FAS = 0, 1
+
+
+def codecs() -> dict[str, Any]:
+    """Compression of the stored arrays: byte-shuffled zstd, fast to write and read."""
+    return {"compressors": [zarr.codecs.BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")]}
+
+
+@dataclass
+class BuildRequest:
+    """What the user asked for (the CLI's arguments)."""
+
+    scale: str
+    out: Path
+    deep1b: str | None = None
+    fas: str | None = None
+    workers: int = 2
+    scheduler: str | None = None
+    dry_run: bool = False
+    force: bool = False
+    fas_dim: int = 4096
+    quiet: bool = False
+
+
+def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
+                 fas_dim: int) -> tuple[RowSource, Traverse]:
+    """The real files when given, else the synthetic generator; validated against the recipe."""
+    deep = open_deep1b(deep1b) if deep1b else SyntheticDeep1B(recipe.deep1b_rows_read, recipe.seed)
+    if deep.dim != recipe.dim:
+        raise InputError(f"{deep.name}: descriptors have {deep.dim} dimensions, the recipe needs {recipe.dim}")
+    if deep.n_rows < recipe.deep1b_rows_read:
+        raise InputError(f"--scale {recipe.scale}: needs {recipe.deep1b_rows_read:,} Deep1B rows but "
+                         f"{deep.name} holds {deep.n_rows:,}")
+    traverse = open_fas(fas) if fas else SyntheticFAS(recipe.seed, FasParams(dim=fas_dim)).traverse()
+    for which, src in (("ref", traverse.ref), ("query", traverse.query)):
+        want = recipe.fas_rows(which, src.n_rows)
+        if want > src.n_rows:
+            raise InputError(f"--scale {recipe.scale}: needs {want:,} FAS {which} rows but "
+                             f"{src.name} holds {src.n_rows:,}")
+    if traverse.ref.dim < recipe.dim:
+        raise InputError(f"{traverse.ref.name}: {traverse.ref.dim} dimensions, fewer than {recipe.dim}")
+    return deep, traverse
+
+
+@dataclass
+class Layout:
+    """Row counts of the dataset."""
+
+    n_deep: int
+    n_fas_ref: int
+    n_fas_query: int
+
+    @property
+    def n_ref(self) -> int:
+        return self.n_deep + self.n_fas_ref
+
+    @property
+    def n_query(self) -> int:
+        return self.n_deep + self.n_fas_query
+
+
+def dataset_gt(layout: Layout, fas_gt: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """Ground truth of query rows ``[start, stop)`` (SPEC §2 step 8); −1 means none."""
+    u = np.arange(start, stop, dtype=np.int64)
+    gt = u.copy()
+    fas = u >= layout.n_deep
+    j = fas_gt[u[fas] - layout.n_deep]
+    gt[fas] = np.where(j < layout.n_fas_ref, layout.n_deep + j, -1)
+    return gt
+
+
+@dataclass
+class ChunkWriter:
+    """Everything one pass-2 task needs: small matrices and the source reader, no data."""
+
+    store: str
+    source: RowSource
+    recipe: Recipe
+    layout: Layout
+    mean: np.ndarray
+    matrix: np.ndarray
+    noise_mean: np.ndarray
+    noise_std: np.ndarray
+    fas_gt: np.ndarray
+
+    def __call__(self, a: int, b: int, fas_ref: np.ndarray, fas_query: np.ndarray) -> None:
+        lay = self.layout
+        d_hi = min(b, lay.n_deep)
+        deep = (project_rows(window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window),
+                             self.mean, self.matrix) if a < d_hi else np.empty((0, self.recipe.dim), np.float32))
+        queries = noisy_rows(deep, a, self.recipe.seed, self.noise_mean, self.noise_std,
+                             tuple(NOISE_LEVELS.values()))
+        group = zarr.open_group(self.store, mode="r+")
+        if a < lay.n_ref:
+            group["ref"][a : min(b, lay.n_ref)] = np.concatenate([deep, fas_ref])
+            group["ref_part"][a : min(b, lay.n_ref)] = self._parts(a, min(b, lay.n_ref))
+        if a < lay.n_query:
+            q_hi = min(b, lay.n_query)
+            for name, q in zip(NOISE_LEVELS, queries, strict=True):
+                group[name][a:q_hi] = np.concatenate([q, fas_query])
+            group["gt"][a:q_hi] = dataset_gt(lay, self.fas_gt, a, q_hi)
+            group["query_part"][a:q_hi] = self._parts(a, q_hi)
+
+    def _parts(self, a: int, b: int) -> np.ndarray:
+        return (np.arange(a, b) >= self.layout.n_deep).astype(np.uint8)
+
+
+def _versions() -> dict[str, str]:
+    import dask as _dask
+
+    return {"vprscale": vprscale.__version__, "numpy": np.__version__, "dask": _dask.__version__,
+            "zarr": zarr.__version__, "python": sys.version.split()[0]}
+
+
+def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers: int) -> dict[str, Any]:
+    """What a build reads, writes and needs, with a time estimate from measured throughput."""
+    lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
+                 recipe.fas_rows("query", traverse.query.n_rows))
+    d = recipe.dim
+    t0 = time.perf_counter()
+    sample = min(BLOCK, recipe.deep1b_rows_kept)
+    h = window_mean(deep, recipe.deep1b_rows_read, 0, sample, recipe.window)
+    noisy_rows(h, 0, recipe.seed, np.zeros(d), np.ones(d), (1.0, 2.0))
+    per_row = (time.perf_counter() - t0) / sample
+    t0 = time.perf_counter()
+    fas_sample = min(2048, traverse.ref.n_rows)
+    traverse.ref.read(0, fas_sample)
+    fas_per_row = (time.perf_counter() - t0) / fas_sample
+    fas_passes = 12 if lay.n_fas_ref == traverse.ref.n_rows else 21
+    est = (per_row * recipe.deep1b_rows_kept * 2.2 / max(1, min(workers, 2))
+           + fas_per_row * (traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3) / max(1, min(workers, 2)))
+    write = 4 * d * (lay.n_ref + 2 * lay.n_query) + 9 * lay.n_query + lay.n_ref
+    read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * 2 + 4 * traverse.ref.dim * (
+        traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3)
+    chunk_mem = recipe.chunk_rows * d * (8 + 8 + 4 * 6)
+    fas_mem = 4 * traverse.ref.dim * (8192 * 3 + 128 * 4) + 8 * traverse.ref.dim * 128 * 3
+    free = shutil.disk_usage(out if out.exists() else out.parent if out.parent.exists() else Path.cwd()).free
+    return {"scale": recipe.scale, "ref_rows": lay.n_ref, "query_rows": lay.n_query,
+            "deep1b_rows_read": recipe.deep1b_rows_read, "fas_ref_rows": lay.n_fas_ref,
+            "fas_query_rows": lay.n_fas_query, "bytes_read": read, "bytes_written_max": write,
+            "disk_free": free, "memory_estimate": workers * chunk_mem + fas_mem + 300 * 2**20,
+            "seconds_estimate": est, "deep1b": deep.name, "fas": traverse.ref.name}
+
+
+def _gib(x: float) -> str:
+    return f"{x / 2**30:.2f} GiB"
+
+
+def print_plan(p: dict[str, Any], out: Path) -> None:
+    print(f"build {p['scale']} → {out}")
+    print(f"  ref rows    {p['ref_rows']:>15,}   (Deep1B {p['ref_rows'] - p['fas_ref_rows']:,} + FAS {p['fas_ref_rows']:,})")
+    print(f"  query rows  {p['query_rows']:>15,}   (Deep1B {p['query_rows'] - p['fas_query_rows']:,} + FAS {p['fas_query_rows']:,})")
+    print(f"  reads       {_gib(p['bytes_read']):>15}   from {p['deep1b']} and {p['fas']}")
+    print(f"  writes      {_gib(p['bytes_written_max']):>15}   at most (before compression)")
+    print(f"  disk free   {_gib(p['disk_free']):>15}")
+    print(f"  memory      {_gib(p['memory_estimate']):>15}   peak, estimated")
+    print(f"  time        {p['seconds_estimate']:>13.0f} s   estimated from measured throughput")
+
+
+def build(req: BuildRequest) -> dict[str, Any]:
+    """Run (or plan) a build; returns the summary that the CLI prints."""
+    recipe = load_recipe(req.scale)
+    deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
+    out = Path(req.out)
+    final = out / f"{recipe.scale}.zarr"
+    p = plan(recipe, deep, traverse, out, req.workers)
+    if req.dry_run:
+        print_plan(p, final)
+    if p["bytes_written_max"] > p["disk_free"]:
+        raise InputError(f"--out {out}: the build writes up to {_gib(p['bytes_written_max'])} "
+                         f"but only {_gib(p['disk_free'])} is free")
+    if req.dry_run:
+        return {"dry_run": True, **p}
+    check_writable(out)
+    with exclusive(final):
+        if (final / "zarr.json").exists() and not req.force:
+            meta = zarr.open_group(final, mode="r").attrs.get(ATTR, {})
+            if meta.get("complete"):
+                print(f"{final} is complete; use --force to rebuild it", file=sys.stderr)
+                return {"skipped": True, "store": str(final)}
+        return _build(recipe, deep, traverse, final, req)
+
+
+def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
+           req: BuildRequest) -> dict[str, Any]:
+    t_start = time.perf_counter()
+    timings = Timings(req.quiet)
+    lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
+                 recipe.fas_rows("query", traverse.query.n_rows))
+    provenance = {"recipe": recipe.as_dict(),
+                  "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
+    partial = PartialOutput(final, provenance)
+    resumed = partial.open()
+    if resumed and not req.quiet:
+        print(f"resuming the unfinished build in {partial.path}", file=sys.stderr)
+    store = str(partial.path)
+    d = recipe.dim
+    with dask_client(req.scheduler, req.workers) as client:
+        if not partial.done("fit"):
+            group = zarr.open_group(store, mode="a", zarr_format=3)
+            for name, rows in (("ref", lay.n_ref), ("query_qm1", lay.n_query), ("query_qm2", lay.n_query)):
+                group.create_array(name, shape=(rows, d), chunks=(recipe.chunk_rows, d), dtype="f4",
+                                   overwrite=True, **codecs())
+            group.create_array("gt", shape=(lay.n_query,), chunks=(recipe.chunk_rows,), dtype="i8",
+                               overwrite=True, **codecs())
+            for name, rows in (("ref_part", lay.n_ref), ("query_part", lay.n_query)):
+                group.create_array(name, shape=(rows,), chunks=(recipe.chunk_rows,), dtype="u1",
+                                   overwrite=True, **codecs())
+            with timings.stage("fit transforms (Deep1B exact PCA, FAS PCA, noise model)"):
+                h = homogenised(deep, recipe.deep1b_rows_read, lay.n_deep, recipe.window, recipe.chunk_rows)
+                merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed).fit(h, traverse)
+            _save_transforms(group, merge, partial.path)
+            partial.mark("fit")
+        group = zarr.open_group(store, mode="r+")
+        t = group["transforms"]
+        fas_ref = np.load(partial.path / ".work" / "fas_ref.npy")
+        fas_query = np.load(partial.path / ".work" / "fas_query.npy")
+        writer = ChunkWriter(store, deep, recipe, lay, t["deep1b_mean"][:],
+                             t["deep1b_components"][:].T * t["deep1b_scale"][:],
+                             t["noise_mean"][:], t["noise_std"][:], traverse.gt)
+        tasks = []
+        for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.chunk_rows)):
+            if partial.done(f"chunk-{c}"):
+                continue
+            fr = fas_ref[max(0, a - lay.n_deep) : max(0, min(b, lay.n_ref) - lay.n_deep)]
+            fq = fas_query[max(0, a - lay.n_deep) : max(0, min(b, lay.n_query) - lay.n_deep)]
+            tasks.append(dask.delayed(_write_and_mark)(writer, a, b, fr, fq, partial, f"chunk-{c}"))
+        with timings.stage(f"write {len(tasks)} chunks (homogenise, project, rescale, noise)"):
+            run_tasks(tasks, "write chunks")
+        peak = cluster_peak_rss(client)
+    elapsed = time.perf_counter() - t_start
+    summary = {"store": str(final), "scale": recipe.scale, "ref_rows": lay.n_ref,
+               "query_rows": lay.n_query, "resumed": resumed, "stages_s": timings.stages,
+               "wall_s": elapsed, "peak_rss_bytes": peak}
+    group = zarr.open_group(store, mode="r+")
+    group.attrs[ATTR] = {**provenance, "complete": True, "versions": _versions(), "seed": recipe.seed,
+                         "layout": {"n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
+                                    "n_fas_query": lay.n_fas_query},
+                         "built": {k: v for k, v in summary.items() if k != "store"}}
+    shutil.rmtree(partial.path / ".work")
+    partial.publish()
+    summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
+    return summary
+
+
+def _write_and_mark(writer: ChunkWriter, a: int, b: int, fas_ref: np.ndarray, fas_query: np.ndarray,
+                    partial: PartialOutput, unit: str) -> None:
+    writer(a, b, fas_ref, fas_query)
+    partial.mark(unit)
+
+
+def _save_transforms(group: zarr.Group, merge: MergeTransform, work: Path) -> None:
+    t = group.create_group("transforms", overwrite=True)
+    arrays = {"deep1b_mean": merge.deep_pca_.mean_, "deep1b_components": merge.deep_pca_.components_,
+              "deep1b_explained_variance": merge.deep_pca_.explained_variance_,
+              "deep1b_scale": merge.scale_, "fas_mean": merge.fas_pca_.mean_,
+              "fas_components": merge.fas_pca_.components_,
+              "noise_pca_mean": merge.noise_pca_.mean_, "noise_pca_components": merge.noise_pca_.components_,
+              "noise_mean": merge.noise_mean_, "noise_std": merge.noise_std_}
+    for name, arr in arrays.items():
+        t.create_array(name, data=np.asarray(arr, dtype=np.float64))
+    (work / ".work").mkdir(exist_ok=True)
+    np.save(work / ".work" / "fas_ref.npy", merge.fas_ref_)
+    np.save(work / ".work" / "fas_query.npy", merge.fas_query_)
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    lines = [f"built {s['store']}: {s['ref_rows']:,} ref rows, {s['query_rows']:,} query rows"
+             + (" (resumed)" if s.get("resumed") else "")]
+    for name, secs in s["stages_s"].items():
+        lines.append(f"  {secs:8.1f} s  {name}")
+    lines.append(f"  {s['wall_s']:8.1f} s  total")
+    lines.append(f"  peak memory {s['peak_rss_bytes'] / 2**30:.2f} GiB, {s['bytes_on_disk'] / 2**30:.2f} GiB on disk")
+    return "\n".join(lines)
+
+
+def summary_json(s: dict[str, Any]) -> str:
+    return json.dumps(s, indent=1, default=str)

@@ -1,0 +1,50 @@
+"""Where Dask work runs: an in-process local cluster, or an existing distributed scheduler."""
+
+from __future__ import annotations
+
+import resource
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from distributed import Client, LocalCluster
+
+from vprscale.errors import InputError
+
+
+@contextmanager
+def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Client]:
+    """A client that is also the default scheduler of every Dask call inside the block.
+
+    Without ``scheduler`` the work runs in this process on ``workers`` threads (numpy and
+    BLAS release the GIL in the hot loops), so peak memory is this process's peak.
+    """
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout="10s", set_as_default=True)
+        except OSError as exc:
+            raise InputError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+        with client:
+            yield client
+        return
+    if workers < 1:
+        raise InputError(f"--workers {workers}: must be at least 1")
+    with LocalCluster(n_workers=1, threads_per_worker=workers, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster, set_as_default=True) as client:
+        yield client
+
+
+def peak_rss_bytes() -> int:
+    """Peak resident memory of this process (and its waited-for children)."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return 1024 * max(own, kids)
+
+
+def cluster_peak_rss(client: Client) -> int:
+    """The largest peak RSS among this process and the client's worker processes."""
+    peaks = [peak_rss_bytes()]
+    try:
+        peaks += list(client.run(peak_rss_bytes).values())
+    except Exception:  # noqa: BLE001 - a worker that cannot answer does not fail the job
+        pass
+    return max(peaks)

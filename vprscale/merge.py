@@ -1,0 +1,103 @@
+"""Aligning Deep1B with FAS100K: PCA of each, variance rescaling and the query noise model.
+
+``MergeTransform`` is fitted once per dataset (SPEC §2 steps 2–5) and then applied chunk by
+chunk (steps 6–7) by pure numpy kernels, so workers receive only a few small matrices.
+"""
+
+from __future__ import annotations
+
+import dask
+import dask.array as da
+import numpy as np
+
+from vprscale.blocks import BLOCK, block_rng, block_spans
+from vprscale.pca import ExactPCA, RandomizedPCA
+from vprscale.sources.base import RowSource
+from vprscale.sources.fas import Traverse
+
+NOISE_STREAM = 17
+_FAS_CHUNK = BLOCK
+
+
+def _delta_rows(traverse: Traverse, components: np.ndarray, a: int, b: int) -> np.ndarray:
+    """``PCA(ref[gt]) − PCA(query)`` for queries ``[a, b)``; the PCA mean cancels."""
+    diff = traverse.ref.take(traverse.gt[a:b]).astype(np.float64) - traverse.query.read(a, b)
+    return diff @ components.T
+
+
+class MergeTransform:
+    """Fitted alignment of the two sources (SPEC §2 steps 2–5).
+
+    Parameters
+    ----------
+    dim : components kept of each source (D = 96).
+    n_fas_ref, n_fas_query : FAS rows kept in the dataset.
+    seed : seed of the randomized FAS PCA and of the query noise.
+
+    Fitted attributes: ``deep_pca_`` (exact PCA of homogenised Deep1B), ``fas_pca_``
+    (PCA of the kept FAS reference rows), ``noise_pca_`` (PCA of all FAS reference rows),
+    ``scale_`` (per-column rescaling of Deep1B), ``noise_mean_`` / ``noise_std_`` (μ_n, σ_n),
+    ``fas_ref_`` / ``fas_query_`` (the kept FAS rows, projected).
+    """
+
+    def __init__(self, dim: int, n_fas_ref: int, n_fas_query: int, seed: int) -> None:
+        self.dim, self.n_fas_ref, self.n_fas_query, self.seed = dim, n_fas_ref, n_fas_query, seed
+
+    def fit(self, deep_homogenised: da.Array, traverse: Traverse) -> MergeTransform:
+        self.deep_pca_ = ExactPCA(self.dim).fit(deep_homogenised)
+        ref_all = traverse.ref.to_dask(_FAS_CHUNK)
+        self.noise_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(ref_all)
+        if self.n_fas_ref == traverse.ref.n_rows:
+            self.fas_pca_ = self.noise_pca_
+        else:
+            kept = traverse.ref.head(self.n_fas_ref).to_dask(_FAS_CHUNK)
+            self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(kept)
+        self.fas_ref_, self.fas_query_ = self._project_fas(traverse)
+        fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
+        self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_)
+        self.noise_mean_, self.noise_std_ = self._noise_model(traverse)
+        return self
+
+    def _project_fas(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray]:
+        mean, comp = self.fas_pca_.mean_, self.fas_pca_.components_
+
+        def project(x: np.ndarray) -> np.ndarray:
+            return ((x.astype(np.float64) - mean) @ comp.T).astype(np.float32)
+
+        def projected(source: RowSource) -> da.Array:
+            x = source.to_dask(_FAS_CHUNK)
+            return x.map_blocks(project, chunks=(x.chunks[0], (self.dim,)), dtype=np.float32)
+
+        return dask.compute(projected(traverse.ref.head(self.n_fas_ref)),
+                            projected(traverse.query.head(self.n_fas_query)))
+
+    def _noise_model(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray]:
+        n = traverse.query.n_rows
+        parts = [dask.delayed(_delta_rows)(traverse, self.noise_pca_.components_, a, min(n, a + _FAS_CHUNK)) for a in range(0, n, _FAS_CHUNK)]
+        delta = np.concatenate(dask.compute(*parts))
+        return delta.mean(axis=0), delta.std(axis=0)
+
+    def deep_projection(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean, matrix)`` such that a rescaled Deep1B row is ``(h − mean) @ matrix``."""
+        return self.deep_pca_.mean_, self.deep_pca_.components_.T * self.scale_
+
+
+def project_rows(h: np.ndarray, mean: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """PCA-project and rescale homogenised rows (float64 arithmetic, float32 result)."""
+    return ((h.astype(np.float64) - mean) @ matrix).astype(np.float32)
+
+
+def noisy_rows(ref: np.ndarray, start: int, seed: int, mean: np.ndarray, std: np.ndarray,
+               strengths: tuple[float, ...]) -> list[np.ndarray]:
+    """Query rows ``ref + μ_n + s·σ_n·z`` for each strength ``s``, one shared draw ``z`` per row.
+
+    ``z`` is drawn per absolute block of rows, so it does not depend on the chunking; the
+    QM1 and QM2 queries share it (common random numbers make the two noise levels
+    directly comparable).
+    """
+    z = np.empty_like(ref)
+    for b, lo, hi in block_spans(start, start + len(ref)):
+        full = block_rng(seed, NOISE_STREAM, b).standard_normal((BLOCK, ref.shape[1]), dtype=np.float32)
+        z[lo - start : hi - start] = full[lo - b * BLOCK : hi - b * BLOCK]
+    mean32, std32 = mean.astype(np.float32), std.astype(np.float32)
+    return [ref + (mean32 + np.float32(s) * std32 * z) for s in strengths]

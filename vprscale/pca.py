@@ -1,0 +1,159 @@
+"""Principal component analysis as the recipe and the method need it.
+
+``ExactPCA`` fits from the moments ``(n, Σx, XᵀX)`` accumulated in float64, one streamed
+pass, exact for narrow inputs (96-d: 20–50× faster than incremental PCA and not an
+approximation). Moments are kept per absolute block of rows and summed in block order, so
+the fit is bit-identical whatever the Dask chunking.
+
+``RandomizedPCA`` is for wide inputs (4096-d FAS descriptors), where ``XᵀX`` would cost
+1.6 TFLOP: a streamed randomized range finder with power iterations (Halko et al. 2011).
+Its leading components agree with the exact ones wherever the spectrum has a gap.
+
+Both use scikit-learn's sign rule: the largest-magnitude loading of each component is
+positive.
+"""
+
+from __future__ import annotations
+
+import dask
+import dask.array as da
+import numpy as np
+
+from vprscale.blocks import BLOCK, block_spans
+
+
+def block_moments(x: np.ndarray, start: int) -> np.ndarray:
+    """Per-absolute-block moments of rows ``x`` (first row at absolute ``start``).
+
+    Returns ``(n_blocks, d + 1, d + 1)`` float64: ``[[XᵀX, Σx], [Σxᵀ, n]]`` per block.
+    """
+    d = x.shape[1]
+    spans = list(block_spans(start, start + len(x)))
+    out = np.empty((len(spans), d + 1, d + 1))
+    for k, (_, lo, hi) in enumerate(spans):
+        xb = np.empty((hi - lo, d + 1))
+        xb[:, :d] = x[lo - start : hi - start]
+        xb[:, d] = 1.0
+        out[k] = xb.T @ xb
+    return out
+
+
+def orthonormal(y: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns of a tall ``y`` by Cholesky QR, done twice.
+
+    Twice as accurate as needed and ~10× faster than Householder QR on 50 000 × 128.
+    """
+    for _ in range(2):
+        r = np.linalg.cholesky(y.T @ y + 1e-300 * np.eye(y.shape[1])).T
+        y = y @ np.linalg.inv(r)
+    return y
+
+
+def sign_flip(components: np.ndarray) -> np.ndarray:
+    """Make the largest-magnitude loading of every component (row) positive."""
+    idx = np.argmax(np.abs(components), axis=1)
+    signs = np.sign(components[np.arange(len(components)), idx])
+    signs[signs == 0] = 1
+    return components * signs[:, None]
+
+
+class ExactPCA:
+    """Exact centred PCA from streamed float64 moments.
+
+    Parameters
+    ----------
+    n_components : number of components kept.
+
+    Fitted attributes: ``mean_`` (D,), ``components_`` (n_components, D),
+    ``explained_variance_`` (n_components,) with ddof 0, ``n_samples_``.
+    """
+
+    def __init__(self, n_components: int) -> None:
+        self.n_components = n_components
+
+    def fit_moments(self, moments: np.ndarray) -> ExactPCA:
+        """Fit from summed moments ``[[XᵀX, Σx], [Σxᵀ, n]]``."""
+        d = moments.shape[0] - 1
+        if not 0 < self.n_components <= d:
+            raise ValueError(f"n_components = {self.n_components} must be in [1, {d}]")
+        n = moments[d, d]
+        mean = moments[:d, d] / n
+        cov = moments[:d, :d] / n - np.outer(mean, mean)
+        values, vectors = np.linalg.eigh(cov)
+        order = np.argsort(values)[::-1][: self.n_components]
+        self.mean_ = mean
+        self.components_ = sign_flip(vectors[:, order].T)
+        self.explained_variance_ = np.maximum(values[order], 0.0)
+        self.n_samples_ = int(n)
+        return self
+
+    def fit(self, x: np.ndarray | da.Array, start: int = 0) -> ExactPCA:
+        """Fit on a numpy array or a Dask array (chunks streamed, partials summed in order)."""
+        return self.fit_moments(moments_of(x, start))
+
+    def transform(self, x: np.ndarray) -> np.ndarray:
+        """Centre and project; float64 arithmetic, float32 result."""
+        return ((np.asarray(x, np.float64) - self.mean_) @ self.components_.T).astype(np.float32)
+
+
+def moments_of(x: np.ndarray | da.Array, start: int = 0) -> np.ndarray:
+    """Summed block moments of a numpy or Dask array (deterministic summation order)."""
+    if isinstance(x, da.Array):
+        offsets = np.concatenate([[0], np.cumsum(x.chunks[0])])
+        parts = [dask.delayed(block_moments)(blk, start + int(offsets[i]))
+                 for i, blk in enumerate(x.to_delayed().ravel())]
+        stacked = np.concatenate(dask.compute(*parts))
+    else:
+        stacked = block_moments(np.asarray(x), start)
+    return stacked.sum(axis=0)
+
+
+class RandomizedPCA:
+    """Centred PCA of a wide streamed matrix by a randomized range finder.
+
+    Parameters
+    ----------
+    n_components : components kept.
+    oversample : extra random directions (accuracy of the trailing kept components).
+    n_iter : power iterations (each costs two streamed passes).
+    seed : seed of the random test matrix.
+    """
+
+    def __init__(self, n_components: int, oversample: int = 32, n_iter: int = 2, seed: int = 0) -> None:
+        self.n_components, self.oversample, self.n_iter, self.seed = n_components, oversample, n_iter, seed
+
+    def fit(self, x: da.Array) -> RandomizedPCA:
+        """Fit on a Dask array of rows; each pass is one parallel streamed read.
+
+        Products are taken on the uncentred float32 rows and centred afterwards in float64
+        (``(X − 1μᵀ)B = XB − 1(μᵀB)``), so the mean costs no pass of its own.
+        """
+        n, d = x.shape
+        k = min(self.n_components + self.oversample, d, n)
+        omega = np.random.default_rng(self.seed).standard_normal((d, k)).astype(np.float32)
+        total, y = dask.compute(x.astype(np.float64).sum(axis=0), x @ omega)
+        mean = total / n
+
+        def centred_range(basis: np.ndarray, xb: np.ndarray) -> np.ndarray:
+            return xb.astype(np.float64) - mean @ basis
+
+        def corange(q: np.ndarray) -> np.ndarray:  # (X − 1μᵀ)ᵀ Q, one pass
+            z = (x.T @ q.astype(np.float32)).compute().astype(np.float64)
+            return z - np.outer(mean, q.sum(axis=0))
+
+        q = orthonormal(centred_range(omega, y))
+        for _ in range(self.n_iter):
+            z = orthonormal(corange(q))
+            z32 = z.astype(np.float32)
+            q = orthonormal(centred_range(z32, (x @ z32).compute()))
+        _, s, vt = np.linalg.svd(corange(q).T, full_matrices=False)
+        keep = slice(0, self.n_components)
+        self.mean_ = mean
+        self.components_ = sign_flip(vt[keep])
+        self.explained_variance_ = s[keep] ** 2 / n
+        self.n_samples_ = n
+        return self
+
+    def transform(self, x: np.ndarray) -> np.ndarray:
+        """Centre and project; float64 arithmetic, float32 result."""
+        return ((np.asarray(x, np.float64) - self.mean_) @ self.components_.T).astype(np.float32)

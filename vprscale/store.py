@@ -1,0 +1,106 @@
+"""Lifecycle of an output directory: lock, work in a hidden partial copy, publish atomically.
+
+A build (or an index) writes into ``.<name>.partial`` beside its final path, records each
+finished unit of work as a marker file, and only when everything is written sets
+``complete`` and renames the partial copy into place. So a reader never finds an
+incomplete output at the public path, a killed job resumes from its markers, and
+``--force`` replaces an existing output only once the new one is whole.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import shutil
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import zarr
+
+from vprscale.errors import InputError
+
+ATTR = "vprscale"
+
+
+@contextmanager
+def exclusive(path: Path):
+    """Hold an advisory lock for ``path``; a second holder is refused (kill -9 frees it)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = path.with_name(f".{path.name}.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(f"{path}: another vprscale job is writing this output (lock {lock})") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        os.close(fd)
+
+
+class PartialOutput:
+    """The hidden work copy of an output directory, with its done-markers."""
+
+    def __init__(self, final: Path, key: dict[str, Any]) -> None:
+        self.final = final
+        self.path = final.with_name(f".{final.name}.partial")
+        self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
+        self._markers = self.path / ".done"
+
+    def open(self) -> bool:
+        """Create the work copy, or keep it if it belongs to the same job; True if resumed."""
+        key_file = self.path / ".job.json"
+        if key_file.is_file() and json.loads(key_file.read_text()) == self.key:
+            return True
+        if self.path.exists():
+            shutil.rmtree(self.path)
+        self._markers.mkdir(parents=True)
+        key_file.write_text(json.dumps(self.key, sort_keys=True, indent=1))
+        return False
+
+    def done(self, unit: str) -> bool:
+        return (self._markers / unit).exists()
+
+    def mark(self, unit: str) -> None:
+        tmp = self._markers / f".{unit}.tmp"
+        tmp.write_text("")
+        tmp.replace(self._markers / unit)
+
+    def publish(self) -> None:
+        """Move the finished work copy to the final path, replacing an older output last."""
+        shutil.rmtree(self._markers)
+        (self.path / ".job.json").unlink()
+        old = self.final.with_name(f".{self.final.name}.old")
+        if old.exists():
+            shutil.rmtree(old)
+        if self.final.exists():
+            self.final.replace(old)
+        self.path.replace(self.final)
+        if old.exists():
+            shutil.rmtree(old)
+
+
+def check_writable(out: Path) -> None:
+    """Fail early, naming the directory, if outputs cannot be written there."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot create the output directory: {exc.strerror}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise InputError(f"--out {out}: the output directory is not writable")
+
+
+def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.Group:
+    """Open a published Zarr store, refusing one that is missing or not marked complete."""
+    p = Path(path)
+    if not (p / "zarr.json").is_file():
+        raise InputError(f"{p}: not a vprscale {kind} store (no zarr.json)")
+    group = zarr.open_group(p, mode="r")
+    meta = group.attrs.get(ATTR, {})
+    if not meta.get("complete"):
+        raise InputError(f"{p}: the {kind} store is incomplete (its build did not finish)")
+    return group
