@@ -187,8 +187,9 @@ def _gib(x: float) -> str:
 
 def print_plan(p: dict[str, Any], out: Path) -> None:
     print(f"build {p['scale']} → {out}")
-    print(f"  ref rows    {p['ref_rows']:>15,}   (Deep1B {p['ref_rows'] - p['fas_ref_rows']:,} + FAS {p['fas_ref_rows']:,})")
-    print(f"  query rows  {p['query_rows']:>15,}   (Deep1B {p['query_rows'] - p['fas_query_rows']:,} + FAS {p['fas_query_rows']:,})")
+    for kind in ("ref", "query"):
+        rows, fas = p[f"{kind}_rows"], p[f"fas_{kind}_rows"]
+        print(f"  {kind + ' rows':<11} {rows:>15,}   (Deep1B {rows - fas:,} + FAS {fas:,})")
     print(f"  reads       {_gib(p['bytes_read']):>15}   from {p['deep1b']} and {p['fas']}")
     print(f"  writes      {_gib(p['bytes_written_max']):>15}   at most (before compression)")
     print(f"  disk free   {_gib(p['disk_free']):>15}")

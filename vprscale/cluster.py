@@ -7,8 +7,19 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 from distributed import Client, LocalCluster
+from threadpoolctl import threadpool_limits
 
 from vprscale.errors import InputError
+
+
+def single_threaded_blas() -> None:
+    """Pin BLAS to one thread in this process.
+
+    Dask already runs one task per core; and a multi-threaded BLAS may split a product's
+    sums differently with its thread count, which would make the bytes of a result depend
+    on the machine's cores. One thread per product keeps "same seed, same bytes".
+    """
+    threadpool_limits(limits=1, user_api="blas")
 
 
 @contextmanager
@@ -23,13 +34,16 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
             client = Client(scheduler, timeout="10s", set_as_default=True)
         except OSError as exc:
             raise InputError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
-        with client:
+        with client, threadpool_limits(limits=1, user_api="blas"):
+            client.run(single_threaded_blas)
             yield client
         return
     if workers < 1:
         raise InputError(f"--workers {workers}: must be at least 1")
-    with LocalCluster(n_workers=1, threads_per_worker=workers, processes=False,
-                      dashboard_address=None) as cluster, Client(cluster, set_as_default=True) as client:
+    with (threadpool_limits(limits=1, user_api="blas"),
+          LocalCluster(n_workers=1, threads_per_worker=workers, processes=False,
+                       dashboard_address=None) as cluster,
+          Client(cluster, set_as_default=True) as client):
         yield client
 
 

@@ -73,7 +73,8 @@ class MergeTransform:
 
     def _noise_model(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray]:
         n = traverse.query.n_rows
-        parts = [dask.delayed(_delta_rows)(traverse, self.noise_pca_.components_, a, min(n, a + _FAS_CHUNK)) for a in range(0, n, _FAS_CHUNK)]
+        comp = self.noise_pca_.components_
+        parts = [dask.delayed(_delta_rows)(traverse, comp, a, min(n, a + _FAS_CHUNK)) for a in range(0, n, _FAS_CHUNK)]
         delta = np.concatenate(dask.compute(*parts))
         return delta.mean(axis=0), delta.std(axis=0)
 

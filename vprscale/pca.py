@@ -19,7 +19,7 @@ import dask
 import dask.array as da
 import numpy as np
 
-from vprscale.blocks import BLOCK, block_spans
+from vprscale.blocks import block_spans
 
 
 def block_moments(x: np.ndarray, start: int) -> np.ndarray:

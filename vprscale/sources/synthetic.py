@@ -58,13 +58,13 @@ class SyntheticDeep1B(RowSource):
         return _deep_model(self.seed, self.params)
 
     def _block(self, b: int) -> np.ndarray:
+        """A whole block is always drawn, so rows never depend on ``n_rows``."""
         centres, within, _ = self._model
-        n = min(BLOCK, self.n_rows - b * BLOCK)
         rng = block_rng(self.seed, _DEEP_ROWS, b)
-        which = rng.integers(0, len(centres), n)
-        x = centres[which] + rng.standard_normal((n, self.dim), dtype=np.float32) @ within
+        which = rng.integers(0, len(centres), BLOCK)
+        x = centres[which] + rng.standard_normal((BLOCK, self.dim), dtype=np.float32) @ within
         x /= np.linalg.norm(x, axis=1, keepdims=True)
-        return x
+        return x[: min(BLOCK, self.n_rows - b * BLOCK)]
 
     def _read(self, start: int, stop: int) -> np.ndarray:
         parts = [self._block(b)[lo - b * BLOCK : hi - b * BLOCK] for b, lo, hi in block_spans(start, stop)]

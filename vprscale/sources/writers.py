@@ -50,7 +50,7 @@ def write_fbin(source: RowSource, path: str | os.PathLike) -> Path:
     tmp = _atomic_target(path)
     with open(tmp, "wb") as fh:
         fh.write(np.array([source.n_rows, source.dim], dtype="<u4").tobytes())
-        for a, x in source.iter_chunks(_CHUNK):
+        for _, x in source.iter_chunks(_CHUNK):
             fh.write(x.astype("<f4").tobytes())
     tmp.replace(path)
     return path

@@ -1,0 +1,43 @@
+"""Shared fixtures: small sources written in the real layouts, and a small recipe."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
+
+from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS  # noqa: E402
+from vprscale.sources.writers import write_fas_npz, write_fbin, write_fvecs  # noqa: E402
+
+SMALL_FAS = FasParams(dim=128, n_ref=3000, n_query=2000, segment_frames=(150, 500))
+DEEP_ROWS = 70_000
+
+
+@pytest.fixture(scope="session")
+def sources(tmp_path_factory) -> dict[str, Path]:
+    """Synthetic Deep1B as fvecs chunks and fbin, and a small FAS npz (seed 3)."""
+    root = tmp_path_factory.mktemp("sources")
+    deep = SyntheticDeep1B(DEEP_ROWS, seed=3)
+    write_fvecs(deep, root / "base", rows_per_file=30_000)
+    write_fbin(deep, root / "base.fbin")
+    write_fas_npz(SyntheticFAS(3, SMALL_FAS).traverse(), root / "fas.npz")
+    return {"fvecs": root / "base", "fbin": root / "base.fbin", "fas": root / "fas.npz", "root": root}
+
+
+def write_recipe(path: Path, **overrides) -> Path:
+    """A small recipe TOML (scale ``tiny``) with fields overridden as given."""
+    fields = {"scale": "tiny", "deep1b_rows_read": 60_000, "deep1b_rows_kept": 50_000,
+              "fas_ref_rows": 2500, "fas_query_rows": "all", "query_stride": 10, "window": 40,
+              "dim": 96, "seed": 5, "chunk_rows": 16384}
+    fields.update(overrides)
+    lines = [f"{k} = {v!r}".replace("'", '"') for k, v in fields.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture
+def recipe(tmp_path) -> Path:
+    return write_recipe(tmp_path / "tiny.toml")

@@ -1,0 +1,135 @@
+"""The dataset build against a direct in-memory numpy computation of SPEC §2."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from vprscale.build import BuildRequest, build
+from vprscale.sources.deep1b import open_deep1b
+from vprscale.sources.fas import open_fas
+
+from .conftest import write_recipe
+
+ARRAYS = ("ref", "query_qm1", "query_qm2", "gt", "ref_part", "query_part")
+
+
+def run_build(recipe, out, sources, layout="fbin", **kw):
+    deep = sources.get(layout)
+    req = BuildRequest(scale=str(recipe), out=out, deep1b=str(deep) if deep else None, fas=str(sources["fas"]),
+                       workers=kw.pop("workers", 2), quiet=True, **kw)
+    return build(req)
+
+
+def exact_pca(x: np.ndarray, k: int = 96):
+    mean = x.mean(axis=0)
+    cov = np.cov(x - mean, rowvar=False, bias=True)
+    w, v = np.linalg.eigh(cov)
+    comp = v[:, np.argsort(w)[::-1][:k]].T
+    idx = np.argmax(np.abs(comp), axis=1)
+    comp *= np.sign(comp[np.arange(k), idx])[:, None]
+    return mean, comp
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory, sources):
+    root = tmp_path_factory.mktemp("built")
+    recipe = write_recipe(root / "tiny.toml")
+    run_build(recipe, root / "out", sources)
+    return zarr.open_group(root / "out" / "tiny.zarr", mode="r"), sources
+
+
+def direct(sources):
+    """SPEC §2 steps 1–8 in memory with plain numpy (float64 throughout)."""
+    raw = open_deep1b(sources["fvecs"]).read(0, 60_000).astype(np.float64)
+    n, w = 60_000, 40
+    csum = np.vstack([np.zeros(96), np.cumsum(raw, axis=0)])
+    i = np.arange(50_000)
+    a, b = np.maximum(0, i - w // 2), np.minimum(n, i + w // 2)
+    h = (csum[b] - csum[a]) / (b - a)[:, None]
+    mean, comp = exact_pca(h)
+    deep = (h - mean) @ comp.T
+    tr = open_fas(sources["fas"])
+    fref = tr.ref.read(0, 3000).astype(np.float64)
+    fq = tr.query.read(0, 2000).astype(np.float64)
+    fmean, fcomp = exact_pca(fref[:2500])
+    fas_ref, fas_q = (fref[:2500] - fmean) @ fcomp.T, (fq - fmean) @ fcomp.T
+    deep *= fas_ref.std(axis=0) / deep.std(axis=0)
+    _, ncomp = exact_pca(fref)
+    delta = (fref[tr.gt] - fq) @ ncomp.T
+    gt = np.concatenate([np.arange(50_000), np.where(tr.gt < 2500, 50_000 + tr.gt, -1)])
+    return {"deep": deep, "fas_ref": fas_ref, "fas_q": fas_q, "mu": delta.mean(0), "sigma": delta.std(0),
+            "gt": gt, "h": h}
+
+
+@pytest.fixture(scope="module")
+def expected(built):
+    return direct(built[1])
+
+
+def test_store_layout_and_provenance(built):
+    g, _ = built
+    assert g["ref"].shape == (52_500, 96) and g["query_qm1"].shape == (52_000, 96)
+    assert g["gt"].dtype == np.int64 and g["ref_part"].dtype == np.uint8
+    meta = g.attrs["vprscale"]
+    assert meta["complete"] is True
+    assert meta["recipe"]["scale"] == "tiny" and meta["seed"] == 5
+    assert meta["sources"]["deep1b"]["format"] == "fbin"
+    assert {"numpy", "dask", "zarr", "vprscale"} <= set(meta["versions"])
+    assert g["transforms/deep1b_components"].shape == (96, 96)
+
+
+def test_homogenised_pca_matches_direct_computation(built, expected):
+    g, _ = built
+    np.testing.assert_allclose(g["ref"][:50_000], expected["deep"], atol=2e-5, rtol=1e-4)
+    np.testing.assert_allclose(g["transforms/deep1b_mean"][:], expected["h"].mean(0), atol=1e-8)
+
+
+def test_fas_part_matches_direct_pca(built, expected):
+    g, _ = built
+    np.testing.assert_allclose(g["ref"][50_000:], expected["fas_ref"], atol=2e-5)
+    np.testing.assert_allclose(g["query_qm1"][50_000:], expected["fas_q"], atol=2e-5)
+    np.testing.assert_array_equal(g["query_qm1"][50_000:], g["query_qm2"][50_000:])
+
+
+def test_rescaled_spreads_are_equal(built):
+    g, _ = built
+    ref = g["ref"][:].astype(np.float64)
+    np.testing.assert_allclose(ref[:50_000].std(0), ref[50_000:].std(0), rtol=1e-4)
+
+
+def test_noise_model_and_query_noise(built, expected):
+    g, _ = built
+    np.testing.assert_allclose(g["transforms/noise_mean"][:], expected["mu"], atol=1e-6)
+    np.testing.assert_allclose(g["transforms/noise_std"][:], expected["sigma"], rtol=1e-5)
+    ref = g["ref"][:50_000].astype(np.float64)
+    n = len(ref)
+    for name, s in (("query_qm1", 1.0), ("query_qm2", 2.0)):
+        noise = g[name][:50_000] - ref
+        sigma = s * expected["sigma"]
+        assert np.all(np.abs(noise.mean(0) - expected["mu"]) < 5 * sigma / np.sqrt(n))
+        assert np.all(np.abs(noise.std(0) / sigma - 1) < 5 / np.sqrt(2 * n))
+
+
+def test_ground_truth_and_parts(built, expected):
+    g, _ = built
+    np.testing.assert_array_equal(g["gt"][:], expected["gt"])
+    assert (expected["gt"][50_000:] == -1).any()  # the truncation to 2500 FAS refs drops some
+    np.testing.assert_array_equal(g["ref_part"][:], np.r_[np.zeros(50_000), np.ones(2500)])
+    np.testing.assert_array_equal(g["query_part"][:], np.r_[np.zeros(50_000), np.ones(2000)])
+
+
+def _arrays(path):
+    g = zarr.open_group(path, mode="r")
+    return {k: g[k][:] for k in ARRAYS} | {"components": g["transforms/deep1b_components"][:]}
+
+
+def test_same_bytes_whatever_chunk_size_workers_and_layout(built, sources, tmp_path):
+    g, _ = built
+    recipe = write_recipe(tmp_path / "tiny.toml", chunk_rows=32768)
+    run_build(recipe, tmp_path / "o", sources, layout="fvecs", workers=1)
+    other = _arrays(tmp_path / "o" / "tiny.zarr")
+    base = {k: g[k][:] for k in ARRAYS} | {"components": g["transforms/deep1b_components"][:]}
+    for k in base:
+        assert base[k].tobytes() == other[k].tobytes(), k

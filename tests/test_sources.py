@@ -1,0 +1,175 @@
+"""Readers of the real layouts, on files written in those layouts, and the generator."""
+
+from __future__ import annotations
+
+import zipfile
+
+import numpy as np
+import pytest
+
+from vprscale.errors import InputError
+from vprscale.sources.deep1b import FbinSource, FvecsSource, open_deep1b
+from vprscale.sources.fas import open_fas
+from vprscale.sources.synthetic import SyntheticDeep1B, SyntheticFAS
+from vprscale.sources.writers import write_fas_npz
+
+from .conftest import DEEP_ROWS, SMALL_FAS
+
+
+def _expected(n: int = DEEP_ROWS) -> np.ndarray:
+    return SyntheticDeep1B(n, seed=3).read(0, n)
+
+
+@pytest.mark.parametrize("layout", ["fvecs", "fbin"])
+def test_deep1b_layouts_read_back_the_generator_rows(sources, layout):
+    src = open_deep1b(sources[layout])
+    assert (src.n_rows, src.dim) == (DEEP_ROWS, 96)
+    expected = _expected()
+    np.testing.assert_array_equal(src.read(0, DEEP_ROWS), expected)
+    # A range that straddles the border between base_00 and base_01.
+    np.testing.assert_array_equal(src.read(29_990, 30_010), expected[29_990:30_010])
+
+
+def test_fvecs_directory_is_read_in_name_order(sources):
+    src = FvecsSource(sources["fvecs"])
+    assert [f.name for f in src.files] == ["base_00", "base_01", "base_02"]
+
+
+def test_dask_view_keeps_data_out_of_the_graph(sources):
+    x = FbinSource(sources["fbin"]).to_dask(16384)
+    graph_bytes = sum(len(repr(v)) for v in dict(x.__dask_graph__()).values())
+    assert graph_bytes < 100_000
+    np.testing.assert_array_equal(x[100:200].compute(), _expected()[100:200])
+
+
+def test_fvecs_truncated_file_names_file_and_offset(tmp_path):
+    data = (tmp_path / "base_00")
+    rec = np.zeros((3, 97), "<f4")
+    rec[:, 0] = np.array(96, "<i4").view("<f4")
+    data.write_bytes(rec.tobytes()[:-10])
+    with pytest.raises(InputError, match=r"base_00: size 1154 is not a multiple .* offset 776"):
+        FvecsSource(data)
+
+
+def test_fvecs_record_of_other_dimension_names_offset(tmp_path):
+    rec = np.zeros((4, 97), "<f4")
+    rec[:, 0] = np.array(96, "<i4").view("<f4")
+    rec[2, 0] = np.array(95, "<i4").view("<f4")
+    path = tmp_path / "x.fvecs"
+    path.write_bytes(rec.tobytes())
+    with pytest.raises(InputError, match=r"x.fvecs: offset 776: record dimension 95, expected 96"):
+        FvecsSource(path).read(0, 4)
+
+
+def test_nan_row_is_named(tmp_path):
+    rows = np.ones((10, 96), "<f4")
+    rows[7, 3] = np.nan
+    path = tmp_path / "bad.fbin"
+    path.write_bytes(np.array([10, 96], "<u4").tobytes() + rows.tobytes())
+    with pytest.raises(InputError, match="row 7 holds NaN or Inf"):
+        FbinSource(path).read(0, 10)
+
+
+def test_inf_row_is_named_in_fvecs(tmp_path):
+    rec = np.ones((5, 97), "<f4")
+    rec[:, 0] = np.array(96, "<i4").view("<f4")
+    rec[4, 9] = np.inf
+    path = tmp_path / "inf.fvecs"
+    path.write_bytes(rec.tobytes())
+    with pytest.raises(InputError, match="row 4 holds NaN or Inf"):
+        FvecsSource(path).read(2, 5)
+
+
+@pytest.mark.parametrize("extra", [-4, 4])
+def test_fbin_size_must_match_header(tmp_path, extra):
+    path = tmp_path / "bad.fbin"
+    body = np.zeros(4 * 96, "<f4").tobytes()
+    path.write_bytes(np.array([4, 96], "<u4").tobytes() + body + b"\0" * max(0, extra))
+    if extra < 0:
+        path.write_bytes(path.read_bytes()[:extra])
+    with pytest.raises(InputError, match=r"bad.fbin: header says n = 4, d = 96 .* 1544 bytes"):
+        FbinSource(path)
+
+
+def test_fbin_offsets_do_not_overflow_int32():
+    # 6 M rows × 96: byte offsets past 2**31 must be Python ints.
+    class Probe(FbinSource):
+        def __init__(self):
+            self.n_rows, self.dim, self.name = 6_000_000, 96, "probe"
+
+    offset = 8 + 4 * 5_900_000 * Probe().dim
+    assert offset > 2**31 and isinstance(offset, int)
+
+
+def test_fas_npz_round_trip(sources):
+    tr = open_fas(sources["fas"])
+    ref = SyntheticFAS(3, SMALL_FAS).traverse()
+    assert (tr.ref.n_rows, tr.query.n_rows, tr.ref.dim) == (3000, 2000, 128)
+    np.testing.assert_array_equal(tr.ref.read(0, 3000), ref.ref.read(0, 3000))
+    np.testing.assert_array_equal(tr.query.read(1990, 2000), ref.query.read(1990, 2000))
+    np.testing.assert_array_equal(tr.gt, ref.gt)
+
+
+def test_fas_compressed_npz_is_read_through_a_cache(tmp_path, monkeypatch, sources):
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "cache"))
+    plain = open_fas(sources["fas"])
+    arrays = {f"arr_{i}": a for i, a in enumerate([plain.ref.read(0, 3000), plain.query.read(0, 2000),
+                                                    plain.gt, plain.ref_pos, plain.query_pos])}
+    np.savez_compressed(tmp_path / "c.npz", **arrays)
+    tr = open_fas(tmp_path / "c.npz")
+    np.testing.assert_array_equal(tr.query.read(5, 50), arrays["arr_1"][5:50])
+
+
+def _npz(tmp_path, **changes):
+    base = {"arr_0": np.zeros((20, 128), "f4"), "arr_1": np.zeros((10, 128), "f4"),
+            "arr_2": np.arange(10), "arr_3": np.zeros((20, 3)), "arr_4": np.zeros((10, 3))}
+    base.update(changes)
+    np.savez(tmp_path / "f.npz", **base)
+    return tmp_path / "f.npz"
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"arr_2": np.arange(10) + 15}, r"arr_2 row 5: ground truth 20 outside \[0, 20\)"),
+    ({"arr_2": np.arange(9)}, "arr_2 must be 10 integer ground-truth indices"),
+    ({"arr_1": np.zeros((10, 64), "f4")}, "arr_0 has 128 columns but arr_1 has 64"),
+    ({"arr_0": np.zeros((20, 128), "f8")}, "arr_0 must be a 2-D float32 array"),
+    ({"arr_4": np.zeros((9, 3))}, "arr_4 must hold 10 positions"),
+])
+def test_fas_validation(tmp_path, changes, message):
+    with pytest.raises(InputError, match=message):
+        open_fas(_npz(tmp_path, **changes))
+
+
+def test_fas_missing_array_and_not_a_zip(tmp_path):
+    np.savez(tmp_path / "m.npz", arr_0=np.zeros((2, 2), "f4"))
+    with pytest.raises(InputError, match="missing array arr_1"):
+        open_fas(tmp_path / "m.npz")
+    (tmp_path / "z.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not an .npz"):
+        open_fas(tmp_path / "z.npz")
+
+
+def test_synthetic_rows_do_not_depend_on_how_they_are_read():
+    src = SyntheticDeep1B(50_000, seed=9)
+    whole = src.read(0, 50_000)
+    pieces = np.concatenate([src.read(a, min(50_000, a + 7_777)) for a in range(0, 50_000, 7_777)])
+    np.testing.assert_array_equal(whole, pieces)
+    # The first rows do not depend on how many rows the source holds.
+    np.testing.assert_array_equal(SyntheticDeep1B(1000, seed=9).read(0, 1000), whole[:1000])
+    assert not np.array_equal(SyntheticDeep1B(1000, seed=10).read(0, 1000), whole[:1000])
+
+
+def test_synthetic_fas_files_are_byte_identical_for_a_seed(tmp_path):
+    a = write_fas_npz(SyntheticFAS(1, SMALL_FAS).traverse(), tmp_path / "a.npz")
+    b = write_fas_npz(SyntheticFAS(1, SMALL_FAS).traverse(), tmp_path / "b.npz")
+    with zipfile.ZipFile(a) as za, zipfile.ZipFile(b) as zb:
+        for name in za.namelist():
+            assert za.read(name) == zb.read(name)
+
+
+def test_synthetic_fas_ground_truth_is_the_nearest_reference_frame():
+    fas = SyntheticFAS(2, SMALL_FAS)
+    tr = fas.traverse()
+    s = fas.positions("query")
+    assert np.all(np.abs(s - 5.0 * tr.gt) <= 2.5 + 1e-9)
+    assert np.all(np.diff(tr.gt) > -20)  # the query repeats the route in order, up to jitter
