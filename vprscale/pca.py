@@ -131,7 +131,7 @@ class RandomizedPCA:
         n, d = x.shape
         k = min(self.n_components + self.oversample, d, n)
         omega = np.random.default_rng(self.seed).standard_normal((d, k)).astype(np.float32)
-        total, y = dask.compute(x.astype(np.float64).sum(axis=0), x @ omega)
+        total, y = dask.compute(x.sum(axis=0, dtype=np.float64), x @ omega)
         mean = total / n
 
         def centred_range(basis: np.ndarray, xb: np.ndarray) -> np.ndarray:

@@ -15,6 +15,8 @@ import numpy as np
 from vprscale.blocks import BLOCK
 from vprscale.errors import InputError
 
+_TAKE_RUN = 4096
+
 
 class RowSource(abc.ABC):
     """A read-only ``n_rows × dim`` float32 array, read by row range."""
@@ -43,15 +45,14 @@ class RowSource(abc.ABC):
         return rows
 
     def take(self, rows: np.ndarray) -> np.ndarray:
-        """Rows at arbitrary indices, read one block at a time."""
+        """Rows at arbitrary indices, read a run of ``_TAKE_RUN`` rows at a time."""
         rows = np.asarray(rows, dtype=np.int64)
         out = np.empty((len(rows), self.dim), dtype=np.float32)
-        blocks = rows // BLOCK
-        for b in np.unique(blocks):
-            sel = np.flatnonzero(blocks == b)
-            lo = int(b) * BLOCK
-            part = self.read(lo, min(self.n_rows, lo + BLOCK))
-            out[sel] = part[rows[sel] - lo]
+        runs = rows // _TAKE_RUN
+        for r in np.unique(runs):
+            sel = np.flatnonzero(runs == r)
+            lo, hi = int(rows[sel].min()), int(rows[sel].max()) + 1
+            out[sel] = self.read(lo, hi)[rows[sel] - lo]
         return out
 
     def head(self, n: int) -> RowSource:

@@ -30,6 +30,7 @@ from vprscale.sources.fas import Traverse
 
 GENERATOR_VERSION = 1
 FRAME_M = 5.0
+FAS_BLOCK = 4096  # FAS rows are 4096-d: a smaller generator block keeps reads cheap
 
 # Random stream identifiers (one Philox key space per purpose).
 _DEEP_GLOBAL, _DEEP_ROWS, _FAS_GLOBAL, _FAS_REF, _FAS_QUERY = range(1, 6)
@@ -112,8 +113,8 @@ class _FasFrames(RowSource):
         self.name = f"synthetic FAS {which} (seed {owner.seed})"
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        parts = [self.owner.frames(self.which, b)[lo - b * BLOCK : hi - b * BLOCK]
-                 for b, lo, hi in block_spans(start, stop)]
+        parts = [self.owner.frames(self.which, b)[lo - b * FAS_BLOCK : hi - b * FAS_BLOCK]
+                 for b, lo, hi in block_spans(start, stop, FAS_BLOCK)]
         return np.concatenate(parts) if parts else np.empty((0, self.dim), np.float32)
 
     def fingerprint(self) -> dict[str, Any]:
@@ -150,7 +151,7 @@ class SyntheticFAS:
         """Descriptors of block ``b`` of the reference or query traverse."""
         p, m = self.params, self._model
         n_rows = p.n_ref if which == "ref" else p.n_query
-        s = self.positions(which)[b * BLOCK : min(n_rows, (b + 1) * BLOCK)]
+        s = self.positions(which)[b * FAS_BLOCK : min(n_rows, (b + 1) * FAS_BLOCK)]
         z = self._latent(m["knots"], s)
         rng = block_rng(self.seed, _FAS_REF if which == "ref" else _FAS_QUERY, b)
         noise = rng.standard_normal(z.shape) * m["scale"]
