@@ -41,3 +41,25 @@ def write_recipe(path: Path, **overrides) -> Path:
 @pytest.fixture
 def recipe(tmp_path) -> Path:
     return write_recipe(tmp_path / "tiny.toml")
+
+
+@pytest.fixture(scope="session")
+def tiny_store(tmp_path_factory, sources) -> Path:
+    """The tiny recipe built once from the fbin and npz sources."""
+    from vprscale.build import BuildRequest, build
+
+    root = tmp_path_factory.mktemp("built")
+    recipe = write_recipe(root / "tiny.toml")
+    build(BuildRequest(scale=str(recipe), out=root / "out", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+                       workers=2, quiet=True))
+    return root / "out" / "tiny.zarr"
+
+
+@pytest.fixture(scope="session")
+def tiny_index(tiny_store, tmp_path_factory) -> Path:
+    """A d = 12 CoarseHash index of the tiny store."""
+    from vprscale.index import build_index
+
+    out = tmp_path_factory.mktemp("index") / "tiny.index"
+    build_index(tiny_store, d=12, out=out, quiet=True)
+    return out

@@ -33,11 +33,8 @@ def exact_pca(x: np.ndarray, k: int = 96):
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory, sources):
-    root = tmp_path_factory.mktemp("built")
-    recipe = write_recipe(root / "tiny.toml")
-    run_build(recipe, root / "out", sources)
-    return zarr.open_group(root / "out" / "tiny.zarr", mode="r"), sources
+def built(tiny_store, sources):
+    return zarr.open_group(tiny_store, mode="r"), sources
 
 
 def direct(sources):

@@ -38,3 +38,16 @@ def check_chunk_rows(chunk_rows: int) -> None:
 def block_rng(seed: int, stream: int, block: int) -> np.random.Generator:
     """The generator for one block of one random stream: a pure function of its key."""
     return np.random.Generator(np.random.Philox(key=[seed & (2**64 - 1), (stream << 40) | block]))
+
+
+def apply_by_block(func, x: np.ndarray, start: int, *args) -> np.ndarray:
+    """``func`` on each absolute-block piece of rows ``x`` (first row at ``start``), concatenated.
+
+    A BLAS product may round a row differently depending on how many rows share the call
+    (edge tiles use other kernels); calling it on the same absolute blocks whatever the
+    chunking keeps every row's bits independent of the chunk size.
+    """
+    spans = list(block_spans(start, start + len(x)))
+    if len(spans) == 1:
+        return func(x, *args)
+    return np.concatenate([func(x[lo - start : hi - start], *args) for _, lo, hi in spans])

@@ -23,7 +23,7 @@ import numpy as np
 import zarr
 
 import vprscale
-from vprscale.blocks import BLOCK, chunk_bounds
+from vprscale.blocks import BLOCK, apply_by_block, chunk_bounds
 from vprscale.cluster import cluster_peak_rss, dask_client
 from vprscale.errors import InputError
 from vprscale.homogenise import homogenised, window_mean
@@ -129,8 +129,11 @@ class ChunkWriter:
     def __call__(self, a: int, b: int, fas_ref: np.ndarray, fas_query: np.ndarray) -> None:
         lay = self.layout
         d_hi = min(b, lay.n_deep)
-        deep = (project_rows(window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window),
-                             self.mean, self.matrix) if a < d_hi else np.empty((0, self.recipe.dim), np.float32))
+        if a < d_hi:
+            h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
+            deep = apply_by_block(project_rows, h, a, self.mean, self.matrix)
+        else:
+            deep = np.empty((0, self.recipe.dim), np.float32)
         queries = noisy_rows(deep, a, self.recipe.seed, self.noise_mean, self.noise_std,
                              tuple(NOISE_LEVELS.values()))
         group = zarr.open_group(self.store, mode="r+")

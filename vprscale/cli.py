@@ -46,6 +46,38 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_index(args: argparse.Namespace) -> int:
+    from vprscale.index import build_index
+    from vprscale.storage import format_storage
+
+    meta = build_index(args.store, d=args.d, k=args.k, out=args.out, scheduler=args.scheduler,
+                       workers=args.workers)
+    print(f"indexed {meta['n_ref']:,} refs of {args.store} → {meta['index']}")
+    print(f"  d = {meta['d']}, K = {meta['k']}, {meta['occupied']:,} occupied addresses "
+          f"({meta['occupied'] / meta['k'] ** meta['d']:.4%} of K^d)")
+    for name, secs in meta["timings_s"].items():
+        print(f"  {secs:8.1f} s  {name}")
+    print(f"  peak memory {meta['peak_rss_bytes'] / 2**30:.2f} GiB")
+    print(format_storage(meta["storage"]))
+    return 0
+
+
+def cmd_sql(args: argparse.Namespace) -> int:
+    from vprscale.sql import run_sql, shell
+
+    if args.query is None:
+        return shell(args.index, timeout=args.timeout)
+    print(run_sql(args.index, args.query, fmt=args.format, timeout=args.timeout), end="")
+    return 0
+
+
+def cmd_occupancy(args: argparse.Namespace) -> int:
+    from vprscale.occupancy import format_occupancy, occupancy
+
+    print(format_occupancy(occupancy(args.index, top=args.top)))
+    return 0
+
+
 def _add_cluster(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler "
                    "(tcp://host:8786); default: a local in-process cluster")
@@ -78,6 +110,28 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="rebuild a complete store (replaced only when done)")
     _add_cluster(p)
     p.set_defaults(func=cmd_build)
+
+    p = sub.add_parser("index", help="fit CoarseHash on a dataset store and write its inverted lists")
+    p.add_argument("store", help="a complete <scale>.zarr dataset store")
+    p.add_argument("--d", type=_positive_int, default=None, help="hash digits (default ⌈log2 N_ref⌉)")
+    p.add_argument("--k", type=int, default=2, help="levels per component (default 2)")
+    p.add_argument("--out", help="index directory (default: beside the store, <scale>-d<d>-k<K>.index)")
+    _add_cluster(p)
+    p.set_defaults(func=cmd_index)
+
+    p = sub.add_parser("sql", help="read-only SQL over an index (views lists, buckets, model, results, queries)")
+    p.add_argument("index", help="an index directory")
+    p.add_argument("query", nargs="?", help="one SELECT statement; without it, an interactive shell")
+    fmt = p.add_mutually_exclusive_group()
+    fmt.add_argument("--csv", dest="format", action="store_const", const="csv")
+    fmt.add_argument("--json", dest="format", action="store_const", const="json")
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds before a query is interrupted")
+    p.set_defaults(func=cmd_sql, format="table")
+
+    p = sub.add_parser("occupancy", help="bucket sizes, occupied share of K^d and per-component balance")
+    p.add_argument("index", help="an index directory")
+    p.add_argument("--top", type=_positive_int, default=10, help="how many of the largest buckets to list")
+    p.set_defaults(func=cmd_occupancy)
     return top
 
 

@@ -1,0 +1,96 @@
+"""The index directory, its storage accounting, the SQL sandbox and occupancy."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import zarr
+
+from vprscale.cli import main
+from vprscale.coarsehash import pack, project, quantization_error, quantize_projected
+
+
+@pytest.fixture(scope="module")
+def model(tiny_index):
+    return {k: np.load(tiny_index / "model" / f"{k}.npy") for k in ("mean", "components", "centres")}
+
+
+def test_lists_are_the_addresses_of_every_ref(tiny_index, tiny_store, model):
+    ref = zarr.open_group(tiny_store, mode="r")["ref"][:]
+    y = project(ref, model["mean"], model["components"])
+    h = pack(quantize_projected(y, model["centres"]), 2)
+    lists = pq.read_table(tiny_index / "lists.parquet").to_pandas()
+    assert len(lists) == len(ref)
+    assert lists["hash"].is_monotonic_increasing
+    np.testing.assert_array_equal(h[lists["ref_id"].to_numpy()], lists["hash"].to_numpy())
+    buckets = pq.read_table(tiny_index / "buckets.parquet").to_pandas()
+    np.testing.assert_array_equal(np.unique(h), buckets["hash"].to_numpy())
+    err = quantization_error(y, model["centres"])
+    for row in buckets.sample(200, random_state=0).itertuples():
+        ids = np.flatnonzero(h == row.hash)
+        assert row.size == len(ids)
+        assert row.best_id == ids[np.argmin(err[ids])]
+
+
+def test_index_json_and_storage(tiny_index):
+    meta = json.loads((tiny_index / "index.json").read_text())
+    assert meta["complete"] and meta["d"] == 12 and meta["k"] == 2 and meta["n_ref"] == 52_500
+    st = meta["storage"]
+    assert st["P1"]["paper"] == 8 * 52_500 and st["P1"]["packed"] == 2 * 52_500
+    assert st["P3"]["paper"] == 8 * 12 * 96 and st["P4"]["paper"] == 8 * 96 and st["P2"]["paper"] == 8 * 12 * 2
+    assert st["P1"]["disk"] == (tiny_index / "lists.parquet").stat().st_size
+    assert st["total"]["paper"] == sum(st[p]["paper"] for p in ("P1", "P2", "P3", "P4"))
+
+
+def test_sql_lookup_and_formats(tiny_index, capsys):
+    lists = pq.read_table(tiny_index / "lists.parquet").to_pandas()
+    h = int(lists["hash"].iloc[1000])
+    expected = sorted(lists.loc[lists["hash"] == h, "ref_id"].tolist())
+    assert main(["sql", str(tiny_index), f"SELECT ref_id FROM lists WHERE hash = {h} ORDER BY ref_id", "--json"]) == 0
+    got = [json.loads(line)["ref_id"] for line in capsys.readouterr().out.splitlines()]
+    assert got == expected
+    assert main(["sql", str(tiny_index), "SELECT count(*) AS n FROM buckets", "--csv"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == str(lists["hash"].nunique())
+
+
+@pytest.mark.parametrize(("query", "message"), [
+    ("COPY (SELECT * FROM lists) TO '{tmp}/out.csv'", "only SELECT"),
+    ("SELECT * FROM read_csv('/etc/passwd')", "Permission Error|disabled"),
+    ("ATTACH '{tmp}/x.db' AS x", "only SELECT"),
+    ("SELECT 1; SELECT 2", "exactly one statement"),
+    ("INSTALL httpfs", "only SELECT"),
+    ("LOAD httpfs", "only SELECT"),
+    ("SET enable_external_access = true", "only SELECT"),
+    ("CREATE TABLE t AS SELECT 1", "only SELECT"),
+])
+def test_sql_sandbox_refuses(tiny_index, tmp_path, capsys, query, message):
+    import re
+
+    code = main(["sql", str(tiny_index), query.format(tmp=tmp_path)])
+    assert code == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert not list(tmp_path.iterdir())
+
+
+def test_occupancy_report(tiny_index, capsys):
+    assert main(["occupancy", str(tiny_index), "--top", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "52,500 refs in" in out and "of 4,096 addresses" in out
+    model = pq.read_table(tiny_index / "components.parquet").to_pandas()
+    shares = model.groupby("component")["share"].sum()
+    np.testing.assert_allclose(shares, 1.0)
+
+
+def test_index_refuses_bad_input(tiny_store, tmp_path, capsys):
+    partial = tmp_path / "half.zarr"
+    zarr.open_group(partial, mode="w").attrs["vprscale"] = {"complete": False}
+    assert main(["index", str(partial)]) == 2
+    assert "incomplete" in capsys.readouterr().err
+    assert main(["index", str(tiny_store), "--d", "97", "--out", str(tmp_path / "i")]) == 2
+    assert main(["index", str(tiny_store), "--k", "1", "--out", str(tmp_path / "i")]) == 2
+    assert main(["index", str(tiny_store), "--d", "41", "--k", "3", "--out", str(tmp_path / "i")]) == 2
+    assert "exceed 2^64" in capsys.readouterr().err
+    assert not (tmp_path / "i").exists()

@@ -1,0 +1,153 @@
+"""``vprscale index``: fit CoarseHash on a dataset store and write the index directory.
+
+Directory layout (all written into a hidden partial copy and published when whole):
+
+- ``index.json``: parameters, provenance of the store, storage accounting, timings;
+- ``model/{mean,components,centres,explained_variance}.npy``: the fitted hasher;
+- ``lists.parquet``: ``hash`` (uint64), ``ref_id``, sorted by hash then id, small row
+  groups with statistics so that one address is a cheap lookup;
+- ``buckets.parquet``: one row per occupied address: ``hash``, ``size``, ``best_id`` (the
+  single best of SPEC §3.1), ``offset`` into the lists;
+- ``components.parquet``: per component and cluster: centre, reference count and share.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import dask
+import dask.array as da
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+import vprscale
+from vprscale.cluster import cluster_peak_rss, dask_client
+from vprscale.coarsehash import CoarseHasher, pack, project, quantization_error, quantize_projected
+from vprscale.errors import InputError
+from vprscale.progress import Timings, run_tasks
+from vprscale.storage import file_bytes, storage_table
+from vprscale.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
+
+ROW_GROUP = 1 << 17
+MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_variance.npy"], "P4": ["mean.npy"]}
+
+
+def store_identity(store: Path) -> str:
+    """A digest of a store's provenance: an index records it, an evaluation checks it."""
+    meta = open_complete_group(store).attrs[ATTR]
+    core = {k: meta[k] for k in ("recipe", "sources", "layout", "seed")}
+    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _hash_chunk(x: np.ndarray, start: int, mean: np.ndarray, comp: np.ndarray, centres: np.ndarray,
+                k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    y = project(x, mean, comp, start)
+    codes = quantize_projected(y, centres)
+    counts = np.stack([np.bincount(codes[:, j], minlength=k) for j in range(codes.shape[1])])
+    return pack(codes, k), quantization_error(y, centres), counts
+
+
+def inverted_lists(h: np.ndarray, err: np.ndarray) -> dict[str, np.ndarray]:
+    """Sorted lists, occupied addresses, sizes, offsets and single best per address."""
+    order = np.argsort(h, kind="stable")  # ids stay ascending inside an address
+    hs = h[order]
+    starts = np.flatnonzero(np.r_[True, hs[1:] != hs[:-1]])
+    sizes = np.diff(np.r_[starts, len(hs)])
+    es = err[order]
+    min_err = np.minimum.reduceat(es, starts)
+    hits = np.flatnonzero(es == np.repeat(min_err, sizes))
+    best = order[hits[np.searchsorted(hits, starts)]]  # first (smallest id) at the minimum
+    return {"order": order, "hash": hs, "addresses": hs[starts], "sizes": sizes, "offsets": starts, "best": best}
+
+
+def default_index_dir(store: Path, d: int, k: int) -> Path:
+    return store.parent / f"{store.name.removesuffix('.zarr')}-d{d}-k{k}.index"
+
+
+def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | Path | None = None,
+                scheduler: str | None = None, workers: int = 2, quiet: bool = False) -> dict[str, Any]:
+    """Fit, hash every reference row in parallel, and write the index directory."""
+    store = Path(store)
+    group = open_complete_group(store)
+    n_ref, dim = group["ref"].shape
+    hasher = CoarseHasher(d=d, k=k)
+    d_eff = hasher._check(n_ref, dim)
+    final = Path(out) if out else default_index_dir(store, d_eff, k)
+    check_writable(final.parent)
+    identity = store_identity(store)
+    timings = Timings(quiet)
+    t0 = time.perf_counter()
+    with exclusive(final), dask_client(scheduler, workers) as client:
+        partial = PartialOutput(final, {"store": identity, "d": d_eff, "k": k})
+        partial.open()
+        ref = da.from_zarr(group["ref"])
+        with timings.stage(f"fit CoarseHash (d = {d_eff}, K = {k}) on {n_ref:,} refs"):
+            hasher.fit(ref)
+        starts = np.cumsum((0, *ref.chunks[0][:-1]))
+        parts = [dask.delayed(_hash_chunk, nout=3)(blk, int(a), hasher.mean_, hasher.components_, hasher.centres_, k)
+                 for blk, a in zip(ref.to_delayed().ravel(), starts, strict=True)]
+        with timings.stage("hash every reference"):
+            results = run_tasks([dask.delayed(tuple)(p) for p in parts], "hash refs")
+        h = np.concatenate([r[0] for r in results])
+        err = np.concatenate([r[1] for r in results])
+        counts = np.sum([r[2] for r in results], axis=0)
+        with timings.stage("sort and write the inverted lists"):
+            lists = inverted_lists(h, err)
+            _write(partial.path, hasher, lists, counts, n_ref)
+        peak = cluster_peak_rss(client)
+        disk = {"P1": file_bytes(partial.path / "lists.parquet"),
+                **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
+        meta = {
+            "kind": "coarsehash-index", "complete": True, "d": d_eff, "k": k, "n_ref": int(n_ref), "dim": int(dim),
+            "occupied": int(len(lists["addresses"])), "bins": hasher.bins,
+            "store": {"path": str(store.resolve()), "identity": identity,
+                      "scale": group.attrs[ATTR]["recipe"]["scale"]},
+            "storage": storage_table(int(n_ref), d_eff, k, int(dim), disk),
+            "timings_s": timings.stages, "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
+            "versions": {"vprscale": vprscale.__version__},
+        }
+        (partial.path / "index.json").write_text(json.dumps(meta, indent=1))
+        partial.publish()
+    return {"index": str(final), **meta}
+
+
+def _write(path: Path, hasher: CoarseHasher, lists: dict[str, np.ndarray], counts: np.ndarray, n_ref: int) -> None:
+    (path / "model").mkdir(exist_ok=True)
+    for name in ("mean", "components", "centres", "explained_variance"):
+        np.save(path / "model" / f"{name}.npy", getattr(hasher, f"{name}_"))
+    id_type = pa.uint32() if n_ref < 2**32 else pa.uint64()
+    table = pa.table({"hash": pa.array(lists["hash"], pa.uint64()),
+                      "ref_id": pa.array(lists["order"], id_type)})
+    delta = {"hash": "DELTA_BINARY_PACKED", "ref_id": "DELTA_BINARY_PACKED"}
+    pq.write_table(table, path / "lists.parquet", row_group_size=ROW_GROUP, compression="zstd",
+                   use_dictionary=False, column_encoding=delta)
+    buckets = pa.table({"hash": pa.array(lists["addresses"], pa.uint64()),
+                        "size": pa.array(lists["sizes"], pa.uint32()),
+                        "best_id": pa.array(lists["best"], id_type),
+                        "offset": pa.array(lists["offsets"], pa.uint64())})
+    pq.write_table(buckets, path / "buckets.parquet", row_group_size=ROW_GROUP, compression="zstd")
+    d, k = counts.shape
+    comp = pa.table({"component": np.repeat(np.arange(1, d + 1), k).astype(np.int32),
+                     "cluster": np.tile(np.arange(k), d).astype(np.int32),
+                     "centre": hasher.centres_.ravel(),
+                     "refs": counts.ravel().astype(np.int64),
+                     "share": (counts / n_ref).ravel(),
+                     "variance": np.repeat(hasher.explained_variance_, k)})
+    pq.write_table(comp, path / "components.parquet")
+
+
+def load_index_meta(index: str | Path) -> dict[str, Any]:
+    """``index.json`` of a complete index, or an error naming the directory."""
+    p = Path(index)
+    meta_file = p / "index.json"
+    if not meta_file.is_file():
+        raise InputError(f"{p}: not a vprscale index (no index.json)")
+    meta = json.loads(meta_file.read_text())
+    if not meta.get("complete") or meta.get("kind") != "coarsehash-index":
+        raise InputError(f"{p}: the index is incomplete or of another kind")
+    return meta
