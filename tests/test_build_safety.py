@@ -117,6 +117,6 @@ def test_distributed_build_equals_local_build(tmp_path, sources):
 
     recipe = write_recipe(tmp_path / "tiny.toml")
     run_build(recipe, tmp_path / "local", sources)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         run_build(recipe, tmp_path / "dist", sources, scheduler=cluster.scheduler_address)
     assert _bytes(tmp_path / "local" / "tiny.zarr") == _bytes(tmp_path / "dist" / "tiny.zarr")

@@ -78,6 +78,28 @@ def cmd_occupancy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _csv(kind):
+    def parse(text: str) -> list:
+        try:
+            return [kind(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list") from None
+    return parse
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from vprscale.evaluate import EvalRequest, evaluate
+
+    summary = evaluate(EvalRequest(store=Path(args.store), index=Path(args.index) if args.index else None,
+                                   noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
+                                   z=args.z, d_sweep=args.d, out=Path(args.out) if args.out else None,
+                                   workers=args.workers, scheduler=args.scheduler))
+    print(summary["table"])
+    print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
+          f"({summary['queries']:,} rows); z = {summary['z']}")
+    return 0
+
+
 def _add_cluster(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler "
                    "(tcp://host:8786); default: a local in-process cluster")
@@ -118,6 +140,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="index directory (default: beside the store, <scale>-d<d>-k<K>.index)")
     _add_cluster(p)
     p.set_defaults(func=cmd_index)
+
+    p = sub.add_parser("eval", help="localise query sequences and evaluate the grid of SPEC §3.5")
+    p.add_argument("store", help="a complete <scale>.zarr dataset store")
+    p.add_argument("index", nargs="?", help="an index of that store (or use --d to index several widths)")
+    p.add_argument("--noise", type=_csv(str), default=["qm1", "qm2"], help="qm1,qm2")
+    p.add_argument("--L", type=_csv(int), default=[1, 50, 100], help="sequence lengths, e.g. 1,50,100")
+    p.add_argument("--modes", type=_csv(str), default=["paper", "aligned"], help="paper,aligned")
+    p.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True,
+                   help="also run the baseline of SPEC §3.4 (default on)")
+    p.add_argument("--z", type=_positive_int, default=None, help="query stride (default: the recipe's)")
+    p.add_argument("--d", type=_csv(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
+    p.add_argument("--out", help="output directory (default: INDEX/eval)")
+    _add_cluster(p)
+    p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("sql", help="read-only SQL over an index (views lists, buckets, model, results, queries)")
     p.add_argument("index", help="an index directory")

@@ -42,7 +42,7 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
         raise InputError(f"--workers {workers}: must be at least 1")
     with (threadpool_limits(limits=1, user_api="blas"),
           LocalCluster(n_workers=1, threads_per_worker=workers, processes=False,
-                       dashboard_address=None) as cluster,
+                       dashboard_address=":0") as cluster,
           Client(cluster, set_as_default=True) as client):
         yield client
 

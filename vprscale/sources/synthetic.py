@@ -97,8 +97,8 @@ class FasParams:
     latent: int = 192
     latent_decay: float = 0.5
     knot_m: float = 15.0
-    change: float = 0.85
-    frame_noise: float = 0.55
+    change: float = 0.45
+    frame_noise: float = 0.3
     jitter_m: float = 2.0
     segment_frames: tuple[int, int] = (400, 2500)
 

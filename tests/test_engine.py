@@ -1,0 +1,121 @@
+"""Query engine, sequence matching and the baseline on hand-built cases with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vprscale.baseline import baseline_batch, nearest
+from vprscale.engine import Index, OnlineMatcher, match_batch
+from vprscale.evaluate import query_centres, recall_curve
+
+CENTRES = np.tile([[-1.0, 1.0]], (4, 1))  # d = 4, K = 2, equal gaps: δ = 2·Hamming in real units
+
+
+def hand_index(ref_hash) -> Index:
+    return Index.from_addresses(np.asarray(ref_hash, np.uint64), CENTRES)
+
+
+def run(idx: Index, q_hash, t, L, aligned=False):
+    q_hash = np.asarray(q_hash, np.uint64)
+    q_addr = idx.nearest_occupied(q_hash)
+    return match_batch(np.asarray(t, np.int64), L, aligned, q_hash, q_addr, *idx.kernel_args())
+
+
+def test_exact_and_fallback_addresses_with_ties_to_the_smaller():
+    idx = hand_index([2, 6, 6, 10])
+    got = idx.addresses[idx.nearest_occupied(np.array([6, 7, 8, 9, 0, 15], np.uint64))]
+    np.testing.assert_array_equal(got, [6, 6, 6, 10, 2, 10])  # 8 is 2 from 6 and 10: the smaller
+
+
+def test_single_best_and_in_list_bound():
+    idx = Index.from_addresses(np.array([3, 3, 3, 5], np.uint64), CENTRES, errors=np.array([0.3, 0.1, 0.1, 0.0]))
+    a = idx.nearest_occupied(np.array([3], np.uint64))
+    assert idx.best[a][0] == 1  # least error, ties to the smaller id
+    from vprscale.engine import in_list_distance
+
+    np.testing.assert_array_equal(in_list_distance(a, np.array([3]), idx.offsets, idx.ids), [1])
+
+
+def test_sequence_match_picks_the_aligned_diagonal():
+    ref = np.array([1, 2, 4, 8, 1, 2, 4, 8, 3, 5, 6, 9, 12, 10, 7, 11])
+    idx = hand_index(ref)
+    q = ref[8:13]  # query frames 0..4 repeat refs 8..12
+    match, n_r = run(idx, q, [2], L=5)
+    assert match[0] == 10 and n_r[0] == 5
+
+
+def test_paper_mode_only_scores_listed_ids_but_aligned_proposes_diagonals():
+    ref = np.array([0, 1, 2, 4, 8, 15, 3, 12])
+    idx = hand_index(ref)
+    # Query frames 0, 1, 2 are refs 3, 4, 5; the centre frame's own address is noisy (0b0110 is
+    # unoccupied and falls back to address 4, whose list is {3}), so ref 4 is in no list.
+    q = np.array([ref[3], 0b0110, ref[5]], np.uint64)
+    paper, n_paper = run(idx, q, [1], L=3)
+    aligned, n_aligned = run(idx, q, [1], L=3, aligned=True)
+    assert aligned[0] == 4  # ref 3 at offset −1 and ref 5 at +1 both propose centre 4
+    assert paper[0] != 4 and n_paper[0] >= 1
+
+
+def test_out_of_range_reference_frames_cost_delta_max():
+    ref = np.array([5, 9, 3, 12, 0, 7])
+    idx = hand_index(ref)
+    # Window of 3 centred at query frame 1; the query equals refs −1, 0, 1 shifted so centre 0 pays δ_max once.
+    q = np.array([15, ref[0], ref[1]], np.uint64)
+    match, _ = run(idx, q, [1], L=3)
+    assert match[0] == 0
+    _, _, _, w, tables, d, k, dmax = idx.kernel_args()
+    assert dmax == w[:, 0, 1].sum()
+
+
+def test_ties_go_to_the_smallest_centre():
+    idx = hand_index([7, 7, 7])
+    match, n_r = run(idx, [7], [0], L=1)
+    assert match[0] == 0 and n_r[0] == 3
+
+
+def test_online_matches_batch_frame_by_frame():
+    rng = np.random.default_rng(5)
+    ref = rng.integers(0, 16, 400).astype(np.uint64)
+    idx = hand_index(ref)
+    truth = np.arange(100, 220)
+    q = ref[truth] ^ (rng.random(len(truth)) < 0.2).astype(np.uint64) << rng.integers(0, 4, len(truth)).astype(
+        np.uint64)
+    for aligned in (False, True):
+        online = OnlineMatcher(idx, L=9, aligned=aligned)
+        got = [online.push_address(int(h)) for h in q]
+        centres = np.arange(4, len(q) - 4)
+        batch, _ = run(idx, q, centres, L=9, aligned=aligned)
+        assert got[:8] == [None] * 8
+        np.testing.assert_array_equal(np.array(got[8:]), batch)
+
+
+def test_baseline_nearest_and_candidate_count():
+    x = np.array([0.0, 5.0, 1.0, 1.0, 9.0, 2.0])
+    np.testing.assert_array_equal(nearest(x, 1.2, 3), [2, 3, 5])
+    np.testing.assert_array_equal(nearest(x, 1.0, 1), [2])  # ties: smaller id
+    y = np.array([5.1, 0.9, 1.1])
+    match, counts = baseline_batch(np.array([1]), 3, 2, x, y, float(np.ptp(x)))
+    assert counts[0] == 2 and match[0] == 2  # candidates {2, 3}: centre 2 pairs (5,5.1),(1,0.9),(1,1.1)
+    m1, _ = baseline_batch(np.array([0]), 1, 1, x, y, float(np.ptp(x)))
+    assert m1[0] == 1
+
+
+def test_query_centres_keep_whole_windows_with_truth():
+    gt = np.array([0, 1, -1, 3, 4, 5, 6, 7, 8, 9, 10])
+    np.testing.assert_array_equal(query_centres(gt, 2, 1), [0, 4, 6, 8, 10])
+    np.testing.assert_array_equal(query_centres(gt, 2, 4), [4, 6, 8])  # window t−2 … t+1
+
+
+def test_recall_at_each_radius():
+    curve = recall_curve(np.array([0, 3, 20, 21]))
+    assert curve[0] == 0.25 and curve[2] == 0.25 and curve[3] == 0.5 and curve[20] == 0.75
+    assert len(curve) == 21
+
+
+@pytest.mark.parametrize("L", [1, 3])
+def test_baseline_respects_n_r(L):
+    x = np.linspace(0, 1, 50)
+    y = np.linspace(0, 1, 50)
+    _, counts = baseline_batch(np.array([10, 20]), L, 7, x, y, 1.0)
+    np.testing.assert_array_equal(counts, [7, 7])

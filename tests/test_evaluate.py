@@ -1,0 +1,80 @@
+"""``vprscale eval`` end to end on the tiny store: tables, splits, provenance, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from vprscale.cli import main
+
+
+@pytest.fixture(scope="module")
+def evaluated(tiny_store, tiny_index, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    code = main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "250", "--out", str(out),
+                 "--workers", "2"])
+    assert code == 0
+    return pq.read_table(out / "results.parquet").to_pandas(), pq.read_table(out / "queries.parquet").to_pandas()
+
+
+def test_results_grid_and_columns(evaluated):
+    res, _ = evaluated
+    assert set(res["noise"]) == {"qm1", "qm2"} and set(res["L"]) == {1, 5}
+    assert set(res["part"]) == {"all", "deep1b", "fas"} and set(res["radius"]) == set(range(21))
+    combos = res.groupby(["noise", "method", "mode", "L"], dropna=False).size()
+    # L = 1: the method (single best) and the baseline; L = 5: paper, aligned, baseline.
+    assert len(combos) == 2 * (2 + 3) and (combos == 3 * 21).all()
+    for col in ("recall", "n_queries", "nr_mean", "nr_median", "nr_p95", "us_per_query", "ops_per_query",
+                "scale", "store_identity", "d", "K"):
+        assert col in res.columns
+    assert (res["scale"] == "tiny").all()
+
+
+def test_recall_is_monotone_and_parts_add_up(evaluated):
+    res, q = evaluated
+    for _, g in res.groupby(["noise", "method", "mode", "L", "part"], dropna=False):
+        assert np.all(np.diff(g.sort_values("radius")["recall"].to_numpy()) >= 0)
+    r0 = res[res.radius == 0].set_index(["noise", "method", "mode", "L", "part"])["n_queries"].unstack("part")
+    assert (r0["all"] == r0["deep1b"] + r0["fas"]).all()
+    # Recall recomputed from the per-query table.
+    sel = q[(q.noise == "qm1") & (q["mode"] == "aligned") & (q.L == 5)]
+    row = res[(res.noise == "qm1") & (res["mode"] == "aligned") & (res.L == 5) & (res.part == "all") &
+              (res.radius == 10)]
+    assert row["recall"].iloc[0] == pytest.approx((sel["error"] <= 10).mean())
+
+
+def test_baseline_uses_the_paper_mode_mean_n_r(evaluated):
+    res, q = evaluated
+    for noise in ("qm1", "qm2"):
+        paper = q[(q.noise == noise) & (q["mode"] == "paper") & (q.L == 5)]["n_r"].mean()
+        base = q[(q.noise == noise) & (q.method == "baseline") & (q.L == 5)]["n_r"]
+        assert (base == max(1, round(paper))).all()
+    single = q[(q.method == "coarsehash") & (q.L == 1)]
+    assert single["in_list"].notna().all() and (single["in_list"] <= single["error"]).all()
+
+
+def test_single_frame_in_list_bound_is_at_least_the_best(evaluated):
+    res, _ = evaluated
+    single = res[(res.method == "coarsehash") & (res.L == 1)]
+    assert (single["recall_in_list"] >= single["recall"]).all()
+
+
+def test_eval_refuses_bad_input(tiny_store, tiny_index, tmp_path, capsys, sources):
+    from vprscale.build import BuildRequest, build
+    from vprscale.index import build_index
+
+    from .conftest import write_recipe
+
+    assert main(["eval", str(tiny_store), str(tiny_index), "--noise", "qm3", "--out", str(tmp_path / "e")]) == 2
+    assert "--noise qm3: unknown noise" in capsys.readouterr().err
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "60000", "--out", str(tmp_path / "e")]) == 2
+    assert "longer than the 52,000 query frames" in capsys.readouterr().err
+    other = write_recipe(tmp_path / "other.toml", scale="other", seed=6, deep1b_rows_read=40_000,
+                         deep1b_rows_kept=30_000)
+    build(BuildRequest(scale=str(other), out=tmp_path, deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+                       quiet=True))
+    other_index = tmp_path / "other.index"
+    build_index(tmp_path / "other.zarr", d=10, out=other_index, quiet=True)
+    assert main(["eval", str(tiny_store), str(other_index), "--out", str(tmp_path / "e")]) == 2
+    assert "built from another store" in capsys.readouterr().err

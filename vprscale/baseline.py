@@ -1,0 +1,65 @@
+"""The baseline of SPEC §3.4: modified SeqSLAM on a one-component PCA, same storage budget.
+
+For each query centre it scans all references by ``|x_i − y_t|``, keeps the ``N_r`` nearest
+(ties: smaller id) and scores each as a sequence centre with ``Σ_l |x_{c+l} − y_{t+l}|``;
+reference frames outside the map cost the full range of ``x``.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def _sift_down(hd: np.ndarray, hi: np.ndarray, n: int) -> None:
+    """Restore a max-heap on (distance, id) after replacing its root."""
+    i = 0
+    while True:
+        left, right, top = 2 * i + 1, 2 * i + 2, i
+        if left < n and (hd[left] > hd[top] or (hd[left] == hd[top] and hi[left] > hi[top])):
+            top = left
+        if right < n and (hd[right] > hd[top] or (hd[right] == hd[top] and hi[right] > hi[top])):
+            top = right
+        if top == i:
+            return
+        hd[i], hd[top] = hd[top], hd[i]
+        hi[i], hi[top] = hi[top], hi[i]
+        i = top
+
+
+@numba.njit(cache=True, nogil=True)
+def nearest(x: np.ndarray, y: float, n_r: int) -> np.ndarray:
+    """Ids of the ``n_r`` references nearest to ``y`` by a full scan (ties: smaller id)."""
+    hd = np.full(n_r, np.inf)
+    hi = np.full(n_r, np.iinfo(np.int64).max)
+    for i in range(x.shape[0]):
+        dist = abs(x[i] - y)
+        if dist < hd[0]:  # ids arrive ascending: an equal distance never displaces a smaller id
+            hd[0], hi[0] = dist, i
+            _sift_down(hd, hi, n_r)
+    return np.sort(hi)
+
+
+@numba.njit(cache=True, nogil=True)
+def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np.ndarray,
+                   x_range: float) -> tuple[np.ndarray, np.ndarray]:
+    """Match of every query centre (``y`` indexed by query frame); also the candidates' count."""
+    half = L // 2
+    n_ref = x.shape[0]
+    out = np.empty(centres_t.shape[0], np.int64)
+    counts = np.empty(centres_t.shape[0], np.int64)
+    for qi in range(centres_t.shape[0]):
+        t = centres_t[qi]
+        cand = nearest(x, y[t], min(n_r, n_ref))
+        best, best_s = -1, np.inf
+        for c in cand:  # ascending
+            s = 0.0
+            for l in range(L):
+                r = c + l - half
+                s += x_range if (r < 0 or r >= n_ref) else abs(x[r] - y[t + l - half])
+            if s < best_s:
+                best_s, best = s, c
+        out[qi] = best
+        counts[qi] = cand.shape[0]
+    return out, counts

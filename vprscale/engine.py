@@ -1,0 +1,276 @@
+"""The query engine (SPEC §3.2–3.3): a loaded index, query hashing and sequence matching.
+
+An index is held as compact arrays: the sorted occupied addresses, CSR offsets into the
+reference ids, the single best per address, and every reference's own address. Sequence
+distances are computed in fixed point (int64, ``SCALE`` units), so that sums are exact and
+associative: the batch kernel and the online matcher agree bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numba
+import numpy as np
+import pyarrow.parquet as pq
+
+from vprscale.coarsehash import pack, project, quantize_projected, unpack
+from vprscale.index import load_index_meta
+
+DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
+
+
+@dataclass
+class Index:
+    """A CoarseHash index in memory."""
+
+    d: int
+    k: int
+    mean: np.ndarray
+    components: np.ndarray
+    centres: np.ndarray
+    addresses: np.ndarray  # sorted occupied addresses (uint64)
+    offsets: np.ndarray  # CSR: ids of address a are ids[offsets[a]:offsets[a+1]]
+    ids: np.ndarray  # int64 ref ids, grouped by address, ascending inside
+    best: np.ndarray  # single best ref id per address
+    ref_hash: np.ndarray  # the address of every reference (uint64)
+    meta: dict
+
+    @classmethod
+    def load(cls, path: str | Path) -> Index:
+        path = Path(path)
+        meta = load_index_meta(path)
+        m = {k: np.load(path / "model" / f"{k}.npy") for k in ("mean", "components", "centres")}
+        lists = pq.read_table(path / "lists.parquet")
+        hashes = lists["hash"].to_numpy()
+        ids = lists["ref_id"].to_numpy().astype(np.int64)
+        buckets = pq.read_table(path / "buckets.parquet")
+        addresses = buckets["hash"].to_numpy()
+        offsets = np.r_[buckets["offset"].to_numpy().astype(np.int64), len(ids)]
+        ref_hash = np.empty(meta["n_ref"], dtype=np.uint64)
+        ref_hash[ids] = hashes
+        return cls(meta["d"], meta["k"], m["mean"], m["components"], m["centres"], addresses, offsets, ids,
+                   buckets["best_id"].to_numpy().astype(np.int64), ref_hash, meta)
+
+    @classmethod
+    def from_addresses(cls, ref_hash: np.ndarray, centres: np.ndarray, errors: np.ndarray | None = None,
+                       mean: np.ndarray | None = None, components: np.ndarray | None = None) -> Index:
+        """An index over given reference addresses (for hand-built cases and tests)."""
+        from vprscale.index import inverted_lists
+
+        ref_hash = np.asarray(ref_hash, np.uint64)
+        d, k = centres.shape
+        lists = inverted_lists(ref_hash, np.zeros(len(ref_hash)) if errors is None else errors)
+        offsets = np.r_[lists["offsets"], len(ref_hash)].astype(np.int64)
+        return cls(d, k, np.zeros(d) if mean is None else mean, np.eye(d) if components is None else components,
+                   centres, lists["addresses"], offsets, lists["order"].astype(np.int64),
+                   lists["best"].astype(np.int64), ref_hash, {"n_ref": len(ref_hash), "d": d, "k": k})
+
+    @property
+    def n_ref(self) -> int:
+        return len(self.ref_hash)
+
+    def weights(self) -> np.ndarray:
+        """Fixed-point ``|c_ja − c_jb|`` as a (d, K, K) int64 table."""
+        diff = np.abs(self.centres[:, :, None] - self.centres[:, None, :])
+        span = (self.centres[:, -1] - self.centres[:, 0]).sum()
+        return np.rint(diff * (DELTA_MAX_UNITS / span)).astype(np.int64)
+
+    def kernel_args(self) -> tuple:
+        """``(offsets, ids, ref_hash, w, tables, d, k, δ_max)`` for :func:`match_batch`."""
+        w = self.weights()
+        tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
+        return self.offsets, self.ids, self.ref_hash, w, tables, self.d, self.k, np.int64(w[:, 0, -1].sum())
+
+    def hash_queries(self, x: np.ndarray, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """``(own address, index of the address used)`` of query rows (SPEC §3.2)."""
+        codes = quantize_projected(project(x, self.mean, self.components, start), self.centres)
+        h = pack(codes, self.k)
+        return h, self.nearest_occupied(h)
+
+    def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
+        """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
+        a = self.addresses
+        pos = np.searchsorted(a, h)
+        hi = np.minimum(pos, len(a) - 1)
+        lo = np.maximum(pos - 1, 0)
+        exact = a[hi] == h
+        # Distances as unsigned differences (both sides are valid because lo ≤ h ≤ hi).
+        d_hi = np.where(a[hi] >= h, a[hi] - h, np.uint64(2**64 - 1))
+        d_lo = np.where(a[lo] <= h, h - a[lo], np.uint64(2**64 - 1))
+        return np.where(exact, hi, np.where(d_lo <= d_hi, lo, hi)).astype(np.int64)
+
+
+def byte_tables(w: np.ndarray) -> np.ndarray:
+    """For K = 2: δ of each byte of ``h1 xor h2`` as (⌈d/8⌉, 256) int64 tables.
+
+    Bit ``b`` of an address is component ``d − 1 − b``; a differing bit costs that
+    component's centre gap. δ is then ⌈d/8⌉ table look-ups (the paper's d/p xor term).
+    """
+    d = w.shape[0]
+    gap = w[::-1, 0, 1]  # gap of the component at bit b
+    n_bytes = (d + 7) // 8
+    tables = np.zeros((n_bytes, 256), np.int64)
+    values = np.arange(256)
+    for i in range(n_bytes):
+        for bit in range(8):
+            b = 8 * i + bit
+            if b < d:
+                tables[i] += np.where(values >> bit & 1, gap[b], 0)
+    return tables
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def delta(h1: np.uint64, h2: np.uint64, w: np.ndarray, tables: np.ndarray, d: int, k: int) -> np.int64:
+    """Fixed-point symmetric distance between the codes of two addresses."""
+    s = np.int64(0)
+    if k == 2:
+        x = np.int64(h1 ^ h2)  # signed shifts: numba mixes uint64 with int64 through float64
+        for i in range(tables.shape[0]):
+            s += tables[i, (x >> (8 * i)) & 255]
+        return s
+    base = np.uint64(k)
+    for j in range(d - 1, -1, -1):
+        s += w[j, np.int64(h1 % base), np.int64(h2 % base)]
+        h1 //= base
+        h2 //= base
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_hash: np.ndarray,
+           w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64) -> np.int64:
+    s = np.int64(0)
+    n_ref = ref_hash.shape[0]
+    for l in range(L):
+        off = l - half
+        r = c + off
+        if r < 0 or r >= n_ref:
+            s += dmax
+        else:
+            s += delta(ref_hash[r], q_hash[t + off], w, tables, d, k)
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_addr: np.ndarray,
+                offsets: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray, w: np.ndarray, tables: np.ndarray,
+                d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """Sequence match of every query centre; returns ``(match, number of candidates)``.
+
+    ``q_hash`` / ``q_addr`` are indexed by query frame. Paper mode scores every id of every
+    window frame's list as a centre; aligned mode scores ``r − l`` for an id ``r`` in the
+    list of frame ``t + l``. Ties go to the smallest centre.
+    """
+    half = L // 2
+    n_ref = ref_hash.shape[0]
+    n = centres_t.shape[0]
+    match = np.empty(n, np.int64)
+    n_r = np.empty(n, np.int64)
+    for qi in range(n):
+        t = centres_t[qi]
+        total = 0
+        for l in range(L):
+            a = q_addr[t + l - half]
+            total += offsets[a + 1] - offsets[a]
+        buf = np.empty(total, np.int64)
+        m = 0
+        for l in range(L):
+            a = q_addr[t + l - half]
+            for p in range(offsets[a], offsets[a + 1]):
+                c = ids[p] - (l - half) if aligned else ids[p]
+                if 0 <= c < n_ref:
+                    buf[m] = c
+                    m += 1
+        cand = np.unique(buf[:m])
+        best = np.int64(-1)
+        best_s = np.int64(2**62)
+        for c in cand:  # ascending: a strict < keeps the smallest centre on ties
+            s = _score(c, t, L, half, ref_hash, q_hash, w, tables, d, k, dmax)
+            if s < best_s:
+                best_s, best = s, c
+        match[qi] = best
+        n_r[qi] = cand.shape[0]
+    return match, n_r
+
+
+@numba.njit(cache=True, nogil=True)
+def in_list_distance(addr: np.ndarray, gt: np.ndarray, offsets: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """For single frames: the smallest ``|id − gt|`` over the address's whole list."""
+    out = np.empty(addr.shape[0], np.int64)
+    for i in range(addr.shape[0]):
+        best = np.int64(2**62)
+        for p in range(offsets[addr[i]], offsets[addr[i] + 1]):
+            dist = abs(ids[p] - gt[i])
+            if dist < best:
+                best = dist
+        out[i] = best
+    return out
+
+
+class OnlineMatcher:
+    """Frame-by-frame sequence matching with incrementally updated scores.
+
+    Each new frame extends the window that ends at it; the match reported is the centre of
+    that window, as the batch form would compute for centre ``t − (L − 1 − ⌊L/2⌋)``. Scores
+    of diagonals already tracked are updated by adding the new pair and removing the pair
+    that left the window (the paper's ~3·N_r operations per frame); new diagonals are
+    scored in full once.
+    """
+
+    def __init__(self, index: Index, L: int, aligned: bool = False) -> None:
+        self.index, self.L, self.aligned = index, L, aligned
+        self.half = L // 2
+        *_, self._w, self._tables, _, _, self._dmax = index.kernel_args()
+        self._hashes: list[int] = []
+        self._addrs: list[int] = []
+        self._scores: dict[int, int] = {}  # diagonal (ref centre − query centre) → score
+
+    def _delta_at(self, ref: int, frame: int) -> int:
+        if ref < 0 or ref >= self.index.n_ref:
+            return int(self._dmax)
+        return int(delta(self.index.ref_hash[ref], np.uint64(self._hashes[frame]), self._w, self._tables,
+                         self.index.d, self.index.k))
+
+    def push(self, descriptor: np.ndarray) -> int | None:
+        """Add one query frame; the match of the window it completes (None until L frames)."""
+        h, _ = self.index.hash_queries(np.asarray(descriptor, np.float32)[None, :])
+        return self.push_address(int(h[0]))
+
+    def push_address(self, h: int) -> int | None:
+        """Add one query frame given its own address (already hashed)."""
+        self._hashes.append(int(h))
+        self._addrs.append(int(self.index.nearest_occupied(np.array([h], np.uint64))[0]))
+        u = len(self._hashes) - 1
+        if u + 1 < self.L:
+            return None
+        t = u - (self.L - 1 - self.half)  # centre of the window ending at u
+        first = t - self.half
+        if self._scores:  # slide: add the newest pair, drop the pair that left
+            for diag in list(self._scores):
+                s = self._scores[diag] + self._delta_at(t + diag + self.L - 1 - self.half, u)
+                s -= self._delta_at(t + diag - self.half - 1, first - 1)
+                self._scores[diag] = s
+        idx = self.index
+        candidates = set()
+        for l in range(self.L):
+            a = self._addrs[first + l]
+            for r in idx.ids[idx.offsets[a] : idx.offsets[a + 1]]:
+                c = int(r) - (l - self.half) if self.aligned else int(r)
+                if 0 <= c < idx.n_ref:
+                    candidates.add(c)
+        kept = {}
+        for c in candidates:
+            diag = c - t
+            if diag not in self._scores:
+                self._scores[diag] = sum(self._delta_at(c + l - self.half, first + l) for l in range(self.L))
+            kept[diag] = self._scores[diag]
+        self._scores = kept
+        best = min(kept.items(), key=lambda kv: (kv[1], kv[0]))
+        return t + best[0]
+
+
+def codes_of(h: np.ndarray, d: int, k: int) -> np.ndarray:
+    """Per-component codes of addresses (for inspection and tests)."""
+    return unpack(h, d, k)

@@ -1,0 +1,273 @@
+"""``vprscale eval``: the evaluation protocol of SPEC §3.5 over a store and its indexes.
+
+For every noise level, index width, sequence length and method it localises the query
+centres ``t = 0, z, 2z, …`` (with a truth and the whole window inside the query set),
+then writes ``results.parquet`` (recall at radii 0…20 per part, with N_r statistics,
+measured µs and counted operations per query) and ``queries.parquet`` (one row per query).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import dask.array as da
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from tqdm import tqdm
+
+from vprscale.accounting import baseline_ops, method_ops
+from vprscale.baseline import baseline_batch
+from vprscale.cluster import dask_client
+from vprscale.engine import Index, in_list_distance, match_batch
+from vprscale.errors import InputError
+from vprscale.index import build_index, default_index_dir, store_identity
+from vprscale.pca import ExactPCA
+from vprscale.store import ATTR, check_writable, exclusive, open_complete_group
+
+NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
+MODES = ("paper", "aligned")
+RADII = np.arange(21)
+PARTS = {"all": None, "deep1b": 0, "fas": 1}
+
+
+@dataclass
+class EvalRequest:
+    """What ``vprscale eval`` was asked for."""
+
+    store: Path
+    index: Path | None = None
+    noises: list[str] = field(default_factory=lambda: ["qm1", "qm2"])
+    lengths: list[int] = field(default_factory=lambda: [1, 50, 100])
+    modes: list[str] = field(default_factory=lambda: ["paper", "aligned"])
+    baseline: bool = True
+    z: int | None = None
+    d_sweep: list[int] | None = None
+    out: Path | None = None
+    workers: int = 2
+    scheduler: str | None = None
+    quiet: bool = False
+
+
+def query_centres(gt: np.ndarray, z: int, L: int) -> np.ndarray:
+    """Centres ``0, z, 2z, …`` with a truth and the whole window inside the query set."""
+    half = L // 2
+    t = np.arange(0, len(gt), z, dtype=np.int64)
+    ok = (gt[t] >= 0) & (t - half >= 0) & (t - half + L <= len(gt))
+    return t[ok]
+
+
+def needed_frames(centres: list[np.ndarray], lengths: list[int]) -> np.ndarray:
+    """Every query frame inside some evaluated window."""
+    frames = [(c[:, None] + np.arange(L)[None, :] - L // 2).ravel() for c, L in zip(centres, lengths, strict=True)]
+    return np.unique(np.concatenate(frames)) if frames else np.empty(0, np.int64)
+
+
+def recall_curve(error: np.ndarray) -> np.ndarray:
+    """Share of queries with ``|match − truth| ≤ r`` for r = 0 … 20."""
+    if len(error) == 0:
+        return np.full(len(RADII), np.nan)
+    return (error[:, None] <= RADII[None, :]).mean(axis=0)
+
+
+def _validate(req: EvalRequest) -> None:
+    unknown = [n for n in req.noises if n not in NOISES]
+    if unknown:
+        raise InputError(f"--noise {','.join(unknown)}: unknown noise; choose from {', '.join(NOISES)}")
+    bad = [m for m in req.modes if m not in MODES]
+    if bad:
+        raise InputError(f"--modes {','.join(bad)}: unknown mode; choose from {', '.join(MODES)}")
+    if any(L < 1 for L in req.lengths):
+        raise InputError("--L: sequence lengths must be at least 1")
+    if req.z is not None and req.z < 1:
+        raise InputError(f"--z {req.z}: must be at least 1")
+
+
+def _indexes(req: EvalRequest, identity: str) -> list[Path]:
+    if req.d_sweep:
+        paths = []
+        for d in req.d_sweep:
+            path = default_index_dir(req.store, d, 2)
+            meta_file = path / "index.json"
+            if not (meta_file.is_file() and json.loads(meta_file.read_text()).get("store", {}).get("identity")
+                    == identity):
+                build_index(req.store, d=d, k=2, out=path, scheduler=req.scheduler, workers=req.workers,
+                            quiet=req.quiet)
+            paths.append(path)
+        return paths
+    if req.index is None:
+        raise InputError("eval: give an INDEX, or --d to index the store at several widths")
+    return [req.index]
+
+
+def evaluate(req: EvalRequest) -> dict[str, Any]:
+    """Run the grid and write ``results.parquet`` and ``queries.parquet``; returns a summary."""
+    _validate(req)
+    group = open_complete_group(req.store)
+    meta = group.attrs[ATTR]
+    identity = store_identity(req.store)
+    gt = group["gt"][:]
+    part = group["query_part"][:]
+    n_q = len(gt)
+    too_long = [L for L in req.lengths if L > n_q]
+    if too_long:
+        raise InputError(f"--L {too_long[0]}: longer than the {n_q:,} query frames")
+    z = req.z or meta["recipe"]["query_stride"]
+    with dask_client(req.scheduler, req.workers):
+        index_paths = _indexes(req, identity)
+        indexes = []
+        for path in index_paths:
+            idx = Index.load(path)
+            if idx.meta["store"]["identity"] != identity:
+                raise InputError(f"{path}: this index was built from another store "
+                                 f"({idx.meta['store']['path']}), not {req.store}")
+            if idx.components.shape[1] != group["ref"].shape[1]:
+                raise InputError(f"{path}: index expects {idx.components.shape[1]}-d descriptors, "
+                                 f"the store holds {group['ref'].shape[1]}-d")
+            indexes.append((path, idx))
+        out = Path(req.out) if req.out else (index_paths[0] / "eval" if len(index_paths) == 1 else
+                                             req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
+        check_writable(out)
+        base_x = None
+        if req.baseline:
+            pca1 = ExactPCA(1).fit(da.from_zarr(group["ref"]))
+            base_x = pca1.transform(da.from_zarr(group["ref"]).compute()).astype(np.float64)[:, 0] \
+                if group["ref"].shape[0] <= 2_000_000 else _project_streamed(group["ref"], pca1)
+        with exclusive(out):
+            rows, queries = _grid(req, group, gt, part, z, indexes, base_x, pca1 if req.baseline else None)
+            provenance = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
+                          "store_identity": identity}
+            _write_parquet(out / "results.parquet", rows, provenance)
+            _write_parquet(out / "queries.parquet", queries, provenance)
+    return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
+            "table": _summary_table(rows)}
+
+
+def _project_streamed(ref, pca1: ExactPCA) -> np.ndarray:
+    x = da.from_zarr(ref)
+    return x.map_blocks(lambda b: pca1.transform(b).astype(np.float64), chunks=(x.chunks[0], (1,)),
+                        dtype=np.float64).compute()[:, 0]
+
+
+def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[list[dict], list[dict]]:
+    rows: list[dict] = []
+    queries: list[dict] = []
+    centres = {L: query_centres(gt, z, L) for L in req.lengths}
+    frames = needed_frames([centres[L] for L in req.lengths], req.lengths)
+    n_q = len(gt)
+    dim = group["ref"].shape[1]
+    combos = len(req.noises) * len(indexes) * len(req.lengths)
+    bar = tqdm(total=combos, desc="evaluate", unit="combo", file=sys.stderr, disable=None, leave=False)
+    for noise in req.noises:
+        x_q = group[NOISES[noise]].get_orthogonal_selection((frames, slice(None)))
+        y_base = None
+        if base_x is not None:
+            y_base = np.zeros(n_q)
+            y_base[frames] = pca1.transform(x_q).astype(np.float64)[:, 0]
+        for path, idx in indexes:
+            q_hash = np.zeros(n_q, np.uint64)
+            q_addr = np.zeros(n_q, np.int64)
+            t0 = time.perf_counter()
+            h, a = idx.hash_queries(x_q)
+            hash_us = (time.perf_counter() - t0) / max(1, len(frames)) * 1e6
+            q_hash[frames], q_addr[frames] = h, a
+            occupied = np.zeros(n_q, bool)
+            occupied[frames] = idx.addresses[a] == h
+            args = idx.kernel_args()
+            for L in req.lengths:
+                t = centres[L]
+                key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(path)}
+                fallback = float(1 - occupied[t].mean()) if len(t) else 0.0
+                results = _method_runs(req, idx, t, L, q_hash, q_addr, gt, args)
+                paper_nr = None
+                for mode, (match, n_r, secs, in_list) in results.items():
+                    if mode == "paper" and L > 1:
+                        paper_nr = n_r
+                    if L > 1 and mode not in req.modes:
+                        continue
+                    ops = method_ops(dim, idx.d, idx.k, L, float(n_r.mean()) if len(n_r) else 0.0,
+                                     len(idx.addresses), fallback)
+                    us = secs / max(1, len(t)) * 1e6 + hash_us
+                    _emit(rows, queries, {**key, "method": "coarsehash", "mode": None if L == 1 else mode},
+                          t, gt, part, match, n_r, us, ops["total"], in_list)
+                if base_x is not None:
+                    nr = 1 if L == 1 else max(1, int(round(float(paper_nr.mean())))) if len(t) else 1
+                    baseline_batch(t[:1], L, nr, base_x, y_base, float(np.ptp(base_x)))  # compile outside the timing
+                    t0 = time.perf_counter()
+                    match, n_r = baseline_batch(t, L, nr, base_x, y_base, float(np.ptp(base_x)))
+                    secs = time.perf_counter() - t0
+                    ops = baseline_ops(dim, len(base_x), L, nr)
+                    _emit(rows, queries, {**key, "d": 1, "K": None, "method": "baseline", "mode": None},
+                          t, gt, part, match, n_r, secs / max(1, len(t)) * 1e6, ops["total"], None)
+                bar.update()
+    bar.close()
+    return rows, queries
+
+
+def _method_runs(req: EvalRequest, idx: Index, t: np.ndarray, L: int, q_hash, q_addr, gt, args) -> dict:
+    """``{mode: (match, n_r, seconds, in-list distance or None)}`` for one index and L."""
+    if L == 1:
+        t0 = time.perf_counter()
+        a = q_addr[t]
+        match = idx.best[a]
+        secs = time.perf_counter() - t0
+        n_r = idx.offsets[a + 1] - idx.offsets[a]
+        return {"single": (match, n_r, secs, in_list_distance(a, gt[t], idx.offsets, idx.ids))}
+    modes = set(req.modes) | ({"paper"} if req.baseline else set())
+    out = {}
+    for mode in MODES:
+        if mode not in modes:
+            continue
+        match_batch(t[:1], L, mode == "aligned", q_hash, q_addr, *args)  # compile outside the timing
+        t0 = time.perf_counter()
+        match, n_r = match_batch(t, L, mode == "aligned", q_hash, q_addr, *args)
+        out[mode] = (match, n_r, time.perf_counter() - t0, None)
+    return out
+
+
+def _emit(rows: list, queries: list, key: dict, t, gt, part, match, n_r, us: float, ops: float, in_list) -> None:
+    error = np.abs(match - gt[t])
+    parts = part[t]
+    for name, code in PARTS.items():
+        sel = np.ones(len(t), bool) if code is None else parts == code
+        curve = recall_curve(error[sel])
+        in_curve = recall_curve(in_list[sel]) if in_list is not None else None
+        nr = n_r[sel]
+        stats = {"n_queries": int(sel.sum()),
+                 "nr_mean": float(nr.mean()) if len(nr) else np.nan,
+                 "nr_median": float(np.median(nr)) if len(nr) else np.nan,
+                 "nr_p95": float(np.percentile(nr, 95)) if len(nr) else np.nan,
+                 "us_per_query": us, "ops_per_query": ops}
+        for r in RADII:
+            rows.append({**key, "part": name, "radius": int(r), "recall": float(curve[r]),
+                         "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
+    for i in range(len(t)):
+        queries.append({**key, "t": int(t[i]), "gt": int(gt[t[i]]), "match": int(match[i]), "error": int(error[i]),
+                        "n_r": int(n_r[i]), "in_list": int(in_list[i]) if in_list is not None else None,
+                        "part": "deep1b" if parts[i] == 0 else "fas"})
+
+
+def _write_parquet(path: Path, rows: list[dict], provenance: dict) -> None:
+    table = pa.Table.from_pylist([{**r, **provenance} for r in rows])
+    tmp = path.with_name(f".{path.name}.partial")
+    pq.write_table(table, tmp, compression="zstd")
+    tmp.replace(path)
+
+
+def _summary_table(rows: list[dict]) -> str:
+    lines = [f"{'noise':<5} {'method':<10} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
+             f"{'R@0':>6} {'R@5':>6} {'R@20':>6} {'N_r':>7} {'µs/q':>9} {'ops/q':>11}"]
+    by_key: dict[tuple, dict[int, dict]] = {}
+    for r in rows:
+        by_key.setdefault((r["noise"], r["method"], r["mode"] or "-", r["d"], r["L"], r["part"]), {})[r["radius"]] = r
+    for (noise, method, mode, d, L, part), radii in by_key.items():
+        r0 = radii[0]
+        lines.append(f"{noise:<5} {method:<10} {mode:<8} {d:>3} {L:>4} {part:<7} {r0['n_queries']:>6} "
+                     f"{radii[0]['recall']:>6.3f} {radii[5]['recall']:>6.3f} {radii[20]['recall']:>6.3f} "
+                     f"{r0['nr_mean']:>7.1f} {r0['us_per_query']:>9.2f} {r0['ops_per_query']:>11.0f}")
+    return "\n".join(lines)
