@@ -55,9 +55,9 @@ def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np
         best, best_s = -1, np.inf
         for c in cand:  # ascending
             s = 0.0
-            for l in range(L):
-                r = c + l - half
-                s += x_range if (r < 0 or r >= n_ref) else abs(x[r] - y[t + l - half])
+            for i in range(L):
+                r = c + i - half
+                s += x_range if (r < 0 or r >= n_ref) else abs(x[r] - y[t + i - half])
             if s < best_s:
                 best_s, best = s, c
         out[qi] = best

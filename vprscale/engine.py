@@ -143,8 +143,8 @@ def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_
            w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64) -> np.int64:
     s = np.int64(0)
     n_ref = ref_hash.shape[0]
-    for l in range(L):
-        off = l - half
+    for i in range(L):
+        off = i - half
         r = c + off
         if r < 0 or r >= n_ref:
             s += dmax
@@ -171,15 +171,15 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     for qi in range(n):
         t = centres_t[qi]
         total = 0
-        for l in range(L):
-            a = q_addr[t + l - half]
+        for i in range(L):
+            a = q_addr[t + i - half]
             total += offsets[a + 1] - offsets[a]
         buf = np.empty(total, np.int64)
         m = 0
-        for l in range(L):
-            a = q_addr[t + l - half]
+        for i in range(L):
+            a = q_addr[t + i - half]
             for p in range(offsets[a], offsets[a + 1]):
-                c = ids[p] - (l - half) if aligned else ids[p]
+                c = ids[p] - (i - half) if aligned else ids[p]
                 if 0 <= c < n_ref:
                     buf[m] = c
                     m += 1
@@ -254,17 +254,17 @@ class OnlineMatcher:
                 self._scores[diag] = s
         idx = self.index
         candidates = set()
-        for l in range(self.L):
-            a = self._addrs[first + l]
+        for i in range(self.L):
+            a = self._addrs[first + i]
             for r in idx.ids[idx.offsets[a] : idx.offsets[a + 1]]:
-                c = int(r) - (l - self.half) if self.aligned else int(r)
+                c = int(r) - (i - self.half) if self.aligned else int(r)
                 if 0 <= c < idx.n_ref:
                     candidates.add(c)
         kept = {}
         for c in candidates:
             diag = c - t
             if diag not in self._scores:
-                self._scores[diag] = sum(self._delta_at(c + l - self.half, first + l) for l in range(self.L))
+                self._scores[diag] = sum(self._delta_at(c + i - self.half, first + i) for i in range(self.L))
             kept[diag] = self._scores[diag]
         self._scores = kept
         best = min(kept.items(), key=lambda kv: (kv[1], kv[0]))
