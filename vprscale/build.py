@@ -62,6 +62,7 @@ class BuildRequest:
     dry_run: bool = False
     force: bool = False
     fas_dim: int = 4096
+    rescale: bool = True
     quiet: bool = False
 
 
@@ -209,7 +210,7 @@ def build(req: BuildRequest) -> dict[str, Any]:
     recipe = load_recipe(req.scale)
     deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
     out = Path(req.out)
-    final = out / f"{recipe.scale}.zarr"
+    final = out / f"{recipe.scale}{'' if req.rescale else '-norescale'}.zarr"
     p = plan(recipe, deep, traverse, out, req.workers)
     if req.dry_run:
         print_plan(p, final)
@@ -234,7 +235,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     timings = Timings(req.quiet)
     lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
                  recipe.fas_rows("query", traverse.query.n_rows))
-    provenance = {"recipe": recipe.as_dict(),
+    provenance = {"recipe": recipe.as_dict(), "rescale": req.rescale,
                   "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
     partial = PartialOutput(final, provenance)
     resumed = partial.open()
@@ -255,7 +256,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
                                    overwrite=True, **codecs())
             with timings.stage("fit transforms (Deep1B exact PCA, FAS PCA, noise model)"):
                 h = homogenised(deep, recipe.deep1b_rows_read, lay.n_deep, recipe.window, recipe.chunk_rows)
-                merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed).fit(h, traverse)
+                merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed, req.rescale).fit(h, traverse)
             _save_transforms(group, merge, partial.path)
             partial.mark("fit")
         group = zarr.open_group(store, mode="r+")

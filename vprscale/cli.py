@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -25,6 +26,12 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _write_summary(args: argparse.Namespace, data: dict) -> None:
+    """``--summary FILE``: the command's summary as JSON (what pipelines read back)."""
+    if getattr(args, "summary", None):
+        Path(args.summary).write_text(json.dumps(data, indent=1, default=str))
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
     from vprscale.synth import write_synthetic
 
@@ -32,6 +39,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
                             rows_per_file=args.rows_per_file)
     for p in paths:
         print(p)
+    _write_summary(args, {"dir": args.out, "fvecs": str(paths[0].parent), "fbin": str(paths[-2]),
+                          "fas": str(paths[-1])})
     return 0
 
 
@@ -40,9 +49,10 @@ def cmd_build(args: argparse.Namespace) -> int:
 
     summary = build(BuildRequest(scale=args.scale, out=Path(args.out), deep1b=args.deep1b, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
-                                 force=args.force, fas_dim=args.fas_dim))
+                                 force=args.force, fas_dim=args.fas_dim, rescale=args.rescale))
     if not summary.get("dry_run") and not summary.get("skipped"):
         print(format_summary(summary))
+    _write_summary(args, summary)
     return 0
 
 
@@ -59,6 +69,7 @@ def cmd_index(args: argparse.Namespace) -> int:
         print(f"  {secs:8.1f} s  {name}")
     print(f"  peak memory {meta['peak_rss_bytes'] / 2**30:.2f} GiB")
     print(format_storage(meta["storage"]))
+    _write_summary(args, meta)
     return 0
 
 
@@ -97,6 +108,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
           f"({summary['queries']:,} rows); z = {summary['z']}")
+    _write_summary(args, summary)
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from vprscale.report import write_report
+
+    rep = write_report(args.results, Path(args.out), extra_indexes=args.index)
+    print(f"wrote {rep['report']} and {len(rep['figures'])} figure files")
+    _write_summary(args, rep)
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from vprscale.pipeline import run_pipeline
+
+    summary = run_pipeline(args.pipeline, scheduler=args.scheduler)
+    ran = [s["name"] for s in summary["stages"] if s["status"] == "ran"]
+    print(f"pipeline {summary['name']}: {summary['status']}; ran {len(ran)} of {len(summary['stages'])} stages "
+          f"({', '.join(ran) or 'none: everything was up to date'}); summary {summary['summary_file']}")
     return 0
 
 
@@ -119,6 +150,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rows-per-file", type=_positive_int, default=None,
                    help="split the fvecs output into base_NN files of this many rows")
+    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("build", help="build a localisation dataset (SPEC §2) into <out>/<scale>.zarr")
@@ -130,7 +162,10 @@ def parser() -> argparse.ArgumentParser:
                    help="width of the synthetic FAS descriptors when --fas is not given")
     p.add_argument("--dry-run", action="store_true", help="print what would be read, written and needed")
     p.add_argument("--force", action="store_true", help="rebuild a complete store (replaced only when done)")
+    p.add_argument("--no-rescale", dest="rescale", action="store_false",
+                   help="skip the variance rescaling of Deep1B (ablation of Fig. 4d; writes <scale>-norescale.zarr)")
     _add_cluster(p)
+    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_build)
 
     p = sub.add_parser("index", help="fit CoarseHash on a dataset store and write its inverted lists")
@@ -139,6 +174,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=int, default=2, help="levels per component (default 2)")
     p.add_argument("--out", help="index directory (default: beside the store, <scale>-d<d>-k<K>.index)")
     _add_cluster(p)
+    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_index)
 
     p = sub.add_parser("eval", help="localise query sequences and evaluate the grid of SPEC §3.5")
@@ -153,7 +189,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--d", type=_csv(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
     _add_cluster(p)
+    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("report", help="figures and report.md from evaluation results")
+    p.add_argument("results", nargs="+", help="eval output directories (or results.parquet files)")
+    p.add_argument("--out", required=True, help="report directory, e.g. reports/<name>")
+    p.add_argument("--index", action="append", default=[], help="an extra index (e.g. the no-rescale ablation)")
+    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("run", help="run a pipeline (pipelines/*.toml), skipping stages that are up to date")
+    p.add_argument("pipeline", help="a pipeline TOML file")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler")
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("sql", help="read-only SQL over an index (views lists, buckets, model, results, queries)")
     p.add_argument("index", help="an index directory")

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from vprscale.accounting import baseline_ops, method_ops
 from vprscale.baseline import baseline_batch
-from vprscale.cluster import dask_client
+from vprscale.cluster import cluster_peak_rss, dask_client
 from vprscale.engine import Index, in_list_distance, match_batch
 from vprscale.errors import InputError
 from vprscale.index import build_index, default_index_dir, store_identity
@@ -108,6 +108,7 @@ def _indexes(req: EvalRequest, identity: str) -> list[Path]:
 def evaluate(req: EvalRequest) -> dict[str, Any]:
     """Run the grid and write ``results.parquet`` and ``queries.parquet``; returns a summary."""
     _validate(req)
+    t_start = time.perf_counter()
     group = open_complete_group(req.store)
     meta = group.attrs[ATTR]
     identity = store_identity(req.store)
@@ -118,7 +119,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     if too_long:
         raise InputError(f"--L {too_long[0]}: longer than the {n_q:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
-    with dask_client(req.scheduler, req.workers):
+    with dask_client(req.scheduler, req.workers) as client:
         index_paths = _indexes(req, identity)
         indexes = []
         for path in index_paths:
@@ -144,6 +145,10 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                           "store_identity": identity}
             _write_parquet(out / "results.parquet", rows, provenance)
             _write_parquet(out / "queries.parquet", queries, provenance)
+            summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
+                       "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
+                       "indexes": [str(p) for p in index_paths], **provenance}
+            (out / "eval.json").write_text(json.dumps(summary, indent=1))
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
 

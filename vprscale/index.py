@@ -40,7 +40,7 @@ MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_varian
 def store_identity(store: Path) -> str:
     """A digest of a store's provenance: an index records it, an evaluation checks it."""
     meta = open_complete_group(store).attrs[ATTR]
-    core = {k: meta[k] for k in ("recipe", "sources", "layout", "seed")}
+    core = {k: meta.get(k) for k in ("recipe", "sources", "layout", "seed", "rescale")}
     return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -106,7 +106,8 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
             "kind": "coarsehash-index", "complete": True, "d": d_eff, "k": k, "n_ref": int(n_ref), "dim": int(dim),
             "occupied": int(len(lists["addresses"])), "bins": hasher.bins,
             "store": {"path": str(store.resolve()), "identity": identity,
-                      "scale": group.attrs[ATTR]["recipe"]["scale"]},
+                      "scale": group.attrs[ATTR]["recipe"]["scale"], "rescale": group.attrs[ATTR].get("rescale", True),
+                      "built": group.attrs[ATTR].get("built", {})},
             "storage": storage_table(int(n_ref), d_eff, k, int(dim), disk),
             "timings_s": timings.stages, "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
             "versions": {"vprscale": vprscale.__version__},

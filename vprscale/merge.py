@@ -33,6 +33,8 @@ class MergeTransform:
     dim : components kept of each source (D = 96).
     n_fas_ref, n_fas_query : FAS rows kept in the dataset.
     seed : seed of the randomized FAS PCA and of the query noise.
+    rescale : match Deep1B's per-component spread to FAS's (step 4); off only for the
+        ablation of the paper's Fig. 4d.
 
     Fitted attributes: ``deep_pca_`` (exact PCA of homogenised Deep1B), ``fas_pca_``
     (PCA of the kept FAS reference rows), ``noise_pca_`` (PCA of all FAS reference rows),
@@ -40,8 +42,9 @@ class MergeTransform:
     ``fas_ref_`` / ``fas_query_`` (the kept FAS rows, projected).
     """
 
-    def __init__(self, dim: int, n_fas_ref: int, n_fas_query: int, seed: int) -> None:
+    def __init__(self, dim: int, n_fas_ref: int, n_fas_query: int, seed: int, rescale: bool = True) -> None:
         self.dim, self.n_fas_ref, self.n_fas_query, self.seed = dim, n_fas_ref, n_fas_query, seed
+        self.rescale = rescale
 
     def fit(self, deep_homogenised: da.Array, traverse: Traverse) -> MergeTransform:
         self.deep_pca_ = ExactPCA(self.dim).fit(deep_homogenised)
@@ -54,7 +57,7 @@ class MergeTransform:
             self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(kept)
         self.fas_ref_, self.fas_query_ = self._project_fas(traverse)
         fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
-        self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_)
+        self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_) if self.rescale else np.ones(self.dim)
         self.noise_mean_, self.noise_std_ = self._noise_model(traverse)
         return self
 

@@ -1,0 +1,107 @@
+"""Pipelines: validation before work, the quickstart end to end, skipping, re-running, locking."""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from vprscale.cli import main
+from vprscale.errors import InputError
+from vprscale.pipeline import load_pipeline, run_pipeline
+from vprscale.store import exclusive
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+BASE = 'name = "t"\nout = "{out}"\n'
+
+
+@pytest.mark.parametrize(("stages", "message"), [
+    ('[[stages]]\nname = "a"\nkind = "bake"\n', "stage 'a': unknown stage kind 'bake'"),
+    ('[[stages]]\nname = "a"\nkind = "build"\n', "stage 'a': missing key 'scale'"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = 20\n', "stage 'a': key 'scale' must be a string"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\nrescale = "no"\n', "key 'rescale' must be true or false"),
+    ('[[stages]]\nname = "a"\nkind = "index"\nstore = "nothing"\n',
+     "stage 'a': key 'store' must name an earlier build stage, got 'nothing'"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "eval"\n'
+     'store = "a"\nL = [1, "fifty"]\n', "stage 'e': key 'L' must be a list of integers"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\ncolour = "red"\n', "unknown key 'colour'"),
+])
+def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
+    out = tmp_path / "out"
+    path = _write(tmp_path / "p.toml", BASE.format(out=out) + stages)
+    with pytest.raises(InputError, match=re.escape(message)):
+        load_pipeline(path)
+    assert main(["run", str(path)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_shipped_pipelines_are_valid():
+    for name in ("quickstart", "paper"):
+        pipe = load_pipeline(ROOT / "pipelines" / f"{name}.toml")
+        assert [s.kind for s in pipe.stages][-1] == "report"
+
+
+def _quickstart(tmp_path: Path) -> Path:
+    """The shipped quickstart pipeline, writing under ``tmp_path`` instead of the repository."""
+    text = (ROOT / "pipelines" / "quickstart.toml").read_text()
+    data = tomllib.loads(text)
+    text = text.replace(f'out = "{data["out"]}"', f'out = "{tmp_path / "data"}"')
+    text = text.replace('out = "reports/quickstart"', f'out = "{tmp_path / "report"}"')
+    return _write(tmp_path / "quickstart.toml", text)
+
+
+@pytest.fixture(scope="module")
+def quickstart_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("quickstart")
+    path = _quickstart(tmp)
+    return tmp, path, run_pipeline(path)
+
+
+def test_quickstart_runs_end_to_end(quickstart_run):
+    tmp, _, summary = quickstart_run
+    assert summary["status"] == "ok"
+    assert all(s["status"] == "ran" for s in summary["stages"])
+    report = tmp / "report" / "report.md"
+    assert report.is_file()
+    for fig in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance"):
+        assert (tmp / "report" / f"{fig}.png").is_file() and (tmp / "report" / f"{fig}.pdf").is_file()
+    saved = json.loads(Path(summary["summary_file"]).read_text())
+    assert saved["status"] == "ok" and len(saved["figures"]) == 8
+    assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0
+
+
+def test_rerun_does_no_work_and_a_changed_stage_reruns_with_dependants(quickstart_run):
+    tmp, path, _ = quickstart_run
+    again = run_pipeline(path)
+    assert [s["status"] for s in again["stages"]] == ["skipped"] * len(again["stages"])
+    path.write_text(path.read_text().replace("L = [1, 50, 100]", "L = [1, 50]"))
+    third = run_pipeline(path)
+    status = {s["name"]: s["status"] for s in third["stages"]}
+    assert status == {"build-20K": "skipped", "index-20K": "skipped", "eval-20K": "ran",
+                      "build-20K-norescale": "skipped", "index-20K-norescale": "skipped", "report": "ran"}
+
+
+def test_two_runs_on_one_output_are_refused(tmp_path, capsys):
+    path = _quickstart(tmp_path)
+    with exclusive(tmp_path / "data" / "pipeline"):
+        assert main(["run", str(path)]) == 2
+    assert "another vprscale job" in capsys.readouterr().err
+
+
+def test_failed_stage_exits_non_zero_with_a_failed_summary(tmp_path, capsys):
+    path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") +
+                  '[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\ndeep1b = "/nonexistent.fbin"\n')
+    assert main(["run", str(path)]) == 2
+    summaries = list((tmp_path / "out" / "runs").glob("*.json"))
+    assert len(summaries) == 1 and json.loads(summaries[0].read_text())["status"] == "failed"

@@ -1,0 +1,56 @@
+"""Report generation on a small hand-made results table."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+
+from vprscale.report import write_report
+
+
+def _results(tmp_path):
+    rows = []
+    for noise in ("qm1", "qm2"):
+        for method, mode, L, d in (("coarsehash", None, 1, 15), ("coarsehash", "paper", 50, 15),
+                                   ("coarsehash", "aligned", 50, 15), ("baseline", None, 50, 1)):
+            for part in ("all", "deep1b", "fas"):
+                for r in range(21):
+                    rows.append({"noise": noise, "method": method, "mode": mode, "L": L, "d": d, "K": 2,
+                                 "part": part, "radius": r, "recall": min(1.0, 0.03 * r + (0.5 if mode else 0.0)),
+                                 "recall_in_list": 0.9 if L == 1 and method == "coarsehash" else None,
+                                 "n_queries": 100, "nr_mean": 70.0, "nr_median": 68.0, "nr_p95": 90.0,
+                                 "us_per_query": 5.0 if method == "coarsehash" else 500.0,
+                                 "ops_per_query": 5e4 if method == "coarsehash" else 6e7,
+                                 "index": str(tmp_path / "i.index"), "scale": "20K", "store": "s",
+                                 "store_identity": "x"})
+    (tmp_path / "ev").mkdir()
+    pd.DataFrame(rows).to_parquet(tmp_path / "ev" / "results.parquet")
+    idx = tmp_path / "i.index"
+    idx.mkdir()
+    storage = {p: {"paper": 8 * v, "packed": 4 * v, "disk": 5 * v} for p, v in
+               (("P1", 20000), ("P2", 30), ("P3", 1440), ("P4", 96))}
+    storage["total"] = {k: sum(s[k] for s in storage.values()) for k in ("paper", "packed", "disk")}
+    (idx / "index.json").write_text(json.dumps({
+        "kind": "coarsehash-index", "complete": True, "d": 15, "k": 2, "n_ref": 20000, "storage": storage,
+        "store": {"scale": "20K", "rescale": True, "built": {"wall_s": 12.0, "peak_rss_bytes": 2**30}},
+        "wall_s": 3.0, "peak_rss_bytes": 2**29}))
+    comp = pd.DataFrame({"component": np.repeat(np.arange(1, 16), 2), "cluster": np.tile([0, 1], 15),
+                         "centre": 0.0, "refs": 10, "share": np.tile([0.4, 0.6], 15), "variance": 1.0})
+    comp.to_parquet(idx / "components.parquet")
+    return tmp_path / "ev"
+
+
+def test_report_writes_every_figure_and_the_right_numbers(tmp_path):
+    rep = write_report([_results(tmp_path)], tmp_path / "rep")
+    for name in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance"):
+        for ext in ("png", "pdf"):
+            assert (tmp_path / "rep" / f"{name}.{ext}").stat().st_size > 1000
+    text = (tmp_path / "rep" / "report.md").read_text()
+    # R@5 of paper mode L = 50: 0.03·5 + 0.5 = 65 %; R@20: 100 %.
+    assert "| 20K | QM1 | 50 | CoarseHash paper | 100 | 50.0 | 65.0 | 80.0 | 100.0 |" in text
+    assert "| 20K | 50 | 50,000 | 60,000,000 | 1,200× | 5.00 | 500.00 | 100× |" in text
+    assert "| 20K | 15 | 12.0 | 1.00 | 3.0 | 0.50 | – | – |" in text
+    assert "| 20K | 15 | 20,000 | 0.160 |" in text
+    assert "37,400" in text and len(rep["figures"]) == 8
