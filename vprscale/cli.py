@@ -131,6 +131,22 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from vprscale import bench
+
+    if args.job == "build":
+        print(bench.bench_build(args.target, args.out, args.deep1b, args.fas, args.workers))
+    elif args.job == "index":
+        print(bench.bench_index(args.target, args.d, args.workers))
+    elif args.job == "lookup":
+        print(bench.bench_lookup(args.target))
+    else:
+        if not args.index:
+            raise InputError("bench eval: give --index")
+        print(bench.bench_eval(args.target, args.index, args.eval_args, args.workers))
+    return 0
+
+
 def _add_cluster(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler "
                    "(tcp://host:8786); default: a local in-process cluster")
@@ -203,6 +219,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("pipeline", help="a pipeline TOML file")
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")
+    p.add_argument("job", choices=["build", "index", "lookup", "eval"])
+    p.add_argument("target", help="build: a scale; index/eval: a store; lookup: an index")
+    p.add_argument("--out", default="data/bench", help="build: output directory")
+    p.add_argument("--deep1b")
+    p.add_argument("--fas")
+    p.add_argument("--d", type=_positive_int)
+    p.add_argument("--index", help="eval: the index to evaluate")
+    p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1)
+    p.add_argument("eval_args", nargs=argparse.REMAINDER, help="eval: further eval options after --")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("sql", help="read-only SQL over an index (views lists, buckets, model, results, queries)")
     p.add_argument("index", help="an index directory")
