@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -143,7 +144,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         if not args.index:
             raise InputError("bench eval: give --index")
-        print(bench.bench_eval(args.target, args.index, args.eval_args, args.workers))
+        print(bench.bench_eval(args.target, args.index, shlex.split(args.eval_args), args.workers))
     return 0
 
 
@@ -229,7 +230,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--d", type=_positive_int)
     p.add_argument("--index", help="eval: the index to evaluate")
     p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1)
-    p.add_argument("eval_args", nargs=argparse.REMAINDER, help="eval: further eval options after --")
+    p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("sql", help="read-only SQL over an index (views lists, buckets, model, results, queries)")

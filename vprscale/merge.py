@@ -12,17 +12,20 @@ import numpy as np
 
 from vprscale.blocks import BLOCK, block_rng, block_spans
 from vprscale.pca import ExactPCA, RandomizedPCA
-from vprscale.sources.base import RowSource
 from vprscale.sources.fas import Traverse
 
 NOISE_STREAM = 17
 _FAS_CHUNK = 8192
 
 
-def _delta_rows(traverse: Traverse, components: np.ndarray, a: int, b: int) -> np.ndarray:
-    """``PCA(ref[gt]) − PCA(query)`` for queries ``[a, b)``; the PCA mean cancels."""
-    diff = traverse.ref.take(traverse.gt[a:b]) - traverse.query.read(a, b)
-    return (diff @ components.T.astype(np.float32)).astype(np.float64)
+def _query_chunk(traverse: Traverse, comp: np.ndarray, mean: np.ndarray, noise_comp: np.ndarray, a: int, b: int,
+                 n_kept: int) -> tuple[np.ndarray, np.ndarray]:
+    """Projections of the kept queries in ``[a, b)`` and ``PCA(ref[gt]) − PCA(query)`` for all of them."""
+    q = traverse.query.read(a, b)
+    keep = max(0, min(b, n_kept) - a)
+    proj = ((q[:keep] @ comp.T.astype(np.float32)).astype(np.float64) - mean @ comp.T).astype(np.float32)
+    diff = traverse.ref.take(traverse.gt[a:b]) - q  # the PCA mean cancels
+    return proj, (diff @ noise_comp.T.astype(np.float32)).astype(np.float64)
 
 
 class MergeTransform:
@@ -48,39 +51,27 @@ class MergeTransform:
 
     def fit(self, deep_homogenised: da.Array, traverse: Traverse) -> MergeTransform:
         self.deep_pca_ = ExactPCA(self.dim).fit(deep_homogenised)
-        ref_all = traverse.ref.to_dask(_FAS_CHUNK)
-        self.noise_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(ref_all)
+        self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed)
+        self.fas_ref_ = self.fas_pca_.fit_transform(traverse.ref.head(self.n_fas_ref).to_dask(_FAS_CHUNK))
         if self.n_fas_ref == traverse.ref.n_rows:
-            self.fas_pca_ = self.noise_pca_
+            self.noise_pca_ = self.fas_pca_
         else:
-            kept = traverse.ref.head(self.n_fas_ref).to_dask(_FAS_CHUNK)
-            self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(kept)
-        self.fas_ref_, self.fas_query_ = self._project_fas(traverse)
+            self.noise_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(traverse.ref.to_dask(_FAS_CHUNK))
         fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
         self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_) if self.rescale else np.ones(self.dim)
-        self.noise_mean_, self.noise_std_ = self._noise_model(traverse)
+        self.fas_query_, self.noise_mean_, self.noise_std_ = self._queries(traverse)
         return self
 
-    def _project_fas(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray]:
-        comp32 = self.fas_pca_.components_.T.astype(np.float32)
-        offset = self.fas_pca_.mean_ @ self.fas_pca_.components_.T
-
-        def project(x: np.ndarray) -> np.ndarray:  # centred after the product: no 4096-wide float64 copy
-            return ((x @ comp32).astype(np.float64) - offset).astype(np.float32)
-
-        def projected(source: RowSource) -> da.Array:
-            x = source.to_dask(_FAS_CHUNK)
-            return x.map_blocks(project, chunks=(x.chunks[0], (self.dim,)), dtype=np.float32)
-
-        return dask.compute(projected(traverse.ref.head(self.n_fas_ref)),
-                            projected(traverse.query.head(self.n_fas_query)))
-
-    def _noise_model(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray]:
+    def _queries(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One pass over the FAS queries: the kept ones projected, and the noise model (step 5)."""
         n = traverse.query.n_rows
-        comp = self.noise_pca_.components_
-        parts = [dask.delayed(_delta_rows)(traverse, comp, a, min(n, a + _FAS_CHUNK)) for a in range(0, n, _FAS_CHUNK)]
-        delta = np.concatenate(dask.compute(*parts))
-        return delta.mean(axis=0), delta.std(axis=0)
+        fas, noise = self.fas_pca_, self.noise_pca_
+        parts = [dask.delayed(_query_chunk)(traverse, fas.components_, fas.mean_, noise.components_, a,
+                                            min(n, a + _FAS_CHUNK), self.n_fas_query)
+                 for a in range(0, n, _FAS_CHUNK)]
+        results = dask.compute(*parts)
+        delta = np.concatenate([r[1] for r in results])
+        return np.concatenate([r[0] for r in results]), delta.mean(axis=0), delta.std(axis=0)
 
     def deep_projection(self) -> tuple[np.ndarray, np.ndarray]:
         """``(mean, matrix)`` such that a rescaled Deep1B row is ``(h − mean) @ matrix``."""

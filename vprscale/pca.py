@@ -108,51 +108,71 @@ def moments_of(x: np.ndarray | da.Array, start: int = 0) -> np.ndarray:
     return stacked.sum(axis=0)
 
 
+def _gram_product(x: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``xᵀ (x b)`` of one chunk (float32 products, float64 result), with a leading axis to sum over."""
+    return (x.T @ (x @ b)).astype(np.float64)[None]
+
+
 class RandomizedPCA:
-    """Centred PCA of a wide streamed matrix by a randomized range finder.
+    """Centred PCA of a wide streamed matrix by randomized subspace iteration on ``XᵀX``.
+
+    Each pass reads every chunk once and forms ``X_cᵀ (X_c B)`` from it, so one power
+    iteration costs one pass (not two, as iterating on ``X`` and ``Xᵀ`` separately would).
+    The last pass projects the rows on the subspace found; the small SVD of that projection
+    gives the components and, for free, the projections of the fitted rows.
 
     Parameters
     ----------
     n_components : components kept.
     oversample : extra random directions (accuracy of the trailing kept components).
-    n_iter : power iterations (each costs two streamed passes).
+    n_iter : power iterations (one streamed pass each).
     seed : seed of the random test matrix.
+
+    Fitted attributes: ``mean_``, ``components_``, ``explained_variance_`` (ddof 0),
+    ``n_samples_``.
     """
 
-    def __init__(self, n_components: int, oversample: int = 32, n_iter: int = 2, seed: int = 0) -> None:
+    def __init__(self, n_components: int, oversample: int = 32, n_iter: int = 1, seed: int = 0) -> None:
         self.n_components, self.oversample, self.n_iter, self.seed = n_components, oversample, n_iter, seed
 
     def fit(self, x: da.Array) -> RandomizedPCA:
-        """Fit on a Dask array of rows; each pass is one parallel streamed read.
+        """Fit on a Dask array of rows."""
+        self.fit_transform(x)
+        return self
 
-        Products are taken on the uncentred float32 rows and centred afterwards in float64
-        (``(X − 1μᵀ)B = XB − 1(μᵀB)``), so the mean costs no pass of its own.
+    def fit_transform(self, x: da.Array) -> np.ndarray:
+        """Fit, and return the centred projections (float32) of the fitted rows.
+
+        ``(X − 1μᵀ)ᵀ(X − 1μᵀ)B = XᵀXB − n·μ(μᵀB)``: products are taken on the uncentred
+        float32 rows and centred in float64, so the mean costs no pass of its own.
         """
         n, d = x.shape
         k = min(self.n_components + self.oversample, d, n)
         omega = np.random.default_rng(self.seed).standard_normal((d, k)).astype(np.float32)
-        total, y = dask.compute(x.sum(axis=0, dtype=np.float64), x @ omega)
+
+        def gram(b: np.ndarray) -> da.Array:
+            return x.map_blocks(_gram_product, b, chunks=((1,) * x.numblocks[0], (d,), (k,)), new_axis=2,
+                                dtype=np.float64).sum(axis=0)
+
+        total, g = dask.compute(x.sum(axis=0, dtype=np.float64), gram(omega))
         mean = total / n
-
-        def centred_range(basis: np.ndarray, xb: np.ndarray) -> np.ndarray:
-            return xb.astype(np.float64) - mean @ basis
-
-        def corange(q: np.ndarray) -> np.ndarray:  # (X − 1μᵀ)ᵀ Q, one pass
-            z = (x.T @ q.astype(np.float32)).compute().astype(np.float64)
-            return z - np.outer(mean, q.sum(axis=0))
-
-        q = orthonormal(centred_range(omega, y))
-        for _ in range(self.n_iter):
-            z = orthonormal(corange(q))
-            z32 = z.astype(np.float32)
-            q = orthonormal(centred_range(z32, (x @ z32).compute()))
-        _, s, vt = np.linalg.svd(corange(q).T, full_matrices=False)
+        basis = omega
+        for it in range(self.n_iter + 1):
+            v = orthonormal(g - n * np.outer(mean, mean @ basis))
+            basis = v.astype(np.float32)
+            if it < self.n_iter:
+                g = gram(basis).compute()
+        p = (x @ basis).compute().astype(np.float64) - mean @ basis
+        u, s, wt = np.linalg.svd(p, full_matrices=False)
         keep = slice(0, self.n_components)
+        components = (basis.astype(np.float64) @ wt.T).T[keep]
+        flipped = sign_flip(components)
+        signs = np.sign(np.sum(flipped * components, axis=1))
         self.mean_ = mean
-        self.components_ = sign_flip(vt[keep])
+        self.components_ = flipped
         self.explained_variance_ = s[keep] ** 2 / n
         self.n_samples_ = n
-        return self
+        return (u[:, keep] * (s[keep] * signs)).astype(np.float32)
 
     def transform(self, x: np.ndarray) -> np.ndarray:
         """Centre and project; float64 arithmetic, float32 result."""
