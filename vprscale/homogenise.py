@@ -44,9 +44,9 @@ def window_mean(source: RowSource, n: int, start: int, stop: int, w: int) -> np.
     """Homogenised rows ``[start, stop)`` of the first ``n`` source rows, window ``w``."""
     half = w // 2
     out = np.empty((stop - start, source.dim), dtype=np.float32)
+    base = max(0, start - half)
+    x = source.read(base, min(n, stop + half))  # one read with both halos: rows are drawn once
     for _, lo, hi in block_spans(start, stop):
-        base = max(0, lo - half)
-        x = source.read(base, min(n, hi + half))
         _running_window_mean(x, base, lo, hi, n, half, out[lo - start : hi - start])
     return out
 

@@ -1,0 +1,52 @@
+"""PCA: exact moments vs numpy, the sign rule, and the randomized solver vs exact where the spectrum has a gap."""
+
+from __future__ import annotations
+
+import dask.array as da
+import numpy as np
+
+from vprscale.pca import ExactPCA, RandomizedPCA, orthonormal, sign_flip
+
+
+def _data(n=6000, d=200, rank=12, seed=0):
+    rng = np.random.default_rng(seed)
+    scales = np.r_[np.linspace(10, 4, rank), np.full(d - rank, 0.3)]  # a gap after `rank` components
+    basis, _ = np.linalg.qr(rng.normal(size=(d, d)))
+    return ((rng.normal(size=(n, d)) * scales) @ basis.T + 3.0).astype(np.float32)
+
+
+def _exact(x, k):
+    x = x.astype(np.float64)
+    cov = np.cov(x, rowvar=False, bias=True)
+    w, v = np.linalg.eigh(cov)
+    order = np.argsort(w)[::-1][:k]
+    return sign_flip(v[:, order].T), w[order]
+
+
+def test_exact_pca_matches_numpy_and_the_sign_rule():
+    x = _data(d=40, rank=5)
+    pca = ExactPCA(10).fit(da.from_array(x, chunks=(16384, 40)))
+    comp, var = _exact(x, 10)
+    np.testing.assert_allclose(pca.components_, comp, atol=1e-8)
+    np.testing.assert_allclose(pca.explained_variance_, var, rtol=1e-9)
+    top = np.argmax(np.abs(pca.components_), axis=1)
+    assert np.all(pca.components_[np.arange(10), top] > 0)
+
+
+def test_randomized_pca_leading_components_match_exact_where_the_spectrum_has_a_gap():
+    x = _data()
+    r = RandomizedPCA(12, seed=1)
+    proj = r.fit_transform(da.from_array(x, chunks=(1000, 200)))
+    comp, var = _exact(x, 12)
+    np.testing.assert_allclose(r.components_, comp, atol=2e-4)
+    np.testing.assert_allclose(r.explained_variance_, var, rtol=1e-3)
+    direct = (x.astype(np.float64) - x.mean(0, dtype=np.float64)) @ comp.T
+    np.testing.assert_allclose(proj, direct, atol=2e-3 * np.abs(direct).max())
+
+
+def test_orthonormal_basis():
+    y = np.random.default_rng(2).normal(size=(500, 30))
+    q = orthonormal(y)
+    np.testing.assert_allclose(q.T @ q, np.eye(30), atol=1e-12)
+    # Same column space: projecting y on q reproduces y.
+    np.testing.assert_allclose(q @ (q.T @ y), y, atol=1e-10)
