@@ -41,7 +41,7 @@ def nearest(x: np.ndarray, y: float, n_r: int) -> np.ndarray:
     return np.sort(hi)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np.ndarray,
                    x_range: float) -> tuple[np.ndarray, np.ndarray]:
     """Match of every query centre (``y`` indexed by query frame); also the candidates' count."""
@@ -49,7 +49,7 @@ def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np
     n_ref = x.shape[0]
     out = np.empty(centres_t.shape[0], np.int64)
     counts = np.empty(centres_t.shape[0], np.int64)
-    for qi in range(centres_t.shape[0]):
+    for qi in numba.prange(centres_t.shape[0]):
         t = centres_t[qi]
         cand = nearest(x, y[t], min(n_r, n_ref))
         best, best_s = -1, np.inf
@@ -58,6 +58,8 @@ def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np
             for i in range(L):
                 r = c + i - half
                 s += x_range if (r < 0 or r >= n_ref) else abs(x[r] - y[t + i - half])
+                if s >= best_s:  # terms are ≥ 0: this candidate can no longer win
+                    break
             if s < best_s:
                 best_s, best = s, c
         out[qi] = best

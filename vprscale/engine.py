@@ -140,20 +140,54 @@ def delta(h1: np.uint64, h2: np.uint64, w: np.ndarray, tables: np.ndarray, d: in
 
 @numba.njit(cache=True, nogil=True)
 def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_hash: np.ndarray,
-           w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64) -> np.int64:
-    s = np.int64(0)
+           w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64, bound: np.int64) -> np.int64:
+    """Score of centre ``c`` for the window at ``t``, abandoned once it reaches ``bound``.
+
+    Reference frames outside the map cost δ_max each; the in-range offsets form one
+    contiguous run, scanned without a branch per frame. δ ≥ 0, so a partial sum that has
+    reached ``bound`` can only end at or above it: returning early changes no decision.
+    """
     n_ref = ref_hash.shape[0]
-    for i in range(L):
-        off = i - half
-        r = c + off
-        if r < 0 or r >= n_ref:
-            s += dmax
-        else:
-            s += delta(ref_hash[r], q_hash[t + off], w, tables, d, k)
+    lo = max(0, half - c)  # first window offset whose reference frame is inside [0, n_ref)
+    hi = min(L, n_ref - c + half)
+    s = np.int64(lo + (L - hi)) * dmax
+    for i in range(lo, hi):
+        s += delta(ref_hash[c + i - half], q_hash[t + i - half], w, tables, d, k)
+        if s >= bound:
+            return s
     return s
 
 
 @numba.njit(cache=True, nogil=True)
+def _match_one(t: np.int64, L: int, aligned: bool, q_hash: np.ndarray, q_addr: np.ndarray, offsets: np.ndarray,
+               ids: np.ndarray, ref_hash: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+               dmax: np.int64) -> tuple[np.int64, np.int64]:
+    half = L // 2
+    n_ref = ref_hash.shape[0]
+    total = 0
+    for i in range(L):
+        a = q_addr[t + i - half]
+        total += offsets[a + 1] - offsets[a]
+    buf = np.empty(total, np.int64)
+    m = 0
+    for i in range(L):
+        a = q_addr[t + i - half]
+        for p in range(offsets[a], offsets[a + 1]):
+            c = ids[p] - (i - half) if aligned else ids[p]
+            if 0 <= c < n_ref:
+                buf[m] = c
+                m += 1
+    cand = np.unique(buf[:m])
+    best = np.int64(-1)
+    best_s = np.int64(2**62)
+    for c in cand:  # ascending: a strict < keeps the smallest centre on ties
+        s = _score(c, t, L, half, ref_hash, q_hash, w, tables, d, k, dmax, best_s)
+        if s < best_s:
+            best_s, best = s, c
+    return best, np.int64(cand.shape[0])
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_addr: np.ndarray,
                 offsets: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray, w: np.ndarray, tables: np.ndarray,
                 d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
@@ -161,37 +195,15 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
 
     ``q_hash`` / ``q_addr`` are indexed by query frame. Paper mode scores every id of every
     window frame's list as a centre; aligned mode scores ``r − l`` for an id ``r`` in the
-    list of frame ``t + l``. Ties go to the smallest centre.
+    list of frame ``t + l``. Ties go to the smallest centre. Queries run in parallel
+    (numba threads); each query's answer does not depend on the thread count.
     """
-    half = L // 2
-    n_ref = ref_hash.shape[0]
     n = centres_t.shape[0]
     match = np.empty(n, np.int64)
     n_r = np.empty(n, np.int64)
-    for qi in range(n):
-        t = centres_t[qi]
-        total = 0
-        for i in range(L):
-            a = q_addr[t + i - half]
-            total += offsets[a + 1] - offsets[a]
-        buf = np.empty(total, np.int64)
-        m = 0
-        for i in range(L):
-            a = q_addr[t + i - half]
-            for p in range(offsets[a], offsets[a + 1]):
-                c = ids[p] - (i - half) if aligned else ids[p]
-                if 0 <= c < n_ref:
-                    buf[m] = c
-                    m += 1
-        cand = np.unique(buf[:m])
-        best = np.int64(-1)
-        best_s = np.int64(2**62)
-        for c in cand:  # ascending: a strict < keeps the smallest centre on ties
-            s = _score(c, t, L, half, ref_hash, q_hash, w, tables, d, k, dmax)
-            if s < best_s:
-                best_s, best = s, c
-        match[qi] = best
-        n_r[qi] = cand.shape[0]
+    for qi in numba.prange(n):
+        match[qi], n_r[qi] = _match_one(centres_t[qi], L, aligned, q_hash, q_addr, offsets, ids, ref_hash, w,
+                                        tables, d, k, dmax)
     return match, n_r
 
 

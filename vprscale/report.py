@@ -279,8 +279,9 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance) -> str
                          _ratio(b.ops_per_query / m.ops_per_query), f"{m.us_per_query:.2f}",
                          f"{b.us_per_query:.2f}", _ratio(b.us_per_query / max(m.us_per_query, 1e-9))])
     md += ["## Compute per query: CoarseHash (paper mode) vs baseline, QM1", "",
-           "Operations by the formulas of SPEC §3.6; times measured on this machine (batched, one core "
-           "per batch; the hash of one new frame is included, as in online use).", "",
+           "Operations by the formulas of SPEC §3.6; times measured on this machine, batched over all cores "
+           "and given per query per core (wall time × threads / queries), including the hash of one new frame "
+           "as in online use.", "",
            _md_table(["scale", "L", "ops method", "ops baseline", "ops ratio", "µs method", "µs baseline",
                       "time ratio"], rows), ""]
     rows = []
