@@ -36,8 +36,12 @@ def check_chunk_rows(chunk_rows: int) -> None:
 
 
 def block_rng(seed: int, stream: int, block: int) -> np.random.Generator:
-    """The generator for one block of one random stream: a pure function of its key."""
-    return np.random.Generator(np.random.Philox(key=[seed & (2**64 - 1), (stream << 40) | block]))
+    """The generator for one block of one random stream: a pure function of its key.
+
+    SFC64 seeded through a SeedSequence of ``(seed, stream, block)``: streams of different
+    keys are independent, and it draws about twice as fast as a counter-based Philox.
+    """
+    return np.random.Generator(np.random.SFC64(np.random.SeedSequence([seed & (2**64 - 1), stream, block])))
 
 
 def apply_by_block(func, x: np.ndarray, start: int, *args) -> np.ndarray:

@@ -50,6 +50,9 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
             if meta_file.is_file():
                 indexes[idx] = {**json.loads(meta_file.read_text()), "path": idx}
     res = pd.concat(frames, ignore_index=True)
+    # A d sweep re-evaluates the main index width too: keep one row per key.
+    key = ["scale", "noise", "method", "mode", "L", "d", "K", "part", "radius"]
+    res = res.drop_duplicates(subset=key, keep="first").reset_index(drop=True)
     return res, evals, list(indexes.values())
 
 

@@ -4,8 +4,9 @@ Every row is a pure function of ``(seed, its absolute block)``, so a source can 
 lazily in any chunking, by any number of workers, and always gives the same bytes; the same
 rows can also be written to disk in the real layouts (:mod:`vprscale.sources.writers`).
 
-Deep1B-like rows: unit-norm 96-d vectors scattered around ``n_clusters`` centres with a
-power-law (anisotropic) spectrum, independent from row to row like the real set.
+Deep1B-like rows: unit-norm 96-d vectors scattered (unit-variance uniform offsets through a
+power-law, anisotropic map) around ``n_clusters`` centres, independent from row to row like
+the real set.
 
 FAS-like traverses: a reference route of frames 5 m apart whose appearance is a smooth
 latent process of the position (knots every ``knot_m`` metres, linearly interpolated),
@@ -28,7 +29,7 @@ from vprscale.blocks import BLOCK, block_rng, block_spans
 from vprscale.sources.base import RowSource
 from vprscale.sources.fas import Traverse
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 3
 FRAME_M = 5.0
 FAS_BLOCK = 4096  # FAS rows are 4096-d: a smaller generator block keeps reads cheap
 
@@ -63,8 +64,14 @@ class SyntheticDeep1B(RowSource):
         centres, within, _ = self._model
         rng = block_rng(self.seed, _DEEP_ROWS, b)
         which = rng.integers(0, len(centres), BLOCK)
-        x = centres[which] + rng.standard_normal((BLOCK, self.dim), dtype=np.float32) @ within
-        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        # Unit-variance uniform offsets (3× cheaper to draw than normals); the homogenisation
+        # averages 40 rows, so the clusters it sees are Gaussian for all practical purposes.
+        spread = rng.random((BLOCK, self.dim), dtype=np.float32)
+        spread -= np.float32(0.5)
+        spread *= np.float32(np.sqrt(12.0))
+        x = spread @ within
+        x += centres[which]
+        x /= np.sqrt(np.einsum("ij,ij->i", x, x))[:, None]
         return x[: min(BLOCK, self.n_rows - b * BLOCK)]
 
     def _read(self, start: int, stop: int) -> np.ndarray:
