@@ -19,7 +19,6 @@ import shlex
 import subprocess
 import sys
 import time
-import tomllib
 import traceback
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -28,6 +27,7 @@ from typing import Any
 
 import vprscale
 from vprscale.errors import InputError
+from vprscale.recipe import read_toml
 from vprscale.store import exclusive
 
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
@@ -81,12 +81,7 @@ _TYPE_WORDS = {"str": "a string", "stage": "the name of an earlier stage", "int"
 def load_pipeline(path: str | Path) -> Pipeline:
     """Parse and validate a pipeline file; every error names the file, the stage and the key."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such pipeline file")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "pipeline")
     for key in ("name", "out", "stages"):
         if key not in data:
             raise InputError(f"{path}: missing key '{key}'")

@@ -84,10 +84,14 @@ def load_recipe(scale: str) -> Recipe:
         path = recipe_dir() / f"{scale}.toml"
         if not path.is_file():
             raise InputError(f"--scale {scale}: unknown scale; known: {', '.join(known_scales())}")
-    elif not path.is_file():
-        raise InputError(f"{path}: no such recipe file")
+    return Recipe.from_dict(read_toml(path, "recipe"), str(path))
+
+
+def read_toml(path: Path, kind: str) -> dict[str, Any]:
+    """A TOML file's contents; a missing or malformed file is an error naming it."""
+    if not path.is_file():
+        raise InputError(f"{path}: no such {kind} file")
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{path}: not valid TOML: {exc}") from None
-    return Recipe.from_dict(data, str(path))
