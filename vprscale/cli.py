@@ -125,7 +125,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from vprscale.pipeline import run_pipeline
 
-    summary = run_pipeline(args.pipeline, scheduler=args.scheduler)
+    summary = run_pipeline(args.pipeline, scheduler=args.scheduler, force=args.force)
     ran = [s["name"] for s in summary["stages"] if s["status"] == "ran"]
     print(f"pipeline {summary['name']}: {summary['status']}; ran {len(ran)} of {len(summary['stages'])} stages "
           f"({', '.join(ran) or 'none: everything was up to date'}); summary {summary['summary_file']}")
@@ -219,6 +219,7 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run a pipeline (pipelines/*.toml), skipping stages that are up to date")
     p.add_argument("pipeline", help="a pipeline TOML file")
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler")
+    p.add_argument("--force", action="store_true", help="re-run every stage, even those up to date")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")

@@ -43,10 +43,25 @@ def _project_chunk(x: np.ndarray, mean: np.ndarray, components: np.ndarray,
     return project(x, mean, components, start)
 
 
+def quantize_with_error(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Codes ``argmin_k |y_j − c_jk|`` (uint8; ties: the smaller k) and ``Σ_j min_k |y_j − c_jk|``.
+
+    One elementwise pass per level k over the (rows × d) block: no (rows × d × K)
+    temporary and no reduction along a short axis.
+    """
+    best = np.abs(y - centres[:, 0])
+    codes = np.zeros(y.shape, dtype=np.uint8)
+    for k in range(1, centres.shape[1]):
+        dist = np.abs(y - centres[:, k])
+        closer = dist < best  # strict: a tie keeps the smaller level
+        np.copyto(codes, np.uint8(k), where=closer)
+        np.minimum(best, dist, out=best)
+    return codes, best.sum(axis=1)
+
+
 def quantize_projected(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """``argmin_k |y_j − c_jk|`` per column (ties: the smaller k), as uint8 codes."""
-    dist = np.abs(y[:, :, None] - centres[None, :, :])
-    return np.argmin(dist, axis=2).astype(np.uint8)
+    return quantize_with_error(y, centres)[0]
 
 
 def pack(codes: np.ndarray, k: int) -> np.ndarray:
@@ -71,7 +86,7 @@ def unpack(h: np.ndarray, d: int, k: int) -> np.ndarray:
 
 def quantization_error(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """``Σ_j min_k |y_j − c_jk|``: how far a row is from its address (SPEC §3.1 single best)."""
-    return np.abs(y[:, :, None] - centres[None, :, :]).min(axis=2).sum(axis=1)
+    return quantize_with_error(y, centres)[1]
 
 
 def _column_range(y: np.ndarray) -> np.ndarray:

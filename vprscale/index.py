@@ -27,7 +27,7 @@ import pyarrow.parquet as pq
 
 import vprscale
 from vprscale.cluster import cluster_peak_rss, dask_client
-from vprscale.coarsehash import CoarseHasher, pack, project, quantization_error, quantize_projected
+from vprscale.coarsehash import CoarseHasher, pack, project, quantize_with_error
 from vprscale.errors import InputError
 from vprscale.progress import Timings, run_tasks
 from vprscale.storage import file_bytes, storage_table
@@ -46,10 +46,9 @@ def store_identity(store: Path) -> str:
 
 def _hash_chunk(x: np.ndarray, start: int, mean: np.ndarray, comp: np.ndarray, centres: np.ndarray,
                 k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    y = project(x, mean, comp, start)
-    codes = quantize_projected(y, centres)
+    codes, err = quantize_with_error(project(x, mean, comp, start), centres)
     counts = np.stack([np.bincount(codes[:, j], minlength=k) for j in range(codes.shape[1])])
-    return pack(codes, k), quantization_error(y, centres), counts
+    return pack(codes, k), err, counts
 
 
 def inverted_lists(h: np.ndarray, err: np.ndarray) -> dict[str, np.ndarray]:

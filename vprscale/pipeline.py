@@ -138,8 +138,12 @@ class _Tee(io.TextIOBase):
         return len(s)
 
 
-def run_pipeline(path: str | Path, scheduler: str | None = None) -> dict[str, Any]:
-    """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``)."""
+def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False) -> dict[str, Any]:
+    """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``).
+
+    ``force`` re-runs every stage (for example after upgrading vprscale's code, which the
+    fingerprints do not cover beyond its version number).
+    """
     pipe = load_pipeline(path)
     pipe.out.mkdir(parents=True, exist_ok=True)
     state_file = pipe.out / "pipeline-state.json"
@@ -159,7 +163,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None) -> dict[str, An
                 fingerprints[stage.name] = fp
                 prev = state.get(stage.name, {})
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp}
-                if prev.get("fingerprint") == fp and _outputs_exist(prev.get("outputs", {})):
+                if not force and prev.get("fingerprint") == fp and _outputs_exist(prev.get("outputs", {})):
                     outputs[stage.name] = prev["outputs"]
                     entry |= {"status": "skipped", "outputs": prev["outputs"], "seconds": 0.0}
                     print(f"= {stage.name} ({stage.kind}): unchanged, skipped", file=tee_err)
