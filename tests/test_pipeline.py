@@ -76,6 +76,14 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert report.is_file()
     for fig in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance"):
         assert (tmp / "report" / f"{fig}.png").is_file() and (tmp / "report" / f"{fig}.pdf").is_file()
+    # The synthetic sources are calibrated to the paper's regime at 20K (SPEC §1.3).
+    import pandas as pd
+
+    evaluation = next(st["outputs"]["eval"] for st in summary["stages"] if st["name"] == "eval-20K")
+    res = pd.read_parquet(Path(evaluation) / "results.parquet")
+    at20 = res[(res.radius == 20) & (res.part == "all") & (res.noise == "qm1") & (res.method == "coarsehash")]
+    assert at20[at20.L == 1]["recall"].iloc[0] < 0.5
+    assert at20[(at20.L == 50) & (at20["mode"] == "paper")]["recall"].iloc[0] > 0.7
     saved = json.loads(Path(summary["summary_file"]).read_text())
     assert saved["status"] == "ok" and len(saved["figures"]) == 8
     assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0

@@ -86,24 +86,27 @@ def bench_index(store: str, d: int | None, workers: int) -> str:
 
 
 def bench_lookup(index: str, n: int = 50) -> str:
-    """Latency of one-address look-ups through the DuckDB console (fresh connection each)."""
+    """Latency of one-address look-ups through the sandboxed DuckDB console."""
     import pyarrow.parquet as pq
 
     from vprscale.sql import connect, query_table
 
     addresses = pq.read_table(Path(index) / "buckets.parquet", columns=["hash"])["hash"].to_numpy()
     picks = np.random.default_rng(0).choice(addresses, n)
-    times, connect_times = [], []
-    for h in picks:
-        t0 = time.perf_counter()
-        con = connect(index)
-        t1 = time.perf_counter()
+    t0 = time.perf_counter()
+    con = connect(index)
+    t1 = time.perf_counter()
+    query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(picks[0])}", 10.0)
+    cold = time.perf_counter() - t1
+    times = []
+    for h in picks[1:]:
+        t = time.perf_counter()
         query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(h)}", 10.0)
-        times.append(time.perf_counter() - t1)
-        connect_times.append(t1 - t0)
-        con.close()
+        times.append(time.perf_counter() - t)
+    con.close()
     return (f"  DuckDB look-up of one address: median {1e3 * np.median(times):.2f} ms, "
-            f"p95 {1e3 * np.percentile(times, 95):.2f} ms (connection set-up {1e3 * np.median(connect_times):.1f} ms)")
+            f"p95 {1e3 * np.percentile(times, 95):.2f} ms on an open console; first query {1e3 * cold:.1f} ms, "
+            f"sandboxed connection set-up {1e3 * (t1 - t0):.1f} ms")
 
 
 def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:

@@ -45,6 +45,7 @@ def connect(index: str | Path) -> duckdb.DuckDBPyConnection:
     con.execute("SET enable_external_access = false")
     con.execute("SET autoinstall_known_extensions = false")
     con.execute("SET autoload_known_extensions = false")
+    con.execute("SET parquet_metadata_cache = true")  # repeated look-ups skip re-reading the footers
     con.execute("SET lock_configuration = true")
     return con
 

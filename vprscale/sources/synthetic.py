@@ -14,7 +14,7 @@ mapped to ``dim`` dimensions and L2-normalised like NetVLAD. The query traverse 
 segments of the route in order, with position jitter, a place-dependent appearance change
 (a second smooth process of amplitude ``change``) and per-frame noise (``frame_noise``).
 The ground truth is the nearest reference frame. The defaults are calibrated so that the 20K
-recipe lands in the paper's regime (see ``tests/test_calibration.py``).
+recipe lands in the paper's regime (checked by the quickstart test in ``tests/test_pipeline.py``).
 """
 
 from __future__ import annotations
