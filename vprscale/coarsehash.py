@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 
-import dask
 import dask.array as da
 import numpy as np
 
@@ -17,6 +16,7 @@ from vprscale.blocks import apply_by_block
 from vprscale.errors import InputError
 from vprscale.kmeans1d import kmeans_1d
 from vprscale.pca import ExactPCA
+from vprscale.progress import compute
 
 _CHUNK = 65536
 
@@ -140,13 +140,13 @@ class CoarseHasher:
         y = self.transform(x)
         ranges = y.map_blocks(_column_range, chunks=((1,) * y.numblocks[0], (2,), (self.d_,)),
                               new_axis=2, dtype=np.float64)
-        ranges = dask.compute(ranges)[0]
+        (ranges,) = compute(ranges)
         self.ranges_ = np.stack([ranges[:, 0].min(axis=0), ranges[:, 1].max(axis=0)], axis=1)
         lo = self.ranges_[:, 0]
         width = np.maximum((self.ranges_[:, 1] - lo) / self.bins, np.finfo(np.float64).tiny)
         hist = y.map_blocks(_column_histograms, lo, width, self.bins, new_axis=2,
                             chunks=((1,) * y.numblocks[0], (self.d_,), (self.bins,)), dtype=np.int64)
-        counts = hist.sum(axis=0).compute()
+        (counts,) = compute(hist.sum(axis=0))
         mids = lo[:, None] + (np.arange(self.bins) + 0.5) * width[:, None]
         self.centres_ = np.stack([kmeans_1d(mids[j], counts[j], self.k) for j in range(self.d_)])
         self.n_ref_ = n

@@ -12,6 +12,7 @@ import numpy as np
 
 from vprscale.blocks import BLOCK, block_rng, block_spans
 from vprscale.pca import ExactPCA, RandomizedPCA
+from vprscale.progress import compute
 from vprscale.sources.fas import Traverse
 
 NOISE_STREAM = 17
@@ -69,7 +70,7 @@ class MergeTransform:
         parts = [dask.delayed(_query_chunk)(traverse, fas.components_, fas.mean_, noise.components_, a,
                                             min(n, a + _FAS_CHUNK), self.n_fas_query)
                  for a in range(0, n, _FAS_CHUNK)]
-        results = dask.compute(*parts)
+        results = compute(*parts)
         delta = np.concatenate([r[1] for r in results])
         return np.concatenate([r[0] for r in results]), delta.mean(axis=0), delta.std(axis=0)
 

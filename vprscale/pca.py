@@ -20,6 +20,7 @@ import dask.array as da
 import numpy as np
 
 from vprscale.blocks import block_spans
+from vprscale.progress import compute
 
 
 def block_moments(x: np.ndarray, start: int) -> np.ndarray:
@@ -102,7 +103,7 @@ def moments_of(x: np.ndarray | da.Array, start: int = 0) -> np.ndarray:
         offsets = np.concatenate([[0], np.cumsum(x.chunks[0])])
         parts = [dask.delayed(block_moments)(blk, start + int(offsets[i]))
                  for i, blk in enumerate(x.to_delayed().ravel())]
-        stacked = np.concatenate(dask.compute(*parts))
+        stacked = np.concatenate(compute(*parts))
     else:
         stacked = block_moments(np.asarray(x), start)
     return stacked.sum(axis=0)
@@ -154,15 +155,16 @@ class RandomizedPCA:
             return x.map_blocks(_gram_product, b, chunks=((1,) * x.numblocks[0], (d,), (k,)), new_axis=2,
                                 dtype=np.float64).sum(axis=0)
 
-        total, g = dask.compute(x.sum(axis=0, dtype=np.float64), gram(omega))
+        total, g = compute(x.sum(axis=0, dtype=np.float64), gram(omega))
         mean = total / n
         basis = omega
         for it in range(self.n_iter + 1):
             v = orthonormal(g - n * np.outer(mean, mean @ basis))
             basis = v.astype(np.float32)
             if it < self.n_iter:
-                g = gram(basis).compute()
-        p = (x @ basis).compute().astype(np.float64) - mean @ basis
+                (g,) = compute(gram(basis))
+        (p,) = compute(x @ basis)
+        p = p.astype(np.float64) - mean @ basis
         u, s, wt = np.linalg.svd(p, full_matrices=False)
         keep = slice(0, self.n_components)
         components = (basis.astype(np.float64) @ wt.T).T[keep]

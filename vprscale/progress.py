@@ -8,8 +8,25 @@ from collections.abc import Sequence
 from contextlib import contextmanager
 from typing import Any
 
+import dask
 from distributed import as_completed, get_client
+from distributed.diagnostics.progressbar import TextProgressBar
 from tqdm import tqdm
+
+
+def compute(*collections: Any) -> tuple[Any, ...]:
+    """``dask.compute`` with a per-task progress bar when a distributed client is active.
+
+    The bar is drawn only on an interactive terminal, so logs of scheduled runs stay clean.
+    """
+    try:
+        client = get_client()
+    except ValueError:
+        return dask.compute(*collections)
+    futures = client.compute(list(collections))
+    if sys.stderr.isatty():
+        TextProgressBar(futures, complete=True, start=False)
+    return tuple(client.gather(futures))
 
 
 def run_tasks(tasks: Sequence[Any], desc: str) -> list[Any]:
