@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import math
 
+import dask
 import dask.array as da
 import numpy as np
 
-from vprscale.blocks import apply_by_block
 from vprscale.errors import InputError
+from vprscale.hashkernels import column_histogram, hash_rows, project_rows
 from vprscale.kmeans1d import kmeans_1d
 from vprscale.pca import ExactPCA
 from vprscale.progress import compute
 
 _CHUNK = 65536
+SPAN = 8.0  # the streamed histograms cover ±SPAN standard deviations of each component
 
 
 def _as_dask(x: np.ndarray | da.Array) -> da.Array:
@@ -28,40 +30,28 @@ def _as_dask(x: np.ndarray | da.Array) -> da.Array:
     return da.from_array(x, chunks=(_CHUNK, x.shape[1]))
 
 
-def _project_rows(x: np.ndarray, mean: np.ndarray, components: np.ndarray) -> np.ndarray:
-    return (np.asarray(x, np.float64) - mean) @ components.T
-
-
-def project(x: np.ndarray, mean: np.ndarray, components: np.ndarray, start: int = 0) -> np.ndarray:
-    """Centred projection in float64 of rows whose first one is row ``start`` of their array."""
-    return apply_by_block(_project_rows, x, start, mean, components)
-
-
-def _project_chunk(x: np.ndarray, mean: np.ndarray, components: np.ndarray,
-                   block_info: dict | None = None) -> np.ndarray:
-    start = block_info[0]["array-location"][0][0] if block_info else 0
-    return project(x, mean, components, start)
+def project(x: np.ndarray, mean: np.ndarray, components: np.ndarray) -> np.ndarray:
+    """Centred projection of rows in float64 (each row's bits depend on that row alone)."""
+    return project_rows(np.asarray(x), mean, np.ascontiguousarray(components.T))
 
 
 def quantize_with_error(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Codes ``argmin_k |y_j − c_jk|`` (uint8; ties: the smaller k) and ``Σ_j min_k |y_j − c_jk|``.
-
-    One elementwise pass per level k over the (rows × d) block: no (rows × d × K)
-    temporary and no reduction along a short axis.
-    """
-    best = np.abs(y - centres[:, 0])
-    codes = np.zeros(y.shape, dtype=np.uint8)
-    for k in range(1, centres.shape[1]):
-        dist = np.abs(y - centres[:, k])
-        closer = dist < best  # strict: a tie keeps the smaller level
-        np.copyto(codes, np.uint8(k), where=closer)
-        np.minimum(best, dist, out=best)
-    return codes, best.sum(axis=1)
+    """Codes ``argmin_k |y_j − c_jk|`` (uint8; ties: the smaller k) and ``Σ_j min_k |y_j − c_jk|``
+    of already projected rows (the identity projection of :func:`hash_rows`)."""
+    d = y.shape[1]
+    codes, _, err, _ = hash_rows(np.asarray(y, np.float64), np.zeros(d), np.eye(d), centres, centres.shape[1])
+    return codes, err
 
 
 def quantize_projected(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """``argmin_k |y_j − c_jk|`` per column (ties: the smaller k), as uint8 codes."""
     return quantize_with_error(y, centres)[0]
+
+
+def hash_descriptors(x: np.ndarray, mean: np.ndarray, components: np.ndarray,
+                     centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(codes, addresses, quantisation errors, level counts)`` of descriptor rows, fused."""
+    return hash_rows(np.asarray(x), mean, np.ascontiguousarray(components.T), centres, centres.shape[1])
 
 
 def pack(codes: np.ndarray, k: int) -> np.ndarray:
@@ -89,16 +79,6 @@ def quantization_error(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return quantize_with_error(y, centres)[1]
 
 
-def _column_range(y: np.ndarray) -> np.ndarray:
-    return np.stack([y.min(axis=0), y.max(axis=0)])[None]
-
-
-def _column_histograms(y: np.ndarray, lo: np.ndarray, width: np.ndarray, bins: int) -> np.ndarray:
-    idx = np.clip(((y - lo) / width).astype(np.int64), 0, bins - 1)
-    offsets = idx + np.arange(y.shape[1]) * bins
-    return np.bincount(offsets.ravel(), minlength=y.shape[1] * bins).reshape(1, y.shape[1], bins)
-
-
 class CoarseHasher:
     """Coarse scalar-quantisation hashing of descriptors.
 
@@ -106,9 +86,10 @@ class CoarseHasher:
     ----------
     d : PCA components kept (hash digits); default ``⌈log2 N_ref⌉``.
     k : quantisation levels per component (K), at least 2.
-    bins : histogram bins per component for the streamed 1-D k-means. The centres are the
-        exact k-means optimum of the values moved to their bin midpoints: each value moves
-        by at most ``(max − min) / (2 · bins)`` of its component.
+    bins : histogram bins per component for the streamed 1-D k-means, over ±8 standard
+        deviations of the component. The centres are the exact k-means optimum of the values
+        moved to their bin midpoints (each moves by at most ``8σ / bins``), with the values
+        beyond ±8σ kept exactly.
 
     Fitted attributes: ``d_``, ``mean_``, ``components_`` (d × D), ``explained_variance_``,
     ``centres_`` (d × K, ascending), ``ranges_`` (d × 2), ``n_ref_``.
@@ -130,45 +111,59 @@ class CoarseHasher:
         return d
 
     def fit(self, ref: np.ndarray | da.Array) -> CoarseHasher:
-        """Exact PCA, then per-component 1-D k-means; three streamed passes over ``ref``."""
+        """Exact PCA, then per-component 1-D k-means; two streamed passes over ``ref``."""
         x = _as_dask(ref)
         n, dim = x.shape
         self.d_ = self._check(n, dim)
         pca = ExactPCA(self.d_).fit(x)
         self.mean_, self.components_ = pca.mean_, pca.components_
         self.explained_variance_ = pca.explained_variance_
-        y = self.transform(x)
-        ranges = y.map_blocks(_column_range, chunks=((1,) * y.numblocks[0], (2,), (self.d_,)),
-                              new_axis=2, dtype=np.float64)
-        (ranges,) = compute(ranges)
-        self.ranges_ = np.stack([ranges[:, 0].min(axis=0), ranges[:, 1].max(axis=0)], axis=1)
-        lo = self.ranges_[:, 0]
-        width = np.maximum((self.ranges_[:, 1] - lo) / self.bins, np.finfo(np.float64).tiny)
-        hist = y.map_blocks(_column_histograms, lo, width, self.bins, new_axis=2,
-                            chunks=((1,) * y.numblocks[0], (self.d_,), (self.bins,)), dtype=np.int64)
-        (counts,) = compute(hist.sum(axis=0))
+        # One pass: histograms over ±SPAN standard deviations (known exactly from the PCA);
+        # the rare values beyond are kept exactly and enter the k-means as points of their own.
+        w = np.ascontiguousarray(self.components_.T)
+        sigma = np.sqrt(np.maximum(self.explained_variance_, np.finfo(np.float64).tiny))
+        lo, width = -SPAN * sigma, 2 * SPAN * sigma / self.bins
+        parts = [dask.delayed(column_histogram)(blk, self.mean_, w, lo, width, self.bins)
+                 for blk in x.to_delayed().ravel()]
+        results = compute(*parts)
+        counts = np.sum([r[0] for r in results], axis=0)
+        self.ranges_ = np.stack([np.min([r[1][0] for r in results], axis=0),
+                                 np.max([r[1][1] for r in results], axis=0)], axis=1)
+        out_col = np.concatenate([r[2] for r in results])
+        out_val = np.concatenate([r[3] for r in results])
         mids = lo[:, None] + (np.arange(self.bins) + 0.5) * width[:, None]
-        self.centres_ = np.stack([kmeans_1d(mids[j], counts[j], self.k) for j in range(self.d_)])
+        centres = []
+        for j in range(self.d_):
+            extra = np.sort(out_val[out_col == j])  # sorted: the same points whatever the chunking
+            below, above = extra[extra < lo[j]], extra[extra >= lo[j]]
+            values = np.concatenate([below, mids[j], above])
+            weights = np.concatenate([np.ones(len(below)), counts[j], np.ones(len(above))])
+            centres.append(kmeans_1d(values, weights, self.k))
+        self.centres_ = np.stack(centres)
         self.n_ref_ = n
         return self
 
     def transform(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
         """PCA projection (float64) of rows."""
         if isinstance(x, da.Array):
-            return x.map_blocks(_project_chunk, self.mean_, self.components_, dtype=np.float64,
+            return x.map_blocks(project, self.mean_, self.components_, dtype=np.float64,
                                 chunks=(x.chunks[0], (self.components_.shape[0],)))
         return project(x, self.mean_, self.components_)
 
     def quantize(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
         """Per-component codes (uint8) of rows."""
-        y = self.transform(x)
-        if isinstance(y, da.Array):
-            return y.map_blocks(quantize_projected, self.centres_, dtype=np.uint8)
-        return quantize_projected(y, self.centres_)
+        def codes(b: np.ndarray) -> np.ndarray:
+            return hash_descriptors(b, self.mean_, self.components_, self.centres_)[0]
+
+        if isinstance(x, da.Array):
+            return x.map_blocks(codes, dtype=np.uint8, chunks=(x.chunks[0], (self.d_,)))
+        return codes(x)
 
     def hash(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
         """uint64 addresses of rows."""
-        q = self.quantize(x)
-        if isinstance(q, da.Array):
-            return q.map_blocks(pack, self.k, drop_axis=1, dtype=np.uint64)
-        return pack(q, self.k)
+        def addresses(b: np.ndarray) -> np.ndarray:
+            return hash_descriptors(b, self.mean_, self.components_, self.centres_)[1]
+
+        if isinstance(x, da.Array):
+            return x.map_blocks(addresses, drop_axis=1, dtype=np.uint64)
+        return addresses(x)

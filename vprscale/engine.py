@@ -15,7 +15,7 @@ import numba
 import numpy as np
 import pyarrow.parquet as pq
 
-from vprscale.coarsehash import pack, project, quantize_projected, unpack
+from vprscale.coarsehash import hash_descriptors, unpack
 from vprscale.index import load_index_meta
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
@@ -83,10 +83,9 @@ class Index:
         tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
         return self.offsets, self.ids, self.ref_hash, w, tables, self.d, self.k, np.int64(w[:, 0, -1].sum())
 
-    def hash_queries(self, x: np.ndarray, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def hash_queries(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(own address, index of the address used)`` of query rows (SPEC §3.2)."""
-        codes = quantize_projected(project(x, self.mean, self.components, start), self.centres)
-        h = pack(codes, self.k)
+        _, h, _, _ = hash_descriptors(x, self.mean, self.components, self.centres)
         return h, self.nearest_occupied(h)
 
     def nearest_occupied(self, h: np.ndarray) -> np.ndarray:

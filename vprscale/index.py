@@ -27,7 +27,7 @@ import pyarrow.parquet as pq
 
 import vprscale
 from vprscale.cluster import cluster_peak_rss, dask_client
-from vprscale.coarsehash import CoarseHasher, pack, project, quantize_with_error
+from vprscale.coarsehash import CoarseHasher, hash_descriptors
 from vprscale.errors import InputError
 from vprscale.progress import Timings, run_tasks
 from vprscale.storage import file_bytes, storage_table
@@ -44,11 +44,10 @@ def store_identity(store: Path) -> str:
     return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def _hash_chunk(x: np.ndarray, start: int, mean: np.ndarray, comp: np.ndarray, centres: np.ndarray,
-                k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    codes, err = quantize_with_error(project(x, mean, comp, start), centres)
-    counts = np.stack([np.bincount(codes[:, j], minlength=k) for j in range(codes.shape[1])])
-    return pack(codes, k), err, counts
+def _hash_chunk(x: np.ndarray, mean: np.ndarray, comp: np.ndarray,
+                centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    _, h, err, counts = hash_descriptors(x, mean, comp, centres)
+    return h, err, counts
 
 
 def inverted_lists(h: np.ndarray, err: np.ndarray) -> dict[str, np.ndarray]:
@@ -87,9 +86,8 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         ref = da.from_zarr(group["ref"])
         with timings.stage(f"fit CoarseHash (d = {d_eff}, K = {k}) on {n_ref:,} refs"):
             hasher.fit(ref)
-        starts = np.cumsum((0, *ref.chunks[0][:-1]))
-        parts = [dask.delayed(_hash_chunk, nout=3)(blk, int(a), hasher.mean_, hasher.components_, hasher.centres_, k)
-                 for blk, a in zip(ref.to_delayed().ravel(), starts, strict=True)]
+        parts = [dask.delayed(_hash_chunk, nout=3)(blk, hasher.mean_, hasher.components_, hasher.centres_)
+                 for blk in ref.to_delayed().ravel()]
         with timings.stage("hash every reference"):
             results = run_tasks([dask.delayed(tuple)(p) for p in parts], "hash refs")
         h = np.concatenate([r[0] for r in results])
