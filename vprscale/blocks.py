@@ -27,14 +27,6 @@ def chunk_bounds(n: int, chunk_rows: int) -> list[tuple[int, int]]:
     return [(a, min(n, a + chunk_rows)) for a in range(0, n, chunk_rows)]
 
 
-def check_chunk_rows(chunk_rows: int) -> None:
-    """Chunks must be whole blocks so that results do not depend on the chunk size."""
-    from vprscale.errors import InputError
-
-    if chunk_rows <= 0 or chunk_rows % BLOCK:
-        raise InputError(f"--chunk-rows {chunk_rows}: must be a positive multiple of {BLOCK}")
-
-
 def block_rng(seed: int, stream: int, block: int) -> np.random.Generator:
     """The generator for one block of one random stream: a pure function of its key.
 

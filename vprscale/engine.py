@@ -15,7 +15,7 @@ import numba
 import numpy as np
 import pyarrow.parquet as pq
 
-from vprscale.coarsehash import hash_descriptors, unpack
+from vprscale.coarsehash import hash_descriptors
 from vprscale.index import load_index_meta
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
@@ -280,8 +280,3 @@ class OnlineMatcher:
         self._scores = kept
         best = min(kept.items(), key=lambda kv: (kv[1], kv[0]))
         return t + best[0]
-
-
-def codes_of(h: np.ndarray, d: int, k: int) -> np.ndarray:
-    """Per-component codes of addresses (for inspection and tests)."""
-    return unpack(h, d, k)

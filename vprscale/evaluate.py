@@ -181,6 +181,7 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
         for path, idx in indexes:
             q_hash = np.zeros(n_q, np.uint64)
             q_addr = np.zeros(n_q, np.int64)
+            idx.hash_queries(x_q[:1])  # load the compiled kernel outside the timing
             t0 = time.perf_counter()
             h, a = idx.hash_queries(x_q)
             hash_us = (time.perf_counter() - t0) / max(1, len(frames)) * 1e6
