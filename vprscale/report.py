@@ -71,8 +71,8 @@ def _main_d(res: pd.DataFrame, scale: str, indexes: list[dict]) -> int:
 
 
 def _save(fig, out: Path, name: str, figures: list[str]) -> None:
-    for ext in ("png", "pdf"):
-        fig.savefig(out / f"{name}.{ext}", dpi=130, bbox_inches="tight")
+    for ext, meta in (("png", {}), ("pdf", {"CreationDate": None})):  # no timestamp: same data, same file
+        fig.savefig(out / f"{name}.{ext}", dpi=130, bbox_inches="tight", metadata=meta)
         figures.append(str(out / f"{name}.{ext}"))
     plt.close(fig)
 
