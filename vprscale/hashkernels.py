@@ -11,6 +11,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+_TILE = 1024  # rows projected at a time before they are binned column by column
+
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _project_row(x: np.ndarray, i: int, mean: np.ndarray, w: np.ndarray, acc: np.ndarray) -> None:
@@ -49,22 +51,29 @@ def column_histogram(x: np.ndarray, mean: np.ndarray, w: np.ndarray, lo: np.ndar
     out_val = np.empty(256)
     n_out = 0
     acc = np.empty(d)
-    for i in range(x.shape[0]):
-        _project_row(x, i, mean, w, acc)
-        for j in range(d):
-            v = acc[j]
-            ranges[0, j] = min(ranges[0, j], v)
-            ranges[1, j] = max(ranges[1, j], v)
-            b = np.floor((v - lo[j]) / width[j])
-            if 0 <= b < bins:
-                counts[j, int(b)] += 1
-            else:
-                if n_out == out_col.shape[0]:
-                    out_col = np.concatenate((out_col, np.empty(n_out, np.int64)))
-                    out_val = np.concatenate((out_val, np.empty(n_out)))
-                out_col[n_out] = j
-                out_val[n_out] = v
-                n_out += 1
+    tile = np.empty((_TILE, d))
+    for start in range(0, x.shape[0], _TILE):
+        rows = min(_TILE, x.shape[0] - start)
+        for i in range(rows):
+            _project_row(x, start + i, mean, w, acc)
+            tile[i] = acc
+        for j in range(d):  # column by column: one histogram row stays in cache
+            low, high, base, top = ranges[0, j], ranges[1, j], lo[j], lo[j] + bins * width[j]
+            inv = 1.0 / width[j]
+            for i in range(rows):
+                v = tile[i, j]
+                low = min(low, v)
+                high = max(high, v)
+                if base <= v < top:
+                    counts[j, min(int((v - base) * inv), bins - 1)] += 1
+                else:
+                    if n_out == out_col.shape[0]:
+                        out_col = np.concatenate((out_col, np.empty(n_out, np.int64)))
+                        out_val = np.concatenate((out_val, np.empty(n_out)))
+                    out_col[n_out] = j
+                    out_val[n_out] = v
+                    n_out += 1
+            ranges[0, j], ranges[1, j] = low, high
     return counts, ranges, out_col[:n_out], out_val[:n_out]
 
 
