@@ -138,13 +138,14 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         out = Path(req.out) if req.out else (index_paths[0] / "eval" if len(index_paths) == 1 else
                                              req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
         check_writable(out)
-        base_x = None
-        if req.baseline:
-            pca1 = ExactPCA(1).fit(da.from_zarr(group["ref"]))
-            base_x = pca1.transform(da.from_zarr(group["ref"]).compute()).astype(np.float64)[:, 0] \
-                if group["ref"].shape[0] <= 2_000_000 else _project_streamed(group["ref"], pca1)
+        pca1 = base_x = None
+        if req.baseline:  # the baseline's whole map: one float64 per reference, projected chunk by chunk
+            ref = da.from_zarr(group["ref"])
+            pca1 = ExactPCA(1).fit(ref)
+            base_x = ref.map_blocks(lambda b: pca1.transform(b).astype(np.float64)[:, 0], drop_axis=1,
+                                    dtype=np.float64).compute()
         with exclusive(out):
-            rows, queries = _grid(req, group, gt, part, z, indexes, base_x, pca1 if req.baseline else None)
+            rows, queries = _grid(req, group, gt, part, z, indexes, base_x, pca1)
             provenance = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                           "store_identity": identity}
             _write_parquet(out / "results.parquet", rows, provenance)
@@ -155,12 +156,6 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             (out / "eval.json").write_text(json.dumps(summary, indent=1))
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
-
-
-def _project_streamed(ref, pca1: ExactPCA) -> np.ndarray:
-    x = da.from_zarr(ref)
-    return x.map_blocks(lambda b: pca1.transform(b).astype(np.float64), chunks=(x.chunks[0], (1,)),
-                        dtype=np.float64).compute()[:, 0]
 
 
 def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[list[dict], list[dict]]:
