@@ -157,9 +157,7 @@ class ChunkWriter:
 
 
 def _versions() -> dict[str, str]:
-    import dask as _dask
-
-    return {"vprscale": vprscale.__version__, "numpy": np.__version__, "dask": _dask.__version__,
+    return {"vprscale": vprscale.__version__, "numpy": np.__version__, "dask": dask.__version__,
             "zarr": zarr.__version__, "python": sys.version.split()[0]}
 
 
