@@ -10,7 +10,6 @@ task, so tasks never race and a resumed build simply rewrites unfinished chunks.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import sys
@@ -329,7 +328,3 @@ def format_summary(s: dict[str, Any]) -> str:
     lines.append(f"  {s['wall_s']:8.1f} s  total")
     lines.append(f"  peak memory {s['peak_rss_bytes'] / 2**30:.2f} GiB, {s['bytes_on_disk'] / 2**30:.2f} GiB on disk")
     return "\n".join(lines)
-
-
-def summary_json(s: dict[str, Any]) -> str:
-    return json.dumps(s, indent=1, default=str)

@@ -74,10 +74,6 @@ class MergeTransform:
         delta = np.concatenate([r[1] for r in results])
         return np.concatenate([r[0] for r in results]), delta.mean(axis=0), delta.std(axis=0)
 
-    def deep_projection(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(mean, matrix)`` such that a rescaled Deep1B row is ``(h − mean) @ matrix``."""
-        return self.deep_pca_.mean_, self.deep_pca_.components_.T * self.scale_
-
 
 def project_rows(h: np.ndarray, mean: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """PCA-project and rescale homogenised rows.
