@@ -64,7 +64,7 @@ def test_out_of_range_reference_frames_cost_delta_max():
     q = np.array([15, ref[0], ref[1]], np.uint64)
     match, _ = run(idx, q, [1], L=3)
     assert match[0] == 0
-    _, _, _, w, tables, d, k, dmax = idx.kernel_args()
+    *_, w, tables, d, k, dmax = idx.kernel_args()
     assert dmax == w[:, 0, 1].sum()
 
 
@@ -119,3 +119,62 @@ def test_baseline_respects_n_r(L):
     y = np.linspace(0, 1, 50)
     _, counts = baseline_batch(np.array([10, 20]), L, 7, x, y, 1.0)
     np.testing.assert_array_equal(counts, [7, 7])
+
+
+def brute_force_match(idx: Index, q_hash, t, L, aligned):
+    """The definition (SPEC §3.3), term by term in Python: candidates, scores, smallest best."""
+    w = idx.weights()
+    dmax = int(w[:, 0, -1].sum())
+    digits = [idx.k ** (idx.d - 1 - j) for j in range(idx.d)]
+
+    def delta(h1, h2):
+        return sum(int(w[j, int(h1) // p % idx.k, int(h2) // p % idx.k]) for j, p in enumerate(digits))
+
+    q_addr = idx.nearest_occupied(np.asarray(q_hash, np.uint64))
+    half = L // 2
+    cands = set()
+    for i in range(L):
+        a = q_addr[t + i - half]
+        for r in idx.ids[idx.offsets[a]:idx.offsets[a + 1]]:
+            c = int(r) - (i - half) if aligned else int(r)
+            if 0 <= c < idx.n_ref:
+                cands.add(c)
+    scores = {c: sum(delta(idx.ref_hash[c + i - half], q_hash[t + i - half]) if 0 <= c + i - half < idx.n_ref
+                     else dmax for i in range(L)) for c in cands}
+    return min(scores, key=lambda c: (scores[c], c)), len(cands)
+
+
+@pytest.mark.parametrize(("d", "k", "L"), [(6, 2, 5), (10, 2, 64), (10, 2, 100), (7, 2, 129), (4, 3, 9)])
+@pytest.mark.parametrize("aligned", [False, True])
+def test_batch_kernel_equals_the_definition(d, k, L, aligned):
+    """Bit-plane scoring (K = 2, windows of any length, both ends of the map) and frame-by-frame
+    scoring (K = 3) give the definition's match and candidate count for every centre."""
+    rng = np.random.default_rng(d * 100 + L)
+    n_ref, n_q = 300, 2 * L + 20
+    ref = rng.integers(0, k**d, n_ref).astype(np.uint64)
+    centres = np.tile(np.linspace(-1.0, 1.0, k), (d, 1)) * rng.uniform(0.5, 2.0, (d, 1))
+    idx = Index.from_addresses(ref, centres)
+    truth = rng.integers(0, n_ref - n_q)
+    q = ref[truth:truth + n_q].copy()
+    noisy = rng.random(n_q) < 0.3
+    q[noisy] = rng.integers(0, k**d, noisy.sum()).astype(np.uint64)
+    t = np.array([L // 2, n_q // 2, n_q - (L - L // 2)])
+    match, n_r = run(idx, q, t, L, aligned)
+    for i, ti in enumerate(t):
+        assert (match[i], n_r[i]) == brute_force_match(idx, q, ti, L, aligned)
+    # windows that reach past either end of the map: centres near 0 and near n_ref
+    edge_q = np.concatenate([ref[:L], ref[-L:]])
+    te = np.array([L // 2, 2 * L - (L - L // 2)])
+    match, n_r = run(idx, edge_q, te, L, aligned)
+    for i, ti in enumerate(te):
+        assert (match[i], n_r[i]) == brute_force_match(idx, edge_q, ti, L, aligned)
+
+
+@pytest.mark.parametrize(("d", "k"), [(20, 2), (5, 3)])
+def test_nearest_occupied_equals_a_full_scan(d, k):
+    rng = np.random.default_rng(d)
+    idx = Index.from_addresses(rng.integers(0, k**d, 500).astype(np.uint64), np.tile(np.linspace(-1, 1, k), (d, 1)))
+    h = np.r_[rng.integers(0, k**d, 2000), idx.addresses[:50], 0, k**d - 1].astype(np.uint64)
+    a = idx.addresses.astype(np.int64)
+    gap = np.abs(a[None, :] - h.astype(np.int64)[:, None])
+    np.testing.assert_array_equal(idx.nearest_occupied(h), gap.argmin(axis=1))  # argmin: first, i.e. smaller

@@ -9,6 +9,7 @@ associative: the batch kernel and the online matcher agree bit for bit.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numba
@@ -17,6 +18,7 @@ import pyarrow.parquet as pq
 
 from vprscale.coarsehash import hash_descriptors
 from vprscale.index import load_index_meta
+from vprscale.intrinsics import popcount, prefetch
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
 
@@ -77,28 +79,71 @@ class Index:
         span = (self.centres[:, -1] - self.centres[:, 0]).sum()
         return np.rint(diff * (DELTA_MAX_UNITS / span)).astype(np.int64)
 
+    @cached_property
+    def planes(self) -> np.ndarray:
+        """For K = 2 the references' addresses as bit planes (:func:`bit_planes`); else empty.
+
+        ``d / 8`` bytes per place, built once per loaded index (0.1 s per 10M places).
+        """
+        return bit_planes(self.ref_hash, self.d) if self.k == 2 else np.zeros(0, np.uint64)
+
     def kernel_args(self) -> tuple:
-        """``(offsets, ids, ref_hash, w, tables, d, k, δ_max)`` for :func:`match_batch`."""
+        """``(offsets, ids, ref_hash, planes, gaps, w, tables, d, k, δ_max)`` for :func:`match_batch`.
+
+        ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
+        """
         w = self.weights()
         tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
-        return self.offsets, self.ids, self.ref_hash, w, tables, self.d, self.k, np.int64(w[:, 0, -1].sum())
+        gaps = np.ascontiguousarray(w[::-1, 0, 1])
+        return (self.offsets, self.ids, self.ref_hash, self.planes, gaps, w, tables, self.d, self.k,
+                np.int64(w[:, 0, -1].sum()))
 
     def hash_queries(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(own address, index of the address used)`` of query rows (SPEC §3.2)."""
         _, h, _, _ = hash_descriptors(x, self.mean, self.components, self.centres)
         return h, self.nearest_occupied(h)
 
+    @cached_property
+    def _prefix(self) -> tuple[np.ndarray, int]:
+        """``(first, shift)``: the occupied addresses whose top bits are ``p`` are ``first[p] … first[p+1]``.
+
+        About 2^16 prefixes, so a search touches two table entries and one short run
+        instead of ~log2(occupied) scattered cache lines of the whole array.
+        """
+        bits = int(np.ceil(self.d * np.log2(self.k)))
+        shift = max(0, bits - 16)
+        prefixes = np.arange((1 << (bits - shift)) + 1, dtype=np.uint64)
+        first = np.searchsorted(self.addresses >> np.uint64(shift), prefixes)
+        return first.astype(np.int64), shift
+
     def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
         """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
-        a = self.addresses
-        pos = np.searchsorted(a, h)
-        hi = np.minimum(pos, len(a) - 1)
-        lo = np.maximum(pos - 1, 0)
-        exact = a[hi] == h
-        # Distances as unsigned differences (both sides are valid because lo ≤ h ≤ hi).
-        d_hi = np.where(a[hi] >= h, a[hi] - h, np.uint64(2**64 - 1))
-        d_lo = np.where(a[lo] <= h, h - a[lo], np.uint64(2**64 - 1))
-        return np.where(exact, hi, np.where(d_lo <= d_hi, lo, hi)).astype(np.int64)
+        first, shift = self._prefix
+        return _nearest_occupied(self.addresses, first, shift, np.asarray(h, np.uint64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_occupied(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarray) -> np.ndarray:
+    out = np.empty(h.shape[0], np.int64)
+    for i in range(h.shape[0]):
+        x = h[i]
+        p = np.int64(x >> np.uint64(shift))
+        lo, hi = first[p], first[p + 1]  # the first address ≥ x is in [lo, hi], hi meaning "a later prefix"
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if a[mid] < x:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < a.shape[0] and a[lo] == x:
+            out[i] = lo
+        elif lo == 0:
+            out[i] = 0
+        elif lo == a.shape[0] or x - a[lo - 1] <= a[lo] - x:  # ties go to the smaller address
+            out[i] = lo - 1
+        else:
+            out[i] = lo
+    return out
 
 
 def byte_tables(w: np.ndarray) -> np.ndarray:
@@ -157,52 +202,175 @@ def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_
     return s
 
 
+PREFETCH = 8  # candidates whose reference window is fetched ahead of the one being scored
+QUERIES_PER_TASK = 32  # queries sharing one set of scratch buffers
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def bit_planes(h: np.ndarray, d: int) -> np.ndarray:
+    """For K = 2: bit ``b`` of the addresses of places ``64·i … 64·i + 63`` as word ``i·d + b``.
+
+    Flat (rows of ``d`` words), because numba re-derives a 2-D view's strides on every
+    call of a short kernel. Two zero rows pad the end so that any window inside the map
+    reads whole rows.
+    """
+    n = h.shape[0]
+    out = np.zeros((n // 64 + 2) * d, np.uint64)
+    for blk in numba.prange((n + 63) // 64):
+        row = out[blk * d:]
+        for p in range(64 * blk, min(n, 64 * blk + 64)):
+            x = h[p]
+            bit = np.uint64(p & 63)
+            for b in range(d):
+                row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << bit
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, masks: np.ndarray,
+                  gaps: np.ndarray) -> np.int64:
+    """K = 2 score of the window of references starting at ``p`` (all inside the map).
+
+    Per plane, a popcount of the xor of 64 reference bits with 64 query bits counts the
+    frames whose code differs in that component: ⌈L/64⌉·d words instead of L·⌈d/8⌉ table
+    look-ups. ``q_words``, ``masks`` and ``gaps`` are flat over (word, plane), so one
+    short loop runs over both and vectorises; the slices start at 0 so that numba adds
+    no negative-index checks (which cost half the time).
+    """
+    lo = planes[(p >> 6) * d:]
+    hi = planes[(p >> 6) * d + d:]
+    sh = np.uint64(p & 63)
+    s = np.int64(0)
+    for e in range(q_words.shape[0]):  # word e // d of plane e % d, starting sh bits into row p >> 6
+        x = (lo[e] >> sh) | ((hi[e] << np.uint64(1)) << (np.uint64(63) - sh))  # two steps: sh may be 0
+        s += gaps[e] * popcount((x ^ q_words[e]) & masks[e])
+    return s
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _prefetch_window(planes: np.ndarray, d: int, p: np.int64, L: int) -> None:
+    """Ask for the plane rows a window of ``L`` starting at ``p`` reads (one hint per 64-byte line)."""
+    if p < 0:
+        return
+    first = (p >> 6) * d
+    for e in range(first, min(first + ((L + 63) // 64 + 1) * d, planes.shape[0]), 8):
+        prefetch(planes, e)
+
+
 @numba.njit(cache=True, nogil=True)
-def _match_one(t: np.int64, L: int, aligned: bool, q_hash: np.ndarray, q_addr: np.ndarray, offsets: np.ndarray,
-               ids: np.ndarray, ref_hash: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
-               dmax: np.int64) -> tuple[np.int64, np.int64]:
-    half = L // 2
-    n_ref = ref_hash.shape[0]
-    total = 0
+def _query_words(t: np.int64, L: int, half: int, q_hash: np.ndarray, d: int, out: np.ndarray) -> None:
+    """Bit planes of the query window at ``t``: bit ``i mod 64`` of word ``(i // 64)·d + b`` is bit ``b`` of frame i."""
+    out[:] = 0
     for i in range(L):
-        a = q_addr[t + i - half]
-        total += offsets[a + 1] - offsets[a]
-    buf = np.empty(total, np.int64)
+        x = q_hash[t + i - half]
+        bit = np.uint64(i & 63)
+        row = out[(i >> 6) * d:]
+        for b in range(d):
+            row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << bit
+
+
+@numba.njit(cache=True, nogil=True)
+def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_addr: np.ndarray, offsets: np.ndarray,
+                ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
+    """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
+
+    The proposals are first copied out of the lists by a loop without data-dependent
+    branches, so that the scattered reads of ``ids`` overlap; then an open-addressing set
+    in ``slots`` (``2**bits`` entries, at least twice the proposals) removes repeats in
+    O(1) each. (Sorting the proposals cost more than scoring them.)
+    """
     m = 0
     for i in range(L):
         a = q_addr[t + i - half]
-        for p in range(offsets[a], offsets[a + 1]):
-            c = ids[p] - (i - half) if aligned else ids[p]
-            if 0 <= c < n_ref:
-                buf[m] = c
-                m += 1
-    cand = np.unique(buf[:m])
-    best = np.int64(-1)
-    best_s = np.int64(2**62)
-    for c in cand:  # ascending: a strict < keeps the smallest centre on ties
-        s = _score(c, t, L, half, ref_hash, q_hash, w, tables, d, k, dmax, best_s)
-        if s < best_s:
-            best_s, best = s, c
-    return best, np.int64(cand.shape[0])
+        shift = i - half if aligned else 0
+        for q in range(offsets[a], offsets[a + 1]):
+            cand[m] = ids[q] - shift
+            m += 1
+    size = slots.shape[0]
+    slots[:] = -1
+    hash_shift = np.uint64(64 - bits)
+    u = 0
+    for j in range(m):
+        c = cand[j]
+        if c < 0 or c >= n_ref:
+            continue
+        pos = np.int64((np.uint64(c) * np.uint64(0x9E3779B97F4A7C15)) >> hash_shift)
+        while slots[pos] != -1 and slots[pos] != c:
+            pos = (pos + 1) & (size - 1)
+        if slots[pos] == -1:
+            slots[pos] = c
+            cand[u] = c
+            u += 1
+    return u
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_addr: np.ndarray,
-                offsets: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray, w: np.ndarray, tables: np.ndarray,
-                d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
+                offsets: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray, planes: np.ndarray, gaps: np.ndarray,
+                w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
     """Sequence match of every query centre; returns ``(match, number of candidates)``.
 
     ``q_hash`` / ``q_addr`` are indexed by query frame. Paper mode scores every id of every
     window frame's list as a centre; aligned mode scores ``r − l`` for an id ``r`` in the
-    list of frame ``t + l``. Ties go to the smallest centre. Queries run in parallel
-    (numba threads); each query's answer does not depend on the thread count.
+    list of frame ``t + l``. Ties go to the smallest centre.
+
+    Queries run in parallel (numba threads) in tasks of a few that share scratch buffers;
+    each query's answer does not depend on the thread count. For K = 2 a window inside
+    the map is scored on bit planes (:func:`_score_planes`), the planes of the next few
+    candidates being prefetched: at 10M places a query's cost is mostly waiting for
+    memory. Other windows, and K > 2, are scored frame by frame (:func:`_score`).
     """
     n = centres_t.shape[0]
+    half = L // 2
+    n_ref = ref_hash.shape[0]
+    n_words = (L + 63) // 64
+    masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))  # flat over (word, plane), as q_words
+    if L % 64:
+        masks[-d:] = (np.uint64(1) << np.uint64(L % 64)) - np.uint64(1)
+    word_gaps = np.empty(n_words * d, np.int64)
+    for j in range(n_words):
+        word_gaps[j * d:(j + 1) * d] = gaps
+    fast = k == 2 and planes.shape[0] > 0
     match = np.empty(n, np.int64)
     n_r = np.empty(n, np.int64)
-    for qi in numba.prange(n):
-        match[qi], n_r[qi] = _match_one(centres_t[qi], L, aligned, q_hash, q_addr, offsets, ids, ref_hash, w,
-                                        tables, d, k, dmax)
+    for task in numba.prange((n + QUERIES_PER_TASK - 1) // QUERIES_PER_TASK):
+        cand = np.empty(256, np.int64)
+        slots = np.empty(512, np.int64)
+        q_words = np.empty(n_words * d, np.uint64)
+        for qi in range(task * QUERIES_PER_TASK, min(n, (task + 1) * QUERIES_PER_TASK)):
+            t = centres_t[qi]
+            total = 0
+            for i in range(L):
+                a = q_addr[t + i - half]
+                total += offsets[a + 1] - offsets[a]
+                prefetch(ids, offsets[a])
+            if total > cand.shape[0]:
+                cand = np.empty(2 * total, np.int64)
+            bits = 4
+            while (1 << bits) < 2 * total:
+                bits += 1
+            if (1 << bits) > slots.shape[0]:
+                slots = np.empty(1 << bits, np.int64)
+            m = _candidates(t, L, half, aligned, q_addr, offsets, ids, n_ref, cand, slots[: 1 << bits], bits)
+            if fast:
+                _query_words(t, L, half, q_hash, d, q_words)
+                for j in range(min(PREFETCH, m)):
+                    _prefetch_window(planes, d, cand[j] - half, L)
+            best = np.int64(-1)
+            best_s = np.int64(2**62)
+            for j in range(m):
+                c = cand[j]
+                if fast and j + PREFETCH < m:
+                    _prefetch_window(planes, d, cand[j + PREFETCH] - half, L)
+                if fast and c >= half and c - half + L <= n_ref:
+                    s = _score_planes(c - half, planes, d, q_words, masks, word_gaps)
+                else:  # abandoned once it cannot win; a smaller centre still wins a tie
+                    bound = best_s + 1 if c < best else best_s
+                    s = _score(c, t, L, half, ref_hash, q_hash, w, tables, d, k, dmax, bound)
+                if s < best_s or (s == best_s and c < best):
+                    best_s, best = s, c
+            match[qi] = best
+            n_r[qi] = m
     return match, n_r
 
 
