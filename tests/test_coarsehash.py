@@ -125,3 +125,17 @@ def test_single_best_is_least_error_with_ties_to_the_smallest_id():
 def test_bad_parameters(d, k, message):
     with pytest.raises(InputError, match=message):
         CoarseHasher(d=d, k=k).fit(np.zeros((10, 96), np.float32))
+
+
+def test_projection_bits_depend_only_on_the_row():
+    """Rows projected four at a time, one at a time, or shifted within the input agree bit for bit."""
+    from vprscale.hashkernels import project_rows
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(37, 96)).astype(np.float32)
+    mean, w = rng.normal(size=96), rng.normal(size=(96, 20))
+    whole = project_rows(x, mean, w)
+    one_by_one = np.vstack([project_rows(x[i:i + 1], mean, w) for i in range(len(x))])
+    np.testing.assert_array_equal(whole, one_by_one)
+    np.testing.assert_array_equal(whole[3:], project_rows(x[3:], mean, w))
+    np.testing.assert_allclose(whole, (x.astype(np.float64) - mean) @ w, rtol=1e-10, atol=1e-10)

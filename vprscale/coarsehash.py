@@ -125,7 +125,7 @@ class CoarseHasher:
         lo, width = -SPAN * sigma, 2 * SPAN * sigma / self.bins
         parts = [dask.delayed(column_histogram)(blk, self.mean_, w, lo, width, self.bins)
                  for blk in x.to_delayed().ravel()]
-        results = compute(*parts)
+        results = compute(*parts, desc="histograms")
         counts = np.sum([r[0] for r in results], axis=0)
         self.ranges_ = np.stack([np.min([r[1][0] for r in results], axis=0),
                                  np.max([r[1][1] for r in results], axis=0)], axis=1)

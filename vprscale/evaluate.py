@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import dask.array as da
 import numba
 import numpy as np
 import pyarrow as pa
@@ -29,6 +28,7 @@ from vprscale.engine import Index, in_list_distance, match_batch
 from vprscale.errors import InputError
 from vprscale.index import build_index, default_index_dir, store_identity
 from vprscale.pca import ExactPCA
+from vprscale.rawchunks import rows_of
 from vprscale.store import ATTR, check_writable, exclusive, open_complete_group
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
@@ -140,7 +140,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         check_writable(out)
         pca1 = base_x = None
         if req.baseline:  # the baseline's whole map: one float64 per reference, projected chunk by chunk
-            ref = da.from_zarr(group["ref"])
+            ref = rows_of(group["ref"])
             pca1 = ExactPCA(1).fit(ref)
             base_x = ref.map_blocks(lambda b: pca1.transform(b).astype(np.float64)[:, 0], drop_axis=1,
                                     dtype=np.float64).compute()

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import dask
-import dask.array as da
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -30,6 +29,7 @@ from vprscale.cluster import cluster_peak_rss, dask_client
 from vprscale.coarsehash import CoarseHasher, hash_descriptors
 from vprscale.errors import InputError
 from vprscale.progress import Timings, run_tasks
+from vprscale.rawchunks import rows_of
 from vprscale.storage import file_bytes, storage_table
 from vprscale.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
 
@@ -83,7 +83,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
     with exclusive(final), dask_client(scheduler, workers) as client:
         partial = PartialOutput(final, {"store": identity, "d": d_eff, "k": k})
         partial.open()
-        ref = da.from_zarr(group["ref"])
+        ref = rows_of(group["ref"])
         with timings.stage(f"fit CoarseHash (d = {d_eff}, K = {k}) on {n_ref:,} refs"):
             hasher.fit(ref)
         parts = [dask.delayed(_hash_chunk, nout=3)(blk, hasher.mean_, hasher.components_, hasher.centres_)

@@ -70,7 +70,7 @@ class MergeTransform:
         parts = [dask.delayed(_query_chunk)(traverse, fas.components_, fas.mean_, noise.components_, a,
                                             min(n, a + _FAS_CHUNK), self.n_fas_query)
                  for a in range(0, n, _FAS_CHUNK)]
-        results = compute(*parts)
+        results = compute(*parts, desc="FAS query pass")
         delta = np.concatenate([r[1] for r in results])
         return np.concatenate([r[0] for r in results]), delta.mean(axis=0), delta.std(axis=0)
 

@@ -103,7 +103,7 @@ def moments_of(x: np.ndarray | da.Array, start: int = 0) -> np.ndarray:
         offsets = np.concatenate([[0], np.cumsum(x.chunks[0])])
         parts = [dask.delayed(block_moments)(blk, start + int(offsets[i]))
                  for i, blk in enumerate(x.to_delayed().ravel())]
-        stacked = np.concatenate(compute(*parts))
+        stacked = np.concatenate(compute(*parts, desc="moments"))
     else:
         stacked = block_moments(np.asarray(x), start)
     return stacked.sum(axis=0)

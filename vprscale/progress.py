@@ -9,20 +9,46 @@ from contextlib import contextmanager
 from typing import Any
 
 import dask
+from dask.callbacks import Callback
 from distributed import as_completed, get_client
 from distributed.diagnostics.progressbar import TextProgressBar
 from tqdm import tqdm
 
 
-def compute(*collections: Any) -> tuple[Any, ...]:
-    """``dask.compute`` with a per-task progress bar when a distributed client is active.
+class _TaskBar(Callback):
+    """A tqdm bar over the tasks of a computation on Dask's local (threaded) scheduler."""
 
-    The bar is drawn only on an interactive terminal, so logs of scheduled runs stay clean.
-    """
+    def __init__(self, desc: str) -> None:
+        super().__init__()
+        self.desc = desc
+
+    def _start_state(self, dsk: Any, state: dict) -> None:
+        total = sum(len(state[k]) for k in ("ready", "waiting", "running")) + len(state["finished"])
+        self.bar = tqdm(total=total, desc=self.desc, unit="task", file=sys.stderr, leave=False, disable=None)
+
+    def _posttask(self, key: Any, result: Any, dsk: Any, state: dict, worker_id: Any) -> None:
+        self.bar.update()
+
+    def _finish(self, dsk: Any, state: dict, errored: bool) -> None:
+        self.bar.close()
+
+
+def _client() -> Any:
     try:
-        client = get_client()
+        return get_client()
     except ValueError:
-        return dask.compute(*collections)
+        return None
+
+
+def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
+    """``dask.compute`` with a per-task progress bar, on a distributed client if one is active.
+
+    Bars are drawn only on an interactive terminal, so logs of scheduled runs stay clean.
+    """
+    client = _client()
+    if client is None:
+        with _TaskBar(desc):
+            return dask.compute(*collections)
     futures = client.compute(list(collections))
     if sys.stderr.isatty():
         TextProgressBar(futures, complete=True, start=False)
@@ -30,10 +56,12 @@ def compute(*collections: Any) -> tuple[Any, ...]:
 
 
 def run_tasks(tasks: Sequence[Any], desc: str) -> list[Any]:
-    """Compute Dask delayed objects on the current client with a progress bar; results in order."""
+    """Compute Dask delayed objects with a progress bar per task; results in order."""
     if not tasks:
         return []
-    client = get_client()
+    client = _client()
+    if client is None:
+        return list(compute(*tasks, desc=desc))
     futures = client.compute(list(tasks))
     index = {f.key: i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(futures)

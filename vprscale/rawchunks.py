@@ -1,0 +1,66 @@
+"""Row chunks of a stored 2-D array as a Dask array, read straight from raw chunk files.
+
+A dataset's descriptors are stored without compression (a pass over them is then bound
+by the page cache, not by a codec). For such an array zarr's read path still copies every
+chunk through its event loop at about 1 GiB/s; reading the chunk file into a numpy buffer
+runs at about 3 GiB/s, and every pass of an index fit or of hashing reads the whole
+reference set. Arrays stored any other way (compressed, sharded, not on a local disk)
+are read through zarr.
+"""
+
+from __future__ import annotations
+
+import sys
+from functools import partial
+from pathlib import Path
+
+import dask.array as da
+import numpy as np
+import zarr
+from dask.base import tokenize
+from zarr.codecs import BytesCodec
+from zarr.storage import LocalStore
+
+
+def raw_chunk_dir(array: zarr.Array) -> Path | None:
+    """The directory of the chunk files if ``array`` is 2-D, row-chunked and stored raw on disk."""
+    meta = array.metadata
+    if (meta.zarr_format != 3 or array.ndim != 2 or not isinstance(array.store, LocalStore)
+            or meta.storage_transformers or len(meta.codecs) != 1 or not isinstance(meta.codecs[0], BytesCodec)
+            or array.chunks[1] != array.shape[1]
+            or meta.chunk_key_encoding.encode_chunk_key((1, 0)) != "c/1/0"):
+        return None
+    endian = meta.codecs[0].endian
+    if array.dtype.itemsize > 1 and (endian is None or endian.value != "little" or sys.byteorder != "little"):
+        return None  # the buffer is read as native little-endian bytes
+    return Path(array.store.root) / array.path / "c"
+
+
+def _read_chunk(directory: str, rows: int, n_rows: int, cols: int, dtype: str, fill: float,
+                block_id: tuple[int, int] | None = None) -> np.ndarray:
+    i = block_id[0]
+    n = min(rows, n_rows - i * rows)
+    out = np.empty((rows, cols), dtype)
+    path = Path(directory) / str(i) / "0"
+    try:
+        with open(path, "rb", buffering=0) as fh:
+            got = fh.readinto(memoryview(out).cast("B"))
+    except FileNotFoundError:  # zarr leaves out chunks that hold only the fill value
+        out.fill(fill)
+        return out[:n]
+    if got != out.nbytes:
+        raise OSError(f"{path}: chunk file holds {got} bytes, expected {out.nbytes}")
+    return out[:n]
+
+
+def rows_of(array: zarr.Array) -> da.Array:
+    """The rows of a 2-D zarr array as a Dask array with the array's own row chunks."""
+    directory = raw_chunk_dir(array)
+    if directory is None:
+        return da.from_zarr(array)
+    n_rows, cols = array.shape
+    rows = array.chunks[0]
+    chunks = (tuple(min(rows, n_rows - s) for s in range(0, n_rows, rows)), (cols,))
+    read = partial(_read_chunk, str(directory), rows, n_rows, cols, array.dtype.str, float(array.fill_value or 0))
+    return da.map_blocks(read, chunks=chunks, dtype=array.dtype, meta=np.empty((0, 0), array.dtype),
+                         name=f"rows-{tokenize(str(directory), array.shape, array.dtype.str)}")
