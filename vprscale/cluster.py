@@ -5,10 +5,13 @@ from __future__ import annotations
 import resource
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import dask
-from distributed import Client
 from threadpoolctl import threadpool_limits
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 from vprscale.errors import InputError
 
@@ -35,6 +38,8 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
     page cache.
     """
     if scheduler:
+        from distributed import Client  # imported only here: 0.3 s a local run need not pay
+
         try:
             client = Client(scheduler, timeout="10s", set_as_default=True)
         except OSError as exc:

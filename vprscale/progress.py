@@ -10,8 +10,6 @@ from typing import Any
 
 import dask
 from dask.callbacks import Callback
-from distributed import as_completed, get_client
-from distributed.diagnostics.progressbar import TextProgressBar
 from tqdm import tqdm
 
 
@@ -34,6 +32,11 @@ class _TaskBar(Callback):
 
 
 def _client() -> Any:
+    """The active distributed client, if any (none can exist unless ``distributed`` was imported)."""
+    if "distributed" not in sys.modules:
+        return None
+    from distributed import get_client
+
     try:
         return get_client()
     except ValueError:
@@ -49,6 +52,8 @@ def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
     if client is None:
         with _TaskBar(desc):
             return dask.compute(*collections)
+    from distributed.diagnostics.progressbar import TextProgressBar
+
     futures = client.compute(list(collections))
     if sys.stderr.isatty():
         TextProgressBar(futures, complete=True, start=False)
@@ -62,6 +67,8 @@ def run_tasks(tasks: Sequence[Any], desc: str) -> list[Any]:
     client = _client()
     if client is None:
         return list(compute(*tasks, desc=desc))
+    from distributed import as_completed
+
     futures = client.compute(list(tasks))
     index = {f.key: i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(futures)
