@@ -42,3 +42,22 @@ def test_a_chunk_left_out_as_fill_reads_as_fill_and_a_short_file_is_an_error(tmp
     (directory / "2" / "0").write_bytes(b"\0" * 12)
     with pytest.raises(OSError, match="2/0: chunk file holds 12 bytes"):
         rows_of(a).compute()
+
+
+def test_whole_chunk_writes_give_zarrs_bytes_and_partial_writes_go_through_zarr(tmp_path):
+    from vprscale.rawchunks import write_rows
+
+    x = np.random.default_rng(1).normal(size=(1000, 7)).astype(np.float32)
+    arrays = [zarr.create_array(tmp_path / f"{name}.zarr", shape=x.shape, chunks=(300, 7), dtype="float32",
+                                compressors=None, fill_value=0.0) for name in ("direct", "zarr")]
+    for start in (0, 300, 600, 900):  # the last chunk holds 100 rows and is stored padded
+        write_rows(arrays[0], start, x[start:start + 300])
+        arrays[1][start:start + 300] = x[start:start + 300]
+    direct, via_zarr = (raw_chunk_dir(a) for a in arrays)
+    for i in range(4):
+        assert (direct / str(i) / "0").read_bytes() == (via_zarr / str(i) / "0").read_bytes()
+    np.testing.assert_array_equal(arrays[0][:], x)
+    write_rows(arrays[0], 10, x[:5] + 1)  # part of a chunk: through zarr, the rest kept
+    np.testing.assert_array_equal(arrays[0][10:15], x[:5] + 1)
+    np.testing.assert_array_equal(arrays[0][:10], x[:10])
+    assert not list(raw_chunk_dir(arrays[0]).rglob("*.tmp"))

@@ -29,6 +29,7 @@ from vprscale.errors import InputError
 from vprscale.homogenise import homogenised, window_mean
 from vprscale.merge import MergeTransform, noisy_rows, project_rows
 from vprscale.progress import Timings, run_tasks
+from vprscale.rawchunks import write_rows
 from vprscale.recipe import Recipe, load_recipe
 from vprscale.sources.base import RowSource
 from vprscale.sources.deep1b import open_deep1b
@@ -142,12 +143,12 @@ class ChunkWriter:
                              tuple(NOISE_LEVELS.values()))
         group = zarr.open_group(self.store, mode="r+")
         if a < lay.n_ref:
-            group["ref"][a : min(b, lay.n_ref)] = np.concatenate([deep, fas_ref])
+            write_rows(group["ref"], a, np.concatenate([deep, fas_ref]))
             group["ref_part"][a : min(b, lay.n_ref)] = self._parts(a, min(b, lay.n_ref))
         if a < lay.n_query:
             q_hi = min(b, lay.n_query)
             for name, q in zip(NOISE_LEVELS, queries, strict=True):
-                group[name][a:q_hi] = np.concatenate([q, fas_query])
+                write_rows(group[name], a, np.concatenate([q, fas_query]))
             group["gt"][a:q_hi] = dataset_gt(lay, self.fas_gt, a, q_hi)
             group["query_part"][a:q_hi] = self._parts(a, q_hi)
 

@@ -1,16 +1,19 @@
-"""Row chunks of a stored 2-D array as a Dask array, read straight from raw chunk files.
+"""Rows of a stored 2-D array read from, and written to, its raw chunk files directly.
 
 A dataset's descriptors are stored without compression (a pass over them is then bound
 by the page cache, not by a codec). For such an array zarr's read path still copies every
 chunk through its event loop at about 1 GiB/s; reading the chunk file into a numpy buffer
 runs at about 3 GiB/s, and every pass of an index fit or of hashing reads the whole
-reference set. Arrays stored any other way (compressed, sharded, not on a local disk)
-are read through zarr.
+reference set; writing a whole chunk's file is likewise twice as fast as zarr. Arrays
+stored any other way (compressed, sharded, not on a local disk), and writes of part of a
+chunk, go through zarr.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
 from functools import partial
 from pathlib import Path
 
@@ -64,3 +67,29 @@ def rows_of(array: zarr.Array) -> da.Array:
     read = partial(_read_chunk, str(directory), rows, n_rows, cols, array.dtype.str, float(array.fill_value or 0))
     return da.map_blocks(read, chunks=chunks, dtype=array.dtype, meta=np.empty((0, 0), array.dtype),
                          name=f"rows-{tokenize(str(directory), array.shape, array.dtype.str)}")
+
+
+def write_rows(array: zarr.Array, start: int, values: np.ndarray) -> None:
+    """``array[start : start + len(values)] = values``; a whole chunk of a raw array is written
+    straight to its file (the bytes zarr would write, at about twice zarr's speed).
+
+    The file is written beside its final name and renamed into place, so a killed writer
+    leaves either the old chunk or the new one, never a torn one.
+    """
+    directory = raw_chunk_dir(array)
+    rows = array.chunks[0]
+    stop = start + len(values)
+    whole = start % rows == 0 and (stop - start == rows or stop == array.shape[0])
+    if directory is None or not whole or values.dtype != array.dtype:
+        array[start:stop] = values
+        return
+    if len(values) < rows:  # the edge chunk is stored at full size, padded with the fill value
+        padded = np.full((rows, array.shape[1]), array.fill_value or 0, array.dtype)
+        padded[: len(values)] = values
+        values = padded
+    target = directory / str(start // rows) / "0"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".0.{os.getpid()}.{threading.get_ident()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(np.ascontiguousarray(values).data)
+    os.replace(tmp, target)
