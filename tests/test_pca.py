@@ -50,3 +50,19 @@ def test_orthonormal_basis():
     np.testing.assert_allclose(q.T @ q, np.eye(30), atol=1e-12)
     # Same column space: projecting y on q reproduces y.
     np.testing.assert_allclose(q @ (q.T @ y), y, atol=1e-10)
+
+
+def test_merge_projects_queries_in_the_pca_pass_as_a_separate_pass_would():
+    """With every FAS reference kept, the queries are projected in the PCA's last pass and the
+    noise model comes from projection differences; both agree with the separate query pass."""
+    from vprscale.merge import MergeTransform
+    from vprscale.sources.synthetic import FasParams, SyntheticFAS
+
+    traverse = SyntheticFAS(3, FasParams(dim=128, n_ref=3000, n_query=2000)).traverse()
+    deep = da.from_array(np.random.default_rng(0).normal(size=(2000, 96)).astype(np.float32), chunks=(500, 96))
+    m = MergeTransform(96, traverse.ref.n_rows, 1500, seed=3).fit(deep, traverse)
+    assert m.noise_pca_ is m.fas_pca_ and m.fas_query_.shape == (1500, 96)
+    fq, mu, sd = m._queries(traverse)
+    np.testing.assert_allclose(m.fas_query_, fq, atol=1e-5 * np.abs(fq).max())
+    np.testing.assert_allclose(m.noise_mean_, mu, atol=1e-5 * sd.max())
+    np.testing.assert_allclose(m.noise_std_, sd, rtol=1e-5)

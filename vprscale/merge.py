@@ -54,18 +54,26 @@ class MergeTransform:
     def fit(self, deep_homogenised: da.Array, traverse: Traverse) -> MergeTransform:
         self.deep_pca_ = ExactPCA(self.dim).fit(deep_homogenised)
         self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed)
-        self.fas_ref_ = self.fas_pca_.fit_transform(traverse.ref.head(self.n_fas_ref).to_dask(_FAS_CHUNK))
         if self.n_fas_ref == traverse.ref.n_rows:
+            # The PCA of the kept rows is the noise PCA: the queries are projected in its last
+            # pass, and a truth pair's difference is the difference of two projections.
             self.noise_pca_ = self.fas_pca_
+            self.fas_ref_, queries = self.fas_pca_.fit_project(traverse.ref.to_dask(_FAS_CHUNK),
+                                                               [traverse.query.to_dask(_FAS_CHUNK)])
+            delta = self.fas_ref_[traverse.gt].astype(np.float64) - queries
+            self.fas_query_ = queries[: self.n_fas_query]
+            self.noise_mean_, self.noise_std_ = delta.mean(axis=0), delta.std(axis=0)
         else:
+            self.fas_ref_ = self.fas_pca_.fit_transform(traverse.ref.head(self.n_fas_ref).to_dask(_FAS_CHUNK))
             self.noise_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(traverse.ref.to_dask(_FAS_CHUNK))
+            self.fas_query_, self.noise_mean_, self.noise_std_ = self._queries(traverse)
         fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
         self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_) if self.rescale else np.ones(self.dim)
-        self.fas_query_, self.noise_mean_, self.noise_std_ = self._queries(traverse)
         return self
 
     def _queries(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One pass over the FAS queries: the kept ones projected, and the noise model (step 5)."""
+        """One pass over the FAS queries: the kept ones projected, and the noise model (step 5),
+        when the noise PCA (of every FAS reference) is not the dataset's FAS PCA."""
         n = traverse.query.n_rows
         fas, noise = self.fas_pca_, self.noise_pca_
         parts = [dask.delayed(_query_chunk)(traverse, fas.components_, fas.mean_, noise.components_, a,

@@ -15,6 +15,8 @@ positive.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import dask
 import dask.array as da
 import numpy as np
@@ -143,10 +145,16 @@ class RandomizedPCA:
         return self
 
     def fit_transform(self, x: da.Array) -> np.ndarray:
-        """Fit, and return the centred projections (float32) of the fitted rows.
+        """Fit, and return the centred projections (float32) of the fitted rows."""
+        return self.fit_project(x)[0]
+
+    def fit_project(self, x: da.Array, others: Sequence[da.Array] = ()) -> list[np.ndarray]:
+        """Fit on ``x``; the centred projections (float32) of ``x`` and of each of ``others``.
 
         ``(X − 1μᵀ)ᵀ(X − 1μᵀ)B = XᵀXB − n·μ(μᵀB)``: products are taken on the uncentred
-        float32 rows and centred in float64, so the mean costs no pass of its own.
+        float32 rows and centred in float64, so the mean costs no pass of its own. The
+        other arrays are projected on the subspace in the same last pass and rotated like
+        ``x``'s rows, which spares them a pass of their own once the components are known.
         """
         n, d = x.shape
         k = min(self.n_components + self.oversample, d, n)
@@ -164,8 +172,9 @@ class RandomizedPCA:
             basis = v.astype(np.float32)
             if it < self.n_iter:
                 (g,) = compute(gram(basis))
-        (p,) = compute(x @ basis)
-        p = p.astype(np.float64) - mean @ basis
+        p, *rest = compute(x @ basis, *(o @ basis for o in others), desc="project")
+        shift = mean @ basis
+        p = p.astype(np.float64) - shift
         # The right singular vectors of the (n × k) projections from their k × k Gram: the
         # projections on them are p·v, so no n × k SVD is needed (2 s of one core at FAS
         # size). Squaring the spectrum costs nothing here: the kept components' singular
@@ -180,7 +189,8 @@ class RandomizedPCA:
         self.components_ = flipped
         self.explained_variance_ = (proj**2).sum(axis=0) / n
         self.n_samples_ = n
-        return proj.astype(np.float32)
+        return [proj.astype(np.float32)] + [(((r.astype(np.float64) - shift) @ v) * signs).astype(np.float32)
+                                            for r in rest]
 
     def transform(self, x: np.ndarray) -> np.ndarray:
         """Centre and project; float64 arithmetic, float32 result."""
