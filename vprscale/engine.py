@@ -210,9 +210,9 @@ QUERIES_PER_TASK = 32  # queries sharing one set of scratch buffers
 def bit_planes(h: np.ndarray, d: int) -> np.ndarray:
     """For K = 2: bit ``b`` of the addresses of places ``64·i … 64·i + 63`` as word ``i·d + b``.
 
-    Flat (rows of ``d`` words), because numba re-derives a 2-D view's strides on every
-    call of a short kernel. Two zero rows pad the end so that any window inside the map
-    reads whole rows.
+    Flat (rows of ``d`` words), so that the short scoring kernel slices it directly: a
+    reshape on every call cost twice the arithmetic. Two zero rows pad the end so that any
+    window inside the map reads whole rows.
     """
     n = h.shape[0]
     out = np.zeros((n // 64 + 2) * d, np.uint64)
@@ -234,7 +234,7 @@ def _score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, 
     Per plane, a popcount of the xor of 64 reference bits with 64 query bits counts the
     frames whose code differs in that component: ⌈L/64⌉·d words instead of L·⌈d/8⌉ table
     look-ups. ``q_words``, ``masks`` and ``gaps`` are flat over (word, plane), so one
-    short loop runs over both and vectorises; the slices start at 0 so that numba adds
+    short loop runs over all of them and vectorises; the slices start at 0 so that numba adds
     no negative-index checks (which cost half the time).
     """
     lo = planes[(p >> 6) * d:]
