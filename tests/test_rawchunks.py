@@ -61,3 +61,11 @@ def test_whole_chunk_writes_give_zarrs_bytes_and_partial_writes_go_through_zarr(
     np.testing.assert_array_equal(arrays[0][10:15], x[:5] + 1)
     np.testing.assert_array_equal(arrays[0][:10], x[:10])
     assert not list(raw_chunk_dir(arrays[0]).rglob("*.tmp"))
+
+
+def test_an_oversized_chunk_file_is_an_error(tmp_path):
+    a, x = stored(tmp_path)
+    f = raw_chunk_dir(a) / "0" / "0"
+    f.write_bytes(f.read_bytes() + b"\0" * 4)
+    with pytest.raises(OSError, match="0/0: chunk file holds 8404 bytes, expected 8400"):
+        rows_of(a).compute()

@@ -47,12 +47,17 @@ def _read_chunk(directory: str, rows: int, n_rows: int, cols: int, dtype: str, f
     path = Path(directory) / str(i) / "0"
     try:
         with open(path, "rb", buffering=0) as fh:
-            got = fh.readinto(memoryview(out).cast("B"))
+            size = os.fstat(fh.fileno()).st_size
+            if size != out.nbytes:
+                raise OSError(f"{path}: chunk file holds {size} bytes, expected {out.nbytes}")
+            view, got = memoryview(out).cast("B"), 0
+            while got < size:  # a regular file may still return a short read
+                step = fh.readinto(view[got:])
+                if not step:
+                    raise OSError(f"{path}: chunk file ended after {got} of {size} bytes")
+                got += step
     except FileNotFoundError:  # zarr leaves out chunks that hold only the fill value
         out.fill(fill)
-        return out[:n]
-    if got != out.nbytes:
-        raise OSError(f"{path}: chunk file holds {got} bytes, expected {out.nbytes}")
     return out[:n]
 
 
