@@ -94,3 +94,20 @@ def test_index_refuses_bad_input(tiny_store, tmp_path, capsys):
     assert main(["index", str(tiny_store), "--d", "41", "--k", "3", "--out", str(tmp_path / "i")]) == 2
     assert "exceed 2^64" in capsys.readouterr().err
     assert not (tmp_path / "i").exists()
+
+
+@pytest.mark.parametrize("high", [2**20, 2**63])  # the packed (address, id) sort, and the stable-argsort fallback
+def test_inverted_lists_sort_by_address_then_id(high):
+    from vprscale.index import inverted_lists
+
+    rng = np.random.default_rng(4)
+    h = rng.choice(rng.integers(0, high, 300, dtype=np.uint64), 5000)
+    err = rng.integers(0, 3, 5000).astype(float)  # many ties for the single best
+    lists = inverted_lists(h, err)
+    order = np.argsort(h, kind="stable")
+    np.testing.assert_array_equal(lists["order"], order)
+    np.testing.assert_array_equal(lists["hash"], h[order])
+    for a, off, size, best in zip(lists["addresses"], lists["offsets"], lists["sizes"], lists["best"], strict=True):
+        ids = np.flatnonzero(h == a)
+        assert off == np.searchsorted(h[order], a) and size == len(ids)
+        assert best == ids[np.argmin(err[ids])]  # least error, ties to the smallest id
