@@ -92,11 +92,15 @@ class Index:
 
         ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
         """
+        w, tables, dmax = self.delta_tables()
+        gaps = np.ascontiguousarray(w[::-1, 0, 1])
+        return self.offsets, self.ids, self.ref_hash, self.planes, gaps, w, tables, self.d, self.k, dmax
+
+    def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
+        """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame."""
         w = self.weights()
         tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
-        gaps = np.ascontiguousarray(w[::-1, 0, 1])
-        return (self.offsets, self.ids, self.ref_hash, self.planes, gaps, w, tables, self.d, self.k,
-                np.int64(w[:, 0, -1].sum()))
+        return w, tables, np.int64(w[:, 0, -1].sum())
 
     def hash_queries(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(own address, index of the address used)`` of query rows (SPEC §3.2)."""
@@ -401,7 +405,7 @@ class OnlineMatcher:
     def __init__(self, index: Index, L: int, aligned: bool = False) -> None:
         self.index, self.L, self.aligned = index, L, aligned
         self.half = L // 2
-        *_, self._w, self._tables, _, _, self._dmax = index.kernel_args()
+        self._w, self._tables, self._dmax = index.delta_tables()
         self._hashes: list[int] = []
         self._addrs: list[int] = []
         self._scores: dict[int, int] = {}  # diagonal (ref centre − query centre) → score
