@@ -2,7 +2,7 @@
 
 An index is held as compact arrays: the sorted occupied addresses, CSR offsets into the
 reference ids, the single best per address, and every reference's own address. Sequence
-distances are computed in fixed point (int64, ``SCALE`` units), so that sums are exact and
+distances are computed in fixed point (int64; δ_max is ``DELTA_MAX_UNITS``), so that sums are exact and
 associative: the batch kernel and the online matcher agree bit for bit.
 """
 
@@ -93,7 +93,7 @@ class Index:
         ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
         """
         w, tables, dmax = self.delta_tables()
-        gaps = np.ascontiguousarray(w[::-1, 0, 1])
+        gaps = bit_gaps(w)
         return self.offsets, self.ids, self.ref_hash, self.planes, gaps, w, tables, self.d, self.k, dmax
 
     def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
@@ -150,6 +150,11 @@ def _nearest_occupied(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarra
     return out
 
 
+def bit_gaps(w: np.ndarray) -> np.ndarray:
+    """For K = 2: the cost of a differing bit ``b`` of two addresses (component ``d − 1 − b``'s gap)."""
+    return np.ascontiguousarray(w[::-1, 0, 1])
+
+
 def byte_tables(w: np.ndarray) -> np.ndarray:
     """For K = 2: δ of each byte of ``h1 xor h2`` as (⌈d/8⌉, 256) int64 tables.
 
@@ -157,7 +162,7 @@ def byte_tables(w: np.ndarray) -> np.ndarray:
     component's centre gap. δ is then ⌈d/8⌉ table look-ups (the paper's d/p xor term).
     """
     d = w.shape[0]
-    gap = w[::-1, 0, 1]  # gap of the component at bit b
+    gap = bit_gaps(w)
     n_bytes = (d + 7) // 8
     tables = np.zeros((n_bytes, 256), np.int64)
     values = np.arange(256)
@@ -223,11 +228,15 @@ def bit_planes(h: np.ndarray, d: int) -> np.ndarray:
     for blk in numba.prange((n + 63) // 64):
         row = out[blk * d:]
         for p in range(64 * blk, min(n, 64 * blk + 64)):
-            x = h[p]
-            bit = np.uint64(p & 63)
-            for b in range(d):
-                row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << bit
+            _set_bit(row, h[p], p & 63, d)
     return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _set_bit(row: np.ndarray, x: np.uint64, bit: int, d: int) -> None:
+    """Bit ``bit`` of word ``b`` of a plane row becomes bit ``b`` of address ``x``, for every plane."""
+    for b in range(d):
+        row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << np.uint64(bit)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -266,11 +275,7 @@ def _query_words(t: np.int64, L: int, half: int, q_hash: np.ndarray, d: int, out
     """Bit planes of the query window at ``t``: bit ``i mod 64`` of word ``(i // 64)·d + b`` is bit ``b`` of frame i."""
     out[:] = 0
     for i in range(L):
-        x = q_hash[t + i - half]
-        bit = np.uint64(i & 63)
-        row = out[(i >> 6) * d:]
-        for b in range(d):
-            row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << bit
+        _set_bit(out[(i >> 6) * d:], q_hash[t + i - half], i & 63, d)
 
 
 @numba.njit(cache=True, nogil=True)

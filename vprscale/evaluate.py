@@ -26,7 +26,7 @@ from vprscale.baseline import baseline_batch
 from vprscale.cluster import cluster_peak_rss, dask_client
 from vprscale.engine import Index, in_list_distance, match_batch
 from vprscale.errors import InputError
-from vprscale.index import build_index, default_index_dir, store_identity
+from vprscale.index import build_index, default_index_dir, load_index_meta, store_identity
 from vprscale.pca import ExactPCA
 from vprscale.rawchunks import rows_of
 from vprscale.store import ATTR, check_writable, exclusive, open_complete_group
@@ -92,14 +92,20 @@ def _validate(req: EvalRequest) -> None:
         raise InputError(f"--z {req.z}: must be at least 1")
 
 
+def _indexed_from(path: Path, identity: str) -> bool:
+    """Whether ``path`` holds a complete index of the store with this identity."""
+    try:
+        return load_index_meta(path)["store"]["identity"] == identity
+    except InputError:
+        return False
+
+
 def _indexes(req: EvalRequest, identity: str) -> list[Path]:
     if req.d_sweep:
         paths = []
         for d in req.d_sweep:
             path = default_index_dir(req.store, d, 2)
-            meta_file = path / "index.json"
-            if not (meta_file.is_file() and json.loads(meta_file.read_text()).get("store", {}).get("identity")
-                    == identity):
+            if not _indexed_from(path, identity):
                 build_index(req.store, d=d, k=2, out=path, scheduler=req.scheduler, workers=req.workers,
                             quiet=req.quiet)
             paths.append(path)
