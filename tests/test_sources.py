@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vprscale.errors import InputError
+from vprscale.sources.base import check_finite
 from vprscale.sources.deep1b import FbinSource, FvecsSource, open_deep1b
 from vprscale.sources.fas import open_fas
 from vprscale.sources.synthetic import SyntheticDeep1B, SyntheticFAS
@@ -78,6 +79,21 @@ def test_inf_row_is_named_in_fvecs(tmp_path):
     path.write_bytes(rec.tobytes())
     with pytest.raises(InputError, match="row 4 holds NaN or Inf"):
         FvecsSource(path).read(2, 5)
+
+
+def test_finite_check_is_exact():
+    """Huge finite values whose float32 row sum overflows pass; the first NaN/Inf row is named,
+    including a row whose +Inf and −Inf would cancel into NaN and one with a lone −Inf."""
+    rows = np.zeros((6, 96), np.float32)
+    rows[1] = 3e38  # sum overflows to inf, yet every value is finite
+    rows[2, :2] = (3e38, -3e38)
+    check_finite(rows, 100, "x")
+    for r, values in ((3, (np.inf, -np.inf)), (4, (-np.inf, 0.0)), (5, (np.nan, 1.0))):
+        bad = rows.copy()
+        bad[r, 10:12] = values
+        bad[r + 1 :] = np.nan if r < 5 else bad[r + 1 :]
+        with pytest.raises(InputError, match=f"x: row {100 + r} holds NaN or Inf"):
+            check_finite(bad, 100, "x")
 
 
 @pytest.mark.parametrize("extra", [-4, 4])

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -55,7 +56,12 @@ def io_floor(inputs: list[Path], write_bytes: int, where: Path) -> dict[str, flo
 
 
 def bench_build(scale: str, out: str, deep1b: str | None, fas: str | None, workers: int) -> str:
-    argv = ["build", "--scale", scale, "--out", out, "--force", "--workers", str(workers)]
+    """Time a fresh build: a store left by an earlier run is deleted first, because replacing
+    it (``--force`` deletes the old store once the new one is published) is not building."""
+    old = Path(out) / f"{scale}.zarr"
+    if old.exists():
+        shutil.rmtree(old)
+    argv = ["build", "--scale", scale, "--out", out, "--workers", str(workers)]
     argv += (["--deep1b", deep1b] if deep1b else []) + (["--fas", fas] if fas else [])
     r = run_child(argv)
     s = r["summary"]

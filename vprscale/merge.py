@@ -11,7 +11,8 @@ import dask.array as da
 import numba
 import numpy as np
 
-from vprscale.blocks import BLOCK, block_rng, block_spans
+from vprscale.blocks import BLOCK, block_spans
+from vprscale.gaussian import block_standard_normal
 from vprscale.pca import ExactPCA, RandomizedPCA
 from vprscale.progress import compute
 from vprscale.sources.fas import Traverse
@@ -103,7 +104,7 @@ def noisy_rows(ref: np.ndarray, start: int, seed: int, mean: np.ndarray, std: np
     """
     z = np.empty_like(ref)
     for b, lo, hi in block_spans(start, start + len(ref)):
-        full = block_rng(seed, NOISE_STREAM, b).standard_normal((BLOCK, ref.shape[1]), dtype=np.float32)
+        full = block_standard_normal(seed, NOISE_STREAM, b, (BLOCK, ref.shape[1]))
         z[lo - start : hi - start] = full[lo - b * BLOCK : hi - b * BLOCK]
     mean32, std32 = mean.astype(np.float32), std.astype(np.float32)
     return [_add_noise(ref, z, mean32, np.float32(s) * std32) for s in strengths]
