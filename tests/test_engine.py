@@ -18,8 +18,8 @@ def hand_index(ref_hash) -> Index:
 
 def run(idx: Index, q_hash, t, L, aligned=False):
     q_hash = np.asarray(q_hash, np.uint64)
-    q_addr = idx.nearest_occupied(q_hash)
-    return match_batch(np.asarray(t, np.int64), L, aligned, q_hash, q_addr, *idx.kernel_args())
+    start, stop = idx.list_bounds(idx.nearest_occupied(q_hash))
+    return match_batch(np.asarray(t, np.int64), L, aligned, q_hash, start, stop, *idx.kernel_args())
 
 
 def test_exact_and_fallback_addresses_with_ties_to_the_smaller():

@@ -182,11 +182,14 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
         for path, idx in indexes:
             q_hash = np.zeros(n_q, np.uint64)
             q_addr = np.zeros(n_q, np.int64)
+            q_start = np.zeros(n_q, np.int64)
+            q_stop = np.zeros(n_q, np.int64)
             idx.hash_queries(x_q[:1])  # load the compiled kernel outside the timing
-            t0 = time.perf_counter()
+            t0 = time.perf_counter()  # the per-frame work: hash, nearest occupied, list look-up
             h, a = idx.hash_queries(x_q)
+            start, stop = idx.list_bounds(a)
             hash_us = (time.perf_counter() - t0) / max(1, len(frames)) * 1e6
-            q_hash[frames], q_addr[frames] = h, a
+            q_hash[frames], q_addr[frames], q_start[frames], q_stop[frames] = h, a, start, stop
             occupied = np.zeros(n_q, bool)
             occupied[frames] = idx.addresses[a] == h
             args = idx.kernel_args()
@@ -194,7 +197,7 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
                 t = centres[L]
                 key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(path)}
                 fallback = float(1 - occupied[t].mean()) if len(t) else 0.0
-                results = _method_runs(req, idx, t, L, q_hash, q_addr, gt, args)
+                results = _method_runs(req, idx, t, L, q_hash, (q_addr, q_start, q_stop), gt, args)
                 paper_nr = None
                 for mode, (match, n_r, secs, in_list) in results.items():
                     if mode == "paper" and L > 1:
@@ -220,8 +223,12 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
     return rows, queries
 
 
-def _method_runs(req: EvalRequest, idx: Index, t: np.ndarray, L: int, q_hash, q_addr, gt, args) -> dict:
-    """``{mode: (match, n_r, seconds, in-list distance or None)}`` for one index and L."""
+def _method_runs(req: EvalRequest, idx: Index, t: np.ndarray, L: int, q_hash, q_lists, gt, args) -> dict:
+    """``{mode: (match, n_r, seconds, in-list distance or None)}`` for one index and L.
+
+    ``q_lists`` holds, per query frame, the index of the address used and its list's bounds.
+    """
+    q_addr, q_start, q_stop = q_lists
     if L == 1:
         t0 = time.perf_counter()
         a = q_addr[t]
@@ -234,9 +241,9 @@ def _method_runs(req: EvalRequest, idx: Index, t: np.ndarray, L: int, q_hash, q_
     for mode in MODES:
         if mode not in modes:
             continue
-        match_batch(t[:1], L, mode == "aligned", q_hash, q_addr, *args)  # compile outside the timing
+        match_batch(t[:1], L, mode == "aligned", q_hash, q_start, q_stop, *args)  # compile outside the timing
         t0 = time.perf_counter()
-        match, n_r = match_batch(t, L, mode == "aligned", q_hash, q_addr, *args)
+        match, n_r = match_batch(t, L, mode == "aligned", q_hash, q_start, q_stop, *args)
         out[mode] = (match, n_r, time.perf_counter() - t0, None)
     return out
 
