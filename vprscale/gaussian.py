@@ -4,7 +4,7 @@ The query noise of a dataset is one draw per stored value (960 M at 10M), and nu
 ``Generator.standard_normal`` costs about 19 ns a value on the build machines: at 1M the
 draw was the largest cost of writing the dataset. Here the same SFC64 bit stream as
 ``blocks.block_rng`` (seeded the same way, so its bits are numpy's, which a test checks)
-feeds a 256-layer ziggurat (Marsaglia & Tsang 2000) compiled with numba: about 3 ns a value.
+feeds a 256-layer ziggurat (Marsaglia & Tsang 2000) compiled with numba: about 5 ns a value.
 
 The ziggurat is exact: a draw falls in a layer's rectangle (99 % of the time, one 64-bit
 word, a multiply and a compare), in a wedge (accepted against the density), or in the tail
@@ -32,8 +32,9 @@ def ziggurat_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Layer widths per magnitude unit ``w``, fast-accept thresholds ``k`` and densities ``f``.
 
     Layer ``i ≥ 1`` has right edge ``x_i`` (``x_255 = R``, narrowing towards the peak) and spans
-    densities ``[f(x_i), f(x_{i−1})]`` with ``x_0 = 0``; every layer and the base (rectangle
-    ``[0, V / f(R)]`` plus the tail beyond ``R``) has area ``V``.
+    densities ``[f(x_i), f(x_{i−1})]`` with ``x_0 = 0``. Every layer has area ``V``, and so has
+    the base (``[0, R] × [0, f(R)]`` plus the tail beyond ``R``), which is drawn as one
+    rectangle of width ``V / f(R)``: the part beyond ``R`` sends the draw to the tail.
     """
     x = np.zeros(LAYERS)
     x[-1] = R
@@ -56,7 +57,7 @@ _UNIT = 2.0**-53
 
 
 @numba.njit(inline="always")
-def _sfc64(a, b, c, n):
+def _sfc64(a: np.uint64, b: np.uint64, c: np.uint64, n: np.uint64) -> tuple:
     """One step of SFC64 (Chris Doty-Humphrey's small fast counting generator, as numpy's)."""
     out = a + b + n
     n += _U1
