@@ -69,6 +69,11 @@ def _sfc64(a: np.uint64, b: np.uint64, c: np.uint64, n: np.uint64) -> tuple:
 
 @numba.njit(cache=True, nogil=True)
 def _fill(state: np.ndarray, out: np.ndarray, w: np.ndarray, k: np.ndarray, f: np.ndarray) -> None:
+    """Fill ``out`` with N(0, 1) draws from the SFC64 state ``(a, b, c, counter)``.
+
+    The state lives in four local words rather than the array, so the generator's step stays
+    in registers across the whole block.
+    """
     a, b, c, n = state[0], state[1], state[2], state[3]
     for i in range(out.size):
         while True:
