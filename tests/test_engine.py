@@ -17,9 +17,8 @@ def hand_index(ref_hash) -> Index:
 
 
 def run(idx: Index, q_hash, t, L, aligned=False):
-    q_hash = np.asarray(q_hash, np.uint64)
-    start, stop = idx.list_bounds(idx.nearest_occupied(q_hash))
-    return match_batch(np.asarray(t, np.int64), L, aligned, q_hash, start, stop, *idx.kernel_args())
+    qf = idx.query_frames(np.asarray(q_hash, np.uint64))
+    return match_batch(np.asarray(t, np.int64), L, aligned, *qf.kernel_args(), *idx.kernel_args())
 
 
 def test_exact_and_fallback_addresses_with_ties_to_the_smaller():
@@ -168,6 +167,48 @@ def test_batch_kernel_equals_the_definition(d, k, L, aligned):
     match, n_r = run(idx, edge_q, te, L, aligned)
     for i, ti in enumerate(te):
         assert (match[i], n_r[i]) == brute_force_match(idx, edge_q, ti, L, aligned)
+
+
+def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
+    """More queries than one block of pairs, over a map of several sort buckets: the same
+    matches in one call on every thread, on one thread, and query by query."""
+    import numba
+
+    from vprscale.engine import QUERY_BLOCK
+
+    rng = np.random.default_rng(11)
+    d, L = 10, 9
+    ref = rng.integers(0, 2**d, 20_000).astype(np.uint64)
+    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (d, 1)) * rng.uniform(0.5, 2.0, (d, 1)))
+    start = rng.integers(0, len(ref) - 3_000, 8)
+    q = np.concatenate([ref[s:s + 3_000] ^ (rng.random(3_000) < 0.2).astype(np.uint64) for s in start])
+    centres = np.sort(rng.integers(L // 2, len(q) - L // 2, QUERY_BLOCK + 700))
+    match, n_r = run(idx, q, centres, L)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        one_thread = run(idx, q, centres, L)
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(one_thread[0], match)
+    np.testing.assert_array_equal(one_thread[1], n_r)
+    for i in rng.choice(len(centres), 12, replace=False):
+        alone = run(idx, q, centres[i:i + 1], L)
+        assert (alone[0][0], alone[1][0]) == (match[i], n_r[i]) == brute_force_match(idx, q, centres[i], L, False)
+
+
+def test_query_frames_hold_only_the_frames_worked_on():
+    ref = np.array([1, 2, 4, 8, 1, 2, 4, 8, 3, 5, 6, 9, 12, 10, 7, 11])
+    idx = hand_index(ref)
+    frames = np.r_[100:105, 200:210]
+    q = idx.query_frames(ref[np.r_[8:13, 0:10]], frames)
+    np.testing.assert_array_equal(q.positions(np.array([102, 205]), 5), [2, 10])
+    match, _ = match_batch(q.positions(np.array([102]), 5), 5, False, *q.kernel_args(), *idx.kernel_args())
+    assert match[0] == 10  # frames 100…104 repeat refs 8…12
+    a = q.addr[0]
+    np.testing.assert_array_equal(q.ids[q.start[0]:q.stop[0]], idx.ids[idx.offsets[a]:idx.offsets[a + 1]])
+    with pytest.raises(ValueError, match="frame 103"):
+        q.positions(np.array([103]), 5)  # its window reaches frame 105, which was not worked on
 
 
 @pytest.mark.parametrize(("d", "k"), [(20, 2), (5, 3)])

@@ -115,6 +115,11 @@ def bench_lookup(index: str, n: int = 50) -> str:
             f"sandboxed connection set-up {1e3 * (t1 - t0):.1f} ms")
 
 
+def _frame_part(us: float | None) -> str:
+    """`` (per-frame work x µs)`` where a method has per-frame work apart from its kernel."""
+    return "" if us is None or us != us else f" (per-frame work {us:.2f})"
+
+
 def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
     with tempfile.TemporaryDirectory() as tmp:
         r = run_child(["eval", store, index, "--out", tmp, "--workers", str(workers), *args])
@@ -125,8 +130,8 @@ def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
     lines = [f"eval {store}: {r['wall_s']:.1f} s wall, peak RSS {r['peak_rss_bytes'] / 2**30:.2f} GiB"]
     for _, row in res.iterrows():
         lines.append(f"  {row.noise} {row.method:<10} {str(row['mode']):<8} L={row.L:<4} d={row.d:<3} "
-                     f"{row.us_per_query:10.2f} µs/query  N_r {row.nr_mean:7.1f}  R@20 {100 * row.recall:5.1f} %  "
-                     f"({row.n_queries} queries)")
+                     f"{row.us_per_query:10.2f} µs/query{_frame_part(row.us_per_frame)}  N_r {row.nr_mean:7.1f}  "
+                     f"R@20 {100 * row.recall:5.1f} %  ({row.n_queries} queries)")
     for (noise, L), g in res.groupby(["noise", "L"]):
         m = g[(g.method == "coarsehash") & (g["mode"].isna() | (g["mode"] == "paper"))]
         b = g[g.method == "baseline"]

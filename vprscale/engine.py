@@ -18,9 +18,66 @@ import pyarrow.parquet as pq
 
 from vprscale.coarsehash import hash_descriptors
 from vprscale.index import load_index_meta
-from vprscale.intrinsics import popcount, prefetch
+from vprscale.intrinsics import funnel_shift_right, popcount, prefetch
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
+
+
+@dataclass
+class QueryFrames:
+    """The per-frame work on query frames, done once per frame as it arrives (SPEC §3.2).
+
+    A frame is hashed, given the nearest occupied address, and has that address's list
+    retrieved (the paper's O(1) list look-up per new frame); for K = 2 its address also
+    goes into bit planes like the references' (:func:`bit_planes`). Every window that
+    contains the frame then reads these, so a query's sequence match never goes back to
+    the index's lists: its L lists are adjacent here, in frame order.
+
+    Only the frames worked on are held, ascending; arrays are indexed by position among
+    them, and a window's frames, consecutive in the sequence, are consecutive here too.
+    """
+
+    frames: np.ndarray  # the frames held (ascending), positions 0 … n − 1
+    hashes: np.ndarray  # own address of every frame (uint64)
+    addr: np.ndarray  # index of the occupied address used
+    start: np.ndarray  # the list of the frame at position i is ids[start[i]:stop[i]]
+    stop: np.ndarray
+    ids: np.ndarray
+    planes: np.ndarray  # K = 2: bit b of positions 64·i … 64·i + 63 as word i·d + b
+
+    def positions(self, t: np.ndarray, L: int = 1) -> np.ndarray:
+        """Positions of frames ``t``, each with the whole window of ``L`` centred on it held."""
+        t = np.asarray(t, np.int64)
+        pos = np.searchsorted(self.frames, t)
+        first, last = pos - L // 2, pos - L // 2 + L - 1
+        ok = (first >= 0) & (last < len(self.frames))
+        ok[ok] &= (self.frames[first[ok]] == t[ok] - L // 2) & (self.frames[last[ok]] == t[ok] - L // 2 + L - 1)
+        if not ok.all():
+            raise ValueError(f"frame {t[~ok][0]}: its window of {L} is not among the query frames held")
+        return pos
+
+    def kernel_args(self) -> tuple:
+        """``(hashes, planes, start, stop, ids)``: the query frames' arguments of :func:`match_batch`."""
+        return self.hashes, self.planes, self.start, self.stop, self.ids
+
+
+@numba.njit(cache=True, nogil=True)
+def _retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(start, stop, lists)``: the lists of addresses ``a`` copied one after another."""
+    start = np.empty(a.shape[0], np.int64)
+    stop = np.empty(a.shape[0], np.int64)
+    total = 0
+    for i in range(a.shape[0]):
+        total += offsets[a[i] + 1] - offsets[a[i]]
+    out = np.empty(total, np.int64)
+    m = 0
+    for i in range(a.shape[0]):
+        start[i] = m
+        for q in range(offsets[a[i]], offsets[a[i] + 1]):
+            out[m] = ids[q]
+            m += 1
+        stop[i] = m
+    return start, stop, out
 
 
 @dataclass
@@ -88,13 +145,12 @@ class Index:
         return bit_planes(self.ref_hash, self.d) if self.k == 2 else np.zeros(0, np.uint64)
 
     def kernel_args(self) -> tuple:
-        """``(ids, ref_hash, planes, gaps, w, tables, d, k, δ_max)`` for :func:`match_batch`.
+        """``(ref_hash, planes, gaps, w, tables, d, k, δ_max)``: the index's arguments of :func:`match_batch`.
 
         ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
         """
         w, tables, dmax = self.delta_tables()
-        gaps = bit_gaps(w)
-        return self.ids, self.ref_hash, self.planes, gaps, w, tables, self.d, self.k, dmax
+        return self.ref_hash, self.planes, bit_gaps(w), w, tables, self.d, self.k, dmax
 
     def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
         """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame."""
@@ -102,10 +158,9 @@ class Index:
         tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
         return w, tables, np.int64(w[:, 0, -1].sum())
 
-    def hash_queries(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(own address, index of the address used)`` of query rows (SPEC §3.2)."""
-        _, h, _, _ = hash_descriptors(x, self.mean, self.components, self.centres)
-        return h, self.nearest_occupied(h)
+    def hash_queries(self, x: np.ndarray) -> np.ndarray:
+        """Own addresses of query rows (SPEC §3.2)."""
+        return hash_descriptors(x, self.mean, self.components, self.centres)[1]
 
     @cached_property
     def _prefix(self) -> tuple[np.ndarray, int]:
@@ -120,15 +175,18 @@ class Index:
         first = np.searchsorted(self.addresses >> np.uint64(shift), prefixes)
         return first.astype(np.int64), shift
 
-    def list_bounds(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(start, stop)`` in ``ids`` of the lists of occupied addresses ``a``.
+    def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None) -> QueryFrames:
+        """The per-frame work on query frames with own addresses ``h`` (SPEC §3.2).
 
-        Looked up once per frame, as the frame is hashed (the paper's O(1) list retrieval
-        per new frame), so that a window's kernel reads its L lists straight away instead of
-        first waiting for L scattered offsets (8–15 % of a 10M query).
+        ``frames`` (ascending; default ``0 … len(h) − 1``) number them in their sequence.
+        See :class:`QueryFrames`.
         """
-        a = np.asarray(a, np.int64)
-        return self.offsets[a], self.offsets[a + 1]
+        h = np.asarray(h, np.uint64)
+        frames = np.arange(len(h)) if frames is None else np.asarray(frames, np.int64)
+        a = self.nearest_occupied(h)
+        start, stop, ids = _retrieve_lists(self.offsets, self.ids, a)
+        planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
+        return QueryFrames(frames, h, a, start, stop, ids, planes)
 
     def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
         """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
@@ -221,8 +279,12 @@ def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_
     return s
 
 
-PREFETCH = 8  # candidates whose reference window is fetched ahead of the one being scored
-QUERIES_PER_TASK = 32  # queries sharing one set of scratch buffers
+PREFETCH = 8  # pairs whose reference window is fetched ahead of the one being scored
+QUERY_BLOCK = 1 << 14  # queries matched together: bounds the pair arrays (and fits a pair's query in 20 bits)
+SORT_BLOCKS = 16  # query blocks counted and scattered in parallel by the pair sort
+SCORE_CHUNKS = 16  # runs of sorted pairs scored in parallel, each keeping its own best per query
+BUCKET_BITS = 12  # pairs are sorted by their window's position, 4096 places (12 KB of planes) at a time
+MAX_BUCKETS = 1 << 16
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -250,6 +312,13 @@ def _set_bit(row: np.ndarray, x: np.uint64, bit: int, d: int) -> None:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _window_words(planes: np.ndarray, d: int, p: np.int64, e: int) -> np.uint64:
+    """Word ``e`` (flat over word, plane) of the window of places starting at ``p``: 64 frames of one plane."""
+    row = (p >> 6) * d
+    return funnel_shift_right(planes[row + d + e], planes[row + e], np.uint64(p & 63))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, masks: np.ndarray,
                   gaps: np.ndarray) -> np.int64:
     """K = 2 score of the window of references starting at ``p`` (all inside the map).
@@ -259,15 +328,18 @@ def _score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, 
     look-ups. ``q_words``, ``masks`` and ``gaps`` are flat over (word, plane), so one
     short loop runs over all of them and vectorises; the slices start at 0 so that numba adds
     no negative-index checks (which cost half the time).
+
+    The sum is taken in float64, whose multiply-add is one instruction where an int64
+    multiply is three: every product and partial sum is an integer below L·δ_max < 2^53
+    (the caller checks), so it is exact in any order and the result equals the int64 sum.
     """
     lo = planes[(p >> 6) * d:]
     hi = planes[(p >> 6) * d + d:]
     sh = np.uint64(p & 63)
-    s = np.int64(0)
-    for e in range(q_words.shape[0]):  # word e // d of plane e % d, starting sh bits into row p >> 6
-        x = (lo[e] >> sh) | ((hi[e] << np.uint64(1)) << (np.uint64(63) - sh))  # two steps: sh may be 0
-        s += gaps[e] * popcount((x ^ q_words[e]) & masks[e])
-    return s
+    s = 0.0
+    for e in range(q_words.shape[0]):  # word e // d of plane e % d
+        s += gaps[e] * np.float64(popcount((funnel_shift_right(hi[e], lo[e], sh) ^ q_words[e]) & masks[e]))
+    return np.int64(s)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -281,22 +353,14 @@ def _prefetch_window(planes: np.ndarray, d: int, p: np.int64, L: int) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
-def _query_words(t: np.int64, L: int, half: int, q_hash: np.ndarray, d: int, out: np.ndarray) -> None:
-    """Bit planes of the query window at ``t``: bit ``i mod 64`` of word ``(i // 64)·d + b`` is bit ``b`` of frame i."""
-    out[:] = 0
-    for i in range(L):
-        _set_bit(out[(i >> 6) * d:], q_hash[t + i - half], i & 63, d)
-
-
-@numba.njit(cache=True, nogil=True)
 def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
                 ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
     """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
 
     The proposals are first copied out of the lists by a loop without data-dependent
-    branches, so that the scattered reads of ``ids`` overlap; then an open-addressing set
-    in ``slots`` (``2**bits`` entries, at least twice the proposals) removes repeats in
-    O(1) each. (Sorting the proposals cost more than scoring them.)
+    branches; then an open-addressing set in ``slots`` (``2**bits`` entries, at least twice
+    the proposals) removes repeats in O(1) each. (Sorting the proposals cost more than
+    scoring them.)
     """
     m = 0
     for i in range(L):
@@ -323,21 +387,89 @@ def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_start: np.ndarray,
-                q_stop: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray, planes: np.ndarray, gaps: np.ndarray,
-                w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
-    """Sequence match of every query centre; returns ``(match, number of candidates)``.
+def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+             ids: np.ndarray, n_ref: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(cand, first, n_r)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``."""
+    n = centres_t.shape[0]
+    half = L // 2
+    proposals = np.empty(n, np.int64)
+    for qi in numba.prange(n):
+        total = 0
+        for i in range(L):
+            total += q_stop[centres_t[qi] + i - half] - q_start[centres_t[qi] + i - half]
+        proposals[qi] = total
+    first = np.zeros(n + 1, np.int64)
+    first[1:] = np.cumsum(proposals)
+    cand = np.empty(first[n], np.int64)
+    n_r = np.empty(n, np.int64)
+    for blk in numba.prange(SORT_BLOCKS):
+        slots = np.empty(0, np.int64)
+        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
+            bits = 4
+            while (1 << bits) < 2 * proposals[qi]:
+                bits += 1
+            if (1 << bits) > slots.shape[0]:
+                slots = np.empty(1 << bits, np.int64)
+            n_r[qi] = _candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
+                                  slots[: 1 << bits], bits)
+    return cand, first, n_r
 
-    ``q_hash`` (own address) and ``q_start`` / ``q_stop`` (the bounds in ``ids`` of the list
-    used, :meth:`Index.list_bounds`) are indexed by query frame. Paper mode scores every id of every
-    window frame's list as a centre; aligned mode scores ``r − l`` for an id ``r`` in the
-    list of frame ``t + l``. Ties go to the smallest centre.
 
-    Queries run in parallel (numba threads) in tasks of a few that share scratch buffers;
-    each query's answer does not depend on the thread count. For K = 2 a window inside
-    the map is scored on bit planes (:func:`_score_planes`), the planes of the next few
-    candidates being prefetched: at 10M places a query's cost is mostly waiting for
-    memory. Other windows, and K > 2, are scored frame by frame (:func:`_score`).
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, n_ref: int) -> np.ndarray:
+    """Every (candidate, query) pair as ``centre << 20 | query``, ordered by the centre's bucket.
+
+    A counting sort, its counts and scatter split over blocks of queries. Scoring pairs
+    in this order reads the reference planes almost sequentially, once per batch, instead
+    of one scattered window per pair: at 10M places and a thousand queries of L = 100
+    the windows cover the map about three times over.
+    """
+    shift = BUCKET_BITS
+    while (n_ref >> shift) >= MAX_BUCKETS:
+        shift += 1
+    n_buckets = (n_ref >> shift) + 1
+    n = n_r.shape[0]
+    counts = np.zeros((SORT_BLOCKS, n_buckets), np.int64)
+    for blk in numba.prange(SORT_BLOCKS):
+        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                counts[blk, cand[j] >> shift] += 1
+    total = 0
+    for b in range(n_buckets):
+        for blk in range(SORT_BLOCKS):
+            c = counts[blk, b]
+            counts[blk, b] = total
+            total += c
+    pairs = np.empty(total, np.int64)
+    for blk in numba.prange(SORT_BLOCKS):
+        cursor = counts[blk]
+        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                b = cand[j] >> shift
+                pairs[cursor[b]] = (cand[j] << 20) | qi
+                cursor[b] += 1
+    return pairs
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int, n_words: int) -> np.ndarray:
+    """Every query window's bit planes, (query, word·plane), read out of the query frames' planes."""
+    out = np.empty((centres_t.shape[0], n_words * d), np.uint64)
+    for qi in numba.prange(centres_t.shape[0]):
+        for e in range(n_words * d):
+            out[qi, e] = _window_words(q_planes, d, centres_t[qi] - L // 2, e)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
+def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
+                 ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
+                 d: int, k: int, dmax: np.int64, fast: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(score, centre)`` of each query's best pair, ties to the smaller centre.
+
+    Runs of the sorted pairs are scored in parallel, each run keeping its own best per
+    query; the runs' bests are then merged. The minimum does not depend on the order, so
+    the answer does not depend on the thread count.
     """
     n = centres_t.shape[0]
     half = L // 2
@@ -346,49 +478,71 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))  # flat over (word, plane), as q_words
     if L % 64:
         masks[-d:] = (np.uint64(1) << np.uint64(L % 64)) - np.uint64(1)
-    word_gaps = np.empty(n_words * d, np.int64)
-    for j in range(n_words):
-        word_gaps[j * d:(j + 1) * d] = gaps
-    fast = k == 2 and planes.shape[0] > 0
+    gaps = np.empty(n_words * d, np.float64)
+    for e in range(n_words * d):
+        gaps[e] = bit_gap[e % d]
+    m = pairs.shape[0]
+    run_s = np.full((SCORE_CHUNKS, n), np.int64(2**62))
+    run_c = np.full((SCORE_CHUNKS, n), np.int64(-1))
+    for run in numba.prange(SCORE_CHUNKS):
+        stop = m * (run + 1) // SCORE_CHUNKS
+        for j in range(m * run // SCORE_CHUNKS, stop):
+            c = pairs[j] >> 20
+            qi = pairs[j] & 0xFFFFF
+            if fast and j + PREFETCH < stop:
+                _prefetch_window(planes, d, (pairs[j + PREFETCH] >> 20) - half, L)
+            if fast and c >= half and c - half + L <= n_ref:
+                s = _score_planes(c - half, planes, d, q_words[qi], masks, gaps)
+            else:
+                s = _score(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax, run_s[run, qi] + 1)
+            if s < run_s[run, qi] or (s == run_s[run, qi] and c < run_c[run, qi]):
+                run_s[run, qi] = s
+                run_c[run, qi] = c
+    best_s = run_s[0].copy()
+    best = run_c[0].copy()
+    for qi in numba.prange(n):
+        for run in range(1, SCORE_CHUNKS):
+            s, c = run_s[run, qi], run_c[run, qi]
+            if s < best_s[qi] or (s == best_s[qi] and c < best[qi]):
+                best_s[qi], best[qi] = s, c
+    return best_s, best
+
+
+@numba.njit(cache=True, nogil=True)
+def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_planes: np.ndarray,
+                q_start: np.ndarray, q_stop: np.ndarray, q_ids: np.ndarray, ref_hash: np.ndarray,
+                planes: np.ndarray, gaps: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+                dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """Sequence match of every query centre; returns ``(match, number of candidates)``.
+
+    The query-frame arrays are those of :class:`QueryFrames` (the own address of the frame
+    at position ``i``, its list ``q_ids[q_start[i]:q_stop[i]]``, the frames' bit planes),
+    and ``centres_t`` are positions there (:meth:`QueryFrames.positions`). Paper mode scores
+    every id of every window frame's list as a centre; aligned mode scores ``r − l`` for an
+    id ``r`` in the list of frame ``t + l``. Ties go to the smallest centre.
+
+    Queries are matched in blocks: each query's distinct candidates are collected, all
+    (candidate, query) pairs of the block are sorted by where their reference window lies
+    (:func:`_pairs_by_window`), and scored in that order, so that the bit planes of the map
+    stream through the caches instead of being fetched window by window. For K = 2 a
+    window inside the map is scored on bit planes (:func:`_score_planes`); other windows,
+    and K > 2, frame by frame (:func:`_score`).
+    """
+    n = centres_t.shape[0]
+    n_ref = ref_hash.shape[0]
+    # the bit-plane score sums in float64: exact while L·δ_max < 2^53
+    fast = k == 2 and planes.shape[0] > 0 and np.float64(L) * np.float64(dmax) < 2.0**53
     match = np.empty(n, np.int64)
     n_r = np.empty(n, np.int64)
-    for task in numba.prange((n + QUERIES_PER_TASK - 1) // QUERIES_PER_TASK):
-        cand = np.empty(256, np.int64)
-        slots = np.empty(512, np.int64)
-        q_words = np.empty(n_words * d, np.uint64)
-        for qi in range(task * QUERIES_PER_TASK, min(n, (task + 1) * QUERIES_PER_TASK)):
-            t = centres_t[qi]
-            total = 0
-            for i in range(L):
-                total += q_stop[t + i - half] - q_start[t + i - half]
-                prefetch(ids, q_start[t + i - half])
-            if total > cand.shape[0]:
-                cand = np.empty(2 * total, np.int64)
-            bits = 4
-            while (1 << bits) < 2 * total:
-                bits += 1
-            if (1 << bits) > slots.shape[0]:
-                slots = np.empty(1 << bits, np.int64)
-            m = _candidates(t, L, half, aligned, q_start, q_stop, ids, n_ref, cand, slots[: 1 << bits], bits)
-            if fast:
-                _query_words(t, L, half, q_hash, d, q_words)
-                for j in range(min(PREFETCH, m)):
-                    _prefetch_window(planes, d, cand[j] - half, L)
-            best = np.int64(-1)
-            best_s = np.int64(2**62)
-            for j in range(m):
-                c = cand[j]
-                if fast and j + PREFETCH < m:
-                    _prefetch_window(planes, d, cand[j + PREFETCH] - half, L)
-                if fast and c >= half and c - half + L <= n_ref:
-                    s = _score_planes(c - half, planes, d, q_words, masks, word_gaps)
-                else:  # abandoned once it cannot win; a smaller centre still wins a tie
-                    bound = best_s + 1 if c < best else best_s
-                    s = _score(c, t, L, half, ref_hash, q_hash, w, tables, d, k, dmax, bound)
-                if s < best_s or (s == best_s and c < best):
-                    best_s, best = s, c
-            match[qi] = best
-            n_r[qi] = m
+    for lo in range(0, n, QUERY_BLOCK):
+        t = centres_t[lo:lo + QUERY_BLOCK]
+        cand, first, block_n_r = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref)
+        pairs = _pairs_by_window(cand, first, block_n_r, n_ref)
+        q_words = _query_words(t, L, q_planes, d, (L + 63) // 64) if fast else np.zeros((t.shape[0], 0), np.uint64)
+        _, block_match = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax,
+                                      fast)
+        match[lo:lo + t.shape[0]] = block_match
+        n_r[lo:lo + t.shape[0]] = block_n_r
     return match, n_r
 
 
@@ -432,7 +586,7 @@ class OnlineMatcher:
 
     def push(self, descriptor: np.ndarray) -> int | None:
         """Add one query frame; the match of the window it completes (None until L frames)."""
-        h, _ = self.index.hash_queries(np.asarray(descriptor, np.float32)[None, :])
+        h = self.index.hash_queries(np.asarray(descriptor, np.float32)[None, :])
         return self.push_address(int(h[0]))
 
     def push_address(self, h: int) -> int | None:

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from vprscale.accounting import baseline_ops, method_ops
 from vprscale.baseline import baseline_batch
 from vprscale.cluster import cluster_peak_rss, dask_client
-from vprscale.engine import Index, in_list_distance, match_batch
+from vprscale.engine import Index, QueryFrames, in_list_distance, match_batch
 from vprscale.errors import InputError
 from vprscale.index import build_index, default_index_dir, load_index_meta, store_identity
 from vprscale.pca import ExactPCA
@@ -180,24 +180,19 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
             y_base = np.zeros(n_q)
             y_base[frames] = pca1.transform(x_q).astype(np.float64)[:, 0]
         for path, idx in indexes:
-            q_hash = np.zeros(n_q, np.uint64)
-            q_addr = np.zeros(n_q, np.int64)
-            q_start = np.zeros(n_q, np.int64)
-            q_stop = np.zeros(n_q, np.int64)
-            idx.hash_queries(x_q[:1])  # load the compiled kernel outside the timing
-            t0 = time.perf_counter()  # the per-frame work: hash, nearest occupied, list look-up
-            h, a = idx.hash_queries(x_q)
-            start, stop = idx.list_bounds(a)
+            idx.query_frames(idx.hash_queries(x_q[:1]))  # load the compiled kernels outside the timing
+            t0 = time.perf_counter()  # the per-frame work: hash, nearest occupied, list retrieval, planes
+            h = idx.hash_queries(x_q)
+            qf = idx.query_frames(h, frames)
             hash_us = (time.perf_counter() - t0) / max(1, len(frames)) * 1e6
-            q_hash[frames], q_addr[frames], q_start[frames], q_stop[frames] = h, a, start, stop
             occupied = np.zeros(n_q, bool)
-            occupied[frames] = idx.addresses[a] == h
+            occupied[frames] = idx.addresses[qf.addr] == h
             args = idx.kernel_args()
             for L in req.lengths:
                 t = centres[L]
                 key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(path)}
                 fallback = float(1 - occupied[t].mean()) if len(t) else 0.0
-                results = _method_runs(req, idx, t, L, q_hash, (q_addr, q_start, q_stop), gt, args)
+                results = _method_runs(req, idx, qf.positions(t, L), L, qf, gt[t], args)
                 paper_nr = None
                 for mode, (match, n_r, secs, in_list) in results.items():
                     if mode == "paper" and L > 1:
@@ -208,7 +203,7 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
                                      len(idx.addresses), fallback)
                     us = secs * CORES / max(1, len(t)) * 1e6 + hash_us
                     _emit(rows, queries, {**key, "method": "coarsehash", "mode": None if L == 1 else mode},
-                          t, gt, part, match, n_r, us, ops["total"], in_list)
+                          t, gt, part, match, n_r, (us, hash_us), ops["total"], in_list)
                 if base_x is not None:
                     nr = 1 if L == 1 else max(1, int(round(float(paper_nr.mean())))) if len(t) else 1
                     baseline_batch(t[:1], L, nr, base_x, y_base, float(np.ptp(base_x)))  # compile outside the timing
@@ -217,38 +212,40 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
                     secs = time.perf_counter() - t0
                     ops = baseline_ops(dim, len(base_x), L, nr)
                     _emit(rows, queries, {**key, "d": 1, "K": None, "method": "baseline", "mode": None},
-                          t, gt, part, match, n_r, secs * CORES / max(1, len(t)) * 1e6, ops["total"], None)
+                          t, gt, part, match, n_r, (secs * CORES / max(1, len(t)) * 1e6, None), ops["total"], None)
                 bar.update()
     bar.close()
     return rows, queries
 
 
-def _method_runs(req: EvalRequest, idx: Index, t: np.ndarray, L: int, q_hash, q_lists, gt, args) -> dict:
+def _method_runs(req: EvalRequest, idx: Index, pos: np.ndarray, L: int, qf: QueryFrames, truth: np.ndarray,
+                 args: tuple) -> dict:
     """``{mode: (match, n_r, seconds, in-list distance or None)}`` for one index and L.
 
-    ``q_lists`` holds, per query frame, the index of the address used and its list's bounds.
+    ``pos`` are the query centres' positions in ``qf``, ``truth`` their true matches.
     """
-    q_addr, q_start, q_stop = q_lists
     if L == 1:
         t0 = time.perf_counter()
-        a = q_addr[t]
+        a = qf.addr[pos]
         match = idx.best[a]
         secs = time.perf_counter() - t0
         n_r = idx.offsets[a + 1] - idx.offsets[a]
-        return {"single": (match, n_r, secs, in_list_distance(a, gt[t], idx.offsets, idx.ids))}
+        return {"single": (match, n_r, secs, in_list_distance(a, truth, idx.offsets, idx.ids))}
     modes = set(req.modes) | ({"paper"} if req.baseline else set())
     out = {}
     for mode in MODES:
         if mode not in modes:
             continue
-        match_batch(t[:1], L, mode == "aligned", q_hash, q_start, q_stop, *args)  # compile outside the timing
+        match_batch(pos[:1], L, mode == "aligned", *qf.kernel_args(), *args)  # compile outside the timing
         t0 = time.perf_counter()
-        match, n_r = match_batch(t, L, mode == "aligned", q_hash, q_start, q_stop, *args)
+        match, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args)
         out[mode] = (match, n_r, time.perf_counter() - t0, None)
     return out
 
 
-def _emit(rows: list, queries: list, key: dict, t, gt, part, match, n_r, us: float, ops: float, in_list) -> None:
+def _emit(rows: list, queries: list, key: dict, t, gt, part, match, n_r, us: tuple[float, float | None], ops: float,
+          in_list) -> None:
+    """Rows of ``results`` and ``queries`` for one run; ``us`` is (µs per query, of which per-frame work)."""
     error = np.abs(match - gt[t])
     parts = part[t]
     for name, code in PARTS.items():
@@ -260,7 +257,7 @@ def _emit(rows: list, queries: list, key: dict, t, gt, part, match, n_r, us: flo
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
                  "nr_median": float(np.median(nr)) if len(nr) else np.nan,
                  "nr_p95": float(np.percentile(nr, 95)) if len(nr) else np.nan,
-                 "us_per_query": us, "ops_per_query": ops}
+                 "us_per_query": us[0], "us_per_frame": us[1], "ops_per_query": ops}
         for r in RADII:
             rows.append({**key, "part": name, "radius": int(r), "recall": float(curve[r]),
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})

@@ -1,7 +1,9 @@
-"""Two LLVM intrinsics numba does not expose: population count and a cache prefetch.
+"""LLVM intrinsics numba does not expose: population count, funnel shift and a cache prefetch.
 
 ``popcount`` lets a bit-plane distance count differing frames 64 at a time (and vectorise
-to ``vpopcntq`` where the CPU has it); ``prefetch`` hides the memory latency of scoring
+to ``vpopcntq`` where the CPU has it); ``funnel_shift_right`` reads 64 frames that start
+anywhere in two consecutive words as one instruction (``vpshrdvq`` with AVX-512 VBMI2,
+three shifts and an or without); ``prefetch`` hides the memory latency of scoring
 candidates scattered over a reference map far larger than the caches.
 """
 
@@ -13,6 +15,7 @@ from numba.extending import intrinsic
 
 _I8P = ir.IntType(8).as_pointer()
 _I32 = ir.IntType(32)
+_I64 = ir.IntType(64)
 
 
 @intrinsic
@@ -26,6 +29,19 @@ def popcount(typingctx, x):
         return builder.call(fn, args)
 
     return types.int64(types.uint64), codegen
+
+
+@intrinsic
+def funnel_shift_right(typingctx, hi, lo, shift):
+    """The low 64 bits of the 128-bit ``hi:lo`` shifted right by ``shift`` (mod 64), all uint64."""
+    if not all(a == types.uint64 for a in (hi, lo, shift)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.fshr", [_I64], fnty=ir.FunctionType(_I64, [_I64] * 3))
+        return builder.call(fn, args)
+
+    return types.uint64(types.uint64, types.uint64, types.uint64), codegen
 
 
 @intrinsic
