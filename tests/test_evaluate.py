@@ -25,10 +25,13 @@ def test_results_grid_and_columns(evaluated):
     combos = res.groupby(["noise", "method", "mode", "L"], dropna=False).size()
     # L = 1: the method (single best) and the baseline; L = 5: paper, aligned, baseline.
     assert len(combos) == 2 * (2 + 3) and (combos == 3 * 21).all()
-    for col in ("recall", "n_queries", "nr_mean", "nr_median", "nr_p95", "us_per_query", "ops_per_query",
-                "scale", "store_identity", "d", "K"):
+    for col in ("recall", "n_queries", "nr_mean", "nr_median", "nr_p95", "us_per_query", "us_per_frame",
+                "ops_per_query", "scale", "store_identity", "d", "K"):
         assert col in res.columns
     assert (res["scale"] == "tiny").all()
+    method, baseline = res[res.method == "coarsehash"], res[res.method == "baseline"]
+    assert (method["us_per_frame"] > 0).all() and (method["us_per_frame"] < method["us_per_query"]).all()
+    assert baseline["us_per_frame"].isna().all()
 
 
 def test_recall_is_monotone_and_parts_add_up(evaluated):
