@@ -22,6 +22,7 @@ def _results(tmp_path):
                                  "recall_in_list": 0.9 if L == 1 and method == "coarsehash" else None,
                                  "n_queries": 100, "nr_mean": 70.0, "nr_median": 68.0, "nr_p95": 90.0,
                                  "us_per_query": 5.0 if method == "coarsehash" else 500.0,
+                                 "us_per_frame": 1.0 if method == "coarsehash" else None,
                                  "ops_per_query": 5e4 if method == "coarsehash" else 6e7,
                                  "index": str(tmp_path / "i.index"), "scale": "20K", "store": "s",
                                  "store_identity": "x"})
@@ -50,7 +51,7 @@ def test_report_writes_every_figure_and_the_right_numbers(tmp_path):
     text = (tmp_path / "rep" / "report.md").read_text()
     # R@5 of paper mode L = 50: 0.03·5 + 0.5 = 65 %; R@20: 100 %.
     assert "| 20K | QM1 | 50 | CoarseHash paper | 100 | 50.0 | 65.0 | 80.0 | 100.0 |" in text
-    assert "| 20K | 50 | 50,000 | 60,000,000 | 1,200× | 5.00 | 500.00 | 100× |" in text
+    assert "| 20K | 50 | 50,000 | 60,000,000 | 1,200× | 5.00 | 1.00 | 500.00 | 100× |" in text
     assert "| 20K | 15 | 12.0 | 1.00 | 3.0 | 0.50 | – | – |" in text
     assert "| 20K | 15 | 20,000 | 0.160 |" in text
     assert "37,400" in text and len(rep["figures"]) == 8
