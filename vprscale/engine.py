@@ -281,7 +281,7 @@ def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_
 
 PREFETCH = 8  # pairs whose reference window is fetched ahead of the one being scored
 QUERY_BLOCK = 1 << 14  # queries matched together: bounds the pair arrays (and fits a pair's query in 20 bits)
-SORT_BLOCKS = 16  # blocks of queries whose proposals are counted and scattered in parallel
+SORT_BLOCKS = 16  # blocks of queries whose candidates are counted and scattered in parallel by the pair sort
 SCORE_CHUNKS = 16  # runs of sorted pairs scored in parallel, each keeping its own best per query
 BUCKET_BITS = 12  # pairs are sorted by their window's position, 4096 places (12 KB of planes) at a time
 MAX_BUCKETS = 1 << 16
@@ -352,34 +352,88 @@ def _prefetch_window(planes: np.ndarray, d: int, p: np.int64, L: int) -> None:
         prefetch(planes, e)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _pairs_by_window(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
-                     q_ids: np.ndarray, n_ref: int) -> tuple[np.ndarray, int]:
-    """``(pairs, shift)``: every proposal as ``centre << 20 | query``, ordered by ``centre >> shift``.
+@numba.njit(cache=True, nogil=True)
+def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+                ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
+    """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
 
-    Paper mode proposes every id of every window frame's list as a centre, aligned mode
-    ``r − l`` for an id ``r`` in the list of frame ``t + l``; centres outside the map are
-    dropped. A counting sort, its counts and scatter split over blocks of queries, orders
-    them by bucket and, inside a bucket, by query: a query's repeated proposals of one
-    centre end up next to each other. Scoring pairs in this order reads the reference
-    planes almost sequentially, once per batch, instead of one scattered window per pair:
-    at 10M places, a thousand queries of L = 100 cover the map about three times over.
+    The proposals are first copied out of the lists by a loop without data-dependent
+    branches; then an open-addressing set in ``slots`` (``2**bits`` entries, at least twice
+    the proposals) removes repeats in O(1) each. (Sorting the proposals cost more than
+    scoring them.)
+    """
+    m = 0
+    for i in range(L):
+        shift = i - half if aligned else 0
+        for q in range(q_start[t + i - half], q_stop[t + i - half]):
+            cand[m] = ids[q] - shift
+            m += 1
+    size = slots.shape[0]
+    slots[:] = -1
+    hash_shift = np.uint64(64 - bits)
+    u = 0
+    for j in range(m):
+        c = cand[j]
+        if c < 0 or c >= n_ref:
+            continue
+        pos = np.int64((np.uint64(c) * np.uint64(0x9E3779B97F4A7C15)) >> hash_shift)
+        while slots[pos] != -1 and slots[pos] != c:
+            pos = (pos + 1) & (size - 1)
+        if slots[pos] == -1:
+            slots[pos] = c
+            cand[u] = c
+            u += 1
+    return u
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+             ids: np.ndarray, n_ref: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(cand, first, n_r)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``."""
+    n = centres_t.shape[0]
+    half = L // 2
+    proposals = np.empty(n, np.int64)
+    for qi in numba.prange(n):
+        total = 0
+        for i in range(L):
+            total += q_stop[centres_t[qi] + i - half] - q_start[centres_t[qi] + i - half]
+        proposals[qi] = total
+    first = np.zeros(n + 1, np.int64)
+    first[1:] = np.cumsum(proposals)
+    cand = np.empty(first[n], np.int64)
+    n_r = np.empty(n, np.int64)
+    for blk in numba.prange(SORT_BLOCKS):
+        slots = np.empty(0, np.int64)
+        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
+            bits = 4
+            while (1 << bits) < 2 * proposals[qi]:
+                bits += 1
+            if (1 << bits) > slots.shape[0]:
+                slots = np.empty(1 << bits, np.int64)
+            n_r[qi] = _candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
+                                  slots[: 1 << bits], bits)
+    return cand, first, n_r
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, n_ref: int) -> np.ndarray:
+    """Every (candidate, query) pair as ``centre << 20 | query``, ordered by the centre's bucket.
+
+    A counting sort, its counts and scatter split over blocks of queries. Scoring pairs
+    in this order reads the reference planes almost sequentially, once per batch, instead
+    of one scattered window per pair: at 10M places and a thousand queries of L = 100
+    the windows cover the map about three times over.
     """
     shift = BUCKET_BITS
     while (n_ref >> shift) >= MAX_BUCKETS:
         shift += 1
     n_buckets = (n_ref >> shift) + 1
-    n = centres_t.shape[0]
-    half = L // 2
+    n = n_r.shape[0]
     counts = np.zeros((SORT_BLOCKS, n_buckets), np.int64)
     for blk in numba.prange(SORT_BLOCKS):
         for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
-            for i in range(L):
-                offset = i - half if aligned else 0
-                for j in range(q_start[centres_t[qi] + i - half], q_stop[centres_t[qi] + i - half]):
-                    c = q_ids[j] - offset
-                    if 0 <= c < n_ref:
-                        counts[blk, c >> shift] += 1
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                counts[blk, cand[j] >> shift] += 1
     total = 0
     for b in range(n_buckets):
         for blk in range(SORT_BLOCKS):
@@ -390,26 +444,11 @@ def _pairs_by_window(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.n
     for blk in numba.prange(SORT_BLOCKS):
         cursor = counts[blk]
         for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
-            for i in range(L):
-                offset = i - half if aligned else 0
-                for j in range(q_start[centres_t[qi] + i - half], q_stop[centres_t[qi] + i - half]):
-                    c = q_ids[j] - offset
-                    if 0 <= c < n_ref:
-                        pairs[cursor[c >> shift]] = (c << 20) | qi
-                        cursor[c >> shift] += 1
-    return pairs, shift
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _seen(pairs: np.ndarray, j: int, shift: int) -> bool:
-    """Whether pair ``j`` repeats an earlier one: repeats sit in the run of its query inside its bucket."""
-    p = pairs[j]
-    for i in range(j - 1, -1, -1):
-        if (pairs[i] & 0xFFFFF) != (p & 0xFFFFF) or (pairs[i] >> 20) >> shift != (p >> 20) >> shift:
-            return False
-        if pairs[i] == p:
-            return True
-    return False
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                b = cand[j] >> shift
+                pairs[cursor[b]] = (cand[j] << 20) | qi
+                cursor[b] += 1
+    return pairs
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -423,14 +462,14 @@ def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int, n_
 
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
-def _score_pairs(pairs: np.ndarray, shift: int, centres_t: np.ndarray, L: int, q_hash: np.ndarray,
-                 q_words: np.ndarray, ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray,
-                 tables: np.ndarray, d: int, k: int, dmax: np.int64, fast: bool) -> tuple[np.ndarray, np.ndarray]:
-    """``(best centre, number of distinct centres)`` of each query; ties to the smaller centre.
+def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
+                 ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
+                 d: int, k: int, dmax: np.int64, fast: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(score, centre)`` of each query's best pair, ties to the smaller centre.
 
-    Runs of the sorted pairs are scored in parallel, each run keeping its own best and
-    count per query; the runs' are then merged. The minimum does not depend on the
-    order, so the answer does not depend on the thread count.
+    Runs of the sorted pairs are scored in parallel, each run keeping its own best per
+    query; the runs' bests are then merged. The minimum does not depend on the order, so
+    the answer does not depend on the thread count.
     """
     n = centres_t.shape[0]
     half = L // 2
@@ -445,7 +484,6 @@ def _score_pairs(pairs: np.ndarray, shift: int, centres_t: np.ndarray, L: int, q
     m = pairs.shape[0]
     run_s = np.full((SCORE_CHUNKS, n), np.int64(2**62))
     run_c = np.full((SCORE_CHUNKS, n), np.int64(-1))
-    run_n = np.zeros((SCORE_CHUNKS, n), np.int64)
     for run in numba.prange(SCORE_CHUNKS):
         stop = m * (run + 1) // SCORE_CHUNKS
         for j in range(m * run // SCORE_CHUNKS, stop):
@@ -453,9 +491,6 @@ def _score_pairs(pairs: np.ndarray, shift: int, centres_t: np.ndarray, L: int, q
             qi = pairs[j] & 0xFFFFF
             if fast and j + PREFETCH < stop:
                 _prefetch_window(planes, d, (pairs[j + PREFETCH] >> 20) - half, L)
-            if _seen(pairs, j, shift):
-                continue
-            run_n[run, qi] += 1
             if fast and c >= half and c - half + L <= n_ref:
                 s = _score_planes(c - half, planes, d, q_words[qi], masks, gaps)
             else:
@@ -465,14 +500,12 @@ def _score_pairs(pairs: np.ndarray, shift: int, centres_t: np.ndarray, L: int, q
                 run_c[run, qi] = c
     best_s = run_s[0].copy()
     best = run_c[0].copy()
-    n_r = run_n[0].copy()
     for qi in numba.prange(n):
         for run in range(1, SCORE_CHUNKS):
             s, c = run_s[run, qi], run_c[run, qi]
             if s < best_s[qi] or (s == best_s[qi] and c < best[qi]):
                 best_s[qi], best[qi] = s, c
-            n_r[qi] += run_n[run, qi]
-    return best, n_r
+    return best_s, best
 
 
 @numba.njit(cache=True, nogil=True)
@@ -488,10 +521,11 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     every id of every window frame's list as a centre; aligned mode scores ``r − l`` for an
     id ``r`` in the list of frame ``t + l``. Ties go to the smallest centre.
 
-    Queries are matched in blocks: all (candidate, query) pairs of the block are sorted by
-    where their reference window lies (:func:`_pairs_by_window`), and scored in that order
-    (a repeated proposal once), so that the bit planes of the map
-    stream through the caches instead of being fetched window by window. For K = 2 a
+    Queries are matched in blocks: each query's distinct candidates are collected (a small
+    hash set per query), all (candidate, query) pairs of the block are sorted by where
+    their reference window lies (:func:`_pairs_by_window`), and scored in that order, so
+    that the bit planes of the map stream through the caches instead of being fetched
+    window by window. For K = 2 a
     window inside the map is scored on bit planes (:func:`_score_planes`); other windows,
     and K > 2, frame by frame (:func:`_score`).
     """
@@ -503,10 +537,11 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     n_r = np.empty(n, np.int64)
     for lo in range(0, n, QUERY_BLOCK):
         t = centres_t[lo:lo + QUERY_BLOCK]
-        pairs, shift = _pairs_by_window(t, L, aligned, q_start, q_stop, q_ids, n_ref)
+        cand, first, block_n_r = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref)
+        pairs = _pairs_by_window(cand, first, block_n_r, n_ref)
         q_words = _query_words(t, L, q_planes, d, (L + 63) // 64) if fast else np.zeros((t.shape[0], 0), np.uint64)
-        block_match, block_n_r = _score_pairs(pairs, shift, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables,
-                                              d, k, dmax, fast)
+        _, block_match = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax,
+                                      fast)
         match[lo:lo + t.shape[0]] = block_match
         n_r[lo:lo + t.shape[0]] = block_n_r
     return match, n_r
