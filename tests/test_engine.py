@@ -197,6 +197,67 @@ def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
         assert (alone[0][0], alone[1][0]) == (match[i], n_r[i]) == brute_force_match(idx, q, centres[i], L, False)
 
 
+def test_blocks_split_by_proposals_give_the_same_matches():
+    """Long lists (d = 3 over 40,000 places): 127 queries propose more pairs than one block
+    holds, so the batch is split by proposals; each query's match and N_r are those it gets alone."""
+    from vprscale.engine import PAIR_BUDGET
+
+    rng = np.random.default_rng(3)
+    ref = rng.integers(0, 8, 40_000).astype(np.uint64)
+    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (3, 1)) * np.array([[1.0], [0.7], [0.4]]))
+    q = ref[5_000:5_400] ^ (rng.random(400) < 0.1).astype(np.uint64)
+    centres = np.arange(10, 390, 3)
+    sizes = idx.query_frames(q).stop - idx.query_frames(q).start
+    assert sum(sizes[c - 4:c + 5].sum() for c in centres) > PAIR_BUDGET
+    match, n_r = run(idx, q, centres, L=9)
+    for i in (0, len(centres) // 2, len(centres) - 1):
+        alone = run(idx, q, centres[i:i + 1], L=9)
+        assert (alone[0][0], alone[1][0]) == (match[i], n_r[i])
+
+
+def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
+    import vprscale.engine as engine
+
+    rng = np.random.default_rng(8)
+    ref = rng.integers(0, 64, 3_000).astype(np.uint64)
+    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (6, 1)))
+    q = ref[1_000:1_300] ^ (rng.random(300) < 0.2).astype(np.uint64)
+    centres = np.arange(10, 290, 7)
+    copied = run(idx, q, centres, L=15, aligned=True)
+    monkeypatch.setattr(engine, "COPIED_LISTS", 0)
+    assert idx.query_frames(q).ids is idx.ids
+    in_place = run(idx, q, centres, L=15, aligned=True)
+    np.testing.assert_array_equal(in_place[0], copied[0])
+    np.testing.assert_array_equal(in_place[1], copied[1])
+
+
+def test_pairs_sorted_by_window_score_as_in_query_order():
+    """The window-ordered pair sort (used for maps larger than the caches) is a stable
+    bucket sort of the pairs, and scoring them in that order gives the query-order answer."""
+    from vprscale.engine import _pairs_by_window, _proposals, _propose, _query_words, _score_pairs
+
+    rng = np.random.default_rng(4)
+    d, L = 10, 9
+    ref = rng.integers(0, 2**d, 20_000).astype(np.uint64)
+    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (d, 1)) * rng.uniform(0.5, 2.0, (d, 1)))
+    q = ref[7_000:9_000] ^ (rng.random(2_000) < 0.2).astype(np.uint64)
+    qf = idx.query_frames(q)
+    t = np.arange(L // 2, 2_000 - L // 2, 5)
+    hashes, q_planes, start, stop, ids = qf.kernel_args()
+    ref_hash, planes, gaps, w, tables, d, k, dmax = idx.kernel_args()
+    cand, first, n_r = _propose(t, L, False, start, stop, ids, len(ref), _proposals(t, L, start, stop))
+    in_order = _pairs_by_window(cand, first, n_r, len(ref), 62)
+    by_window = _pairs_by_window(cand, first, n_r, len(ref), 12)
+    expected = np.concatenate([(cand[first[i]:first[i] + n_r[i]] << 20) | i for i in range(len(t))])
+    np.testing.assert_array_equal(in_order, expected)
+    np.testing.assert_array_equal(by_window, expected[np.argsort(expected >> 32, kind="stable")])
+    words = _query_words(t, L, q_planes, d, 1)
+    answers = [_score_pairs(p, t, L, hashes, words, ref_hash, planes, gaps, w, tables, d, k, dmax, True)[1]
+               for p in (in_order, by_window)]
+    np.testing.assert_array_equal(answers[0], answers[1])
+    np.testing.assert_array_equal(answers[0], run(idx, q, t, L)[0])
+
+
 def test_query_frames_hold_only_the_frames_worked_on():
     ref = np.array([1, 2, 4, 8, 1, 2, 4, 8, 3, 5, 6, 9, 12, 10, 7, 11])
     idx = hand_index(ref)

@@ -23,6 +23,9 @@ from vprscale.intrinsics import funnel_shift_right, popcount, prefetch
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
 
 
+COPIED_LISTS = 1 << 25  # ids (256 MB) up to which query frames get their own copy of their lists
+
+
 @dataclass
 class QueryFrames:
     """The per-frame work on query frames, done once per frame as it arrives (SPEC §3.2).
@@ -31,7 +34,9 @@ class QueryFrames:
     retrieved (the paper's O(1) list look-up per new frame); for K = 2 its address also
     goes into bit planes like the references' (:func:`bit_planes`). Every window that
     contains the frame then reads these, so a query's sequence match never goes back to
-    the index's lists: its L lists are adjacent here, in frame order.
+    the index's lists: its L lists are adjacent here, in frame order. (Unless the frames'
+    lists hold more than ``COPIED_LISTS`` ids together, as a coarse index's do: then
+    ``ids`` is the index's own and the bounds point into it.)
 
     Only the frames worked on are held, ascending; arrays are indexed by position among
     them, and a window's frames, consecutive in the sequence, are consecutive here too.
@@ -184,7 +189,11 @@ class Index:
         h = np.asarray(h, np.uint64)
         frames = np.arange(len(h)) if frames is None else np.asarray(frames, np.int64)
         a = self.nearest_occupied(h)
-        start, stop, ids = _retrieve_lists(self.offsets, self.ids, a)
+        start, stop = self.offsets[a], self.offsets[a + 1]
+        if (stop - start).sum() <= COPIED_LISTS:
+            start, stop, ids = _retrieve_lists(self.offsets, self.ids, a)
+        else:  # long lists (a coarse index): read in place
+            ids = self.ids
         planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
         return QueryFrames(frames, h, a, start, stop, ids, planes)
 
@@ -280,11 +289,13 @@ def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_
 
 
 PREFETCH = 8  # pairs whose reference window is fetched ahead of the one being scored
-QUERY_BLOCK = 1 << 14  # queries matched together: bounds the pair arrays (and fits a pair's query in 20 bits)
+QUERY_BLOCK = 1 << 14  # queries matched together at most (a pair holds its query in 20 bits)
+PAIR_BUDGET = 1 << 22  # proposals matched together at most: 32 MB per pair array
 SORT_BLOCKS = 16  # blocks of queries whose candidates are counted and scattered in parallel by the pair sort
 SCORE_CHUNKS = 16  # runs of sorted pairs scored in parallel, each keeping its own best per query
 BUCKET_BITS = 12  # pairs are sorted by their window's position, 4096 places (12 KB of planes) at a time
 MAX_BUCKETS = 1 << 16
+CACHED_PLANES = 1 << 23  # bytes of bit planes that stay in cache: smaller maps keep pairs in query order
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -387,17 +398,23 @@ def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
+def _proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: np.ndarray) -> np.ndarray:
+    """Number of ids in the lists of each query's window (its candidates before repeats are dropped)."""
+    proposals = np.empty(centres_t.shape[0], np.int64)
+    for qi in numba.prange(centres_t.shape[0]):
+        total = 0
+        for i in range(L):
+            total += q_stop[centres_t[qi] + i - L // 2] - q_start[centres_t[qi] + i - L // 2]
+        proposals[qi] = total
+    return proposals
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
-             ids: np.ndarray, n_ref: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             ids: np.ndarray, n_ref: int, proposals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(cand, first, n_r)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``."""
     n = centres_t.shape[0]
     half = L // 2
-    proposals = np.empty(n, np.int64)
-    for qi in numba.prange(n):
-        total = 0
-        for i in range(L):
-            total += q_stop[centres_t[qi] + i - half] - q_start[centres_t[qi] + i - half]
-        proposals[qi] = total
     first = np.zeros(n + 1, np.int64)
     first[1:] = np.cumsum(proposals)
     cand = np.empty(first[n], np.int64)
@@ -415,18 +432,30 @@ def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, 
     return cand, first, n_r
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, n_ref: int) -> np.ndarray:
-    """Every (candidate, query) pair as ``centre << 20 | query``, ordered by the centre's bucket.
+@numba.njit(cache=True, nogil=True)
+def _bucket_shift(n_ref: int, map_bytes: int) -> int:
+    """Bits of a centre below its sort bucket: 4096-place buckets, or one bucket for a cached map.
 
-    A counting sort, its counts and scatter split over blocks of queries. Scoring pairs
-    in this order reads the reference planes almost sequentially, once per batch, instead
-    of one scattered window per pair: at 10M places and a thousand queries of L = 100
-    the windows cover the map about three times over.
+    Sorting pairs pays where windows would come from memory: a map of at most
+    ``CACHED_PLANES`` bytes of planes stays in the caches, and there query order was
+    faster (1M places, 2.5 MB: 15.7 µs per query against 18.8 sorted).
     """
-    shift = BUCKET_BITS
+    shift = BUCKET_BITS if map_bytes > CACHED_PLANES else 62
     while (n_ref >> shift) >= MAX_BUCKETS:
         shift += 1
+    return shift
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, n_ref: int, shift: int) -> np.ndarray:
+    """Every (candidate, query) pair as ``centre << 20 | query``, ordered by ``centre >> shift``.
+
+    A counting sort, its counts and scatter split over blocks of queries, stable: inside a
+    bucket pairs keep query order. Scoring pairs in this order reads the reference
+    planes almost sequentially, once per batch, instead of one scattered window per
+    pair: at 10M places and a thousand queries of L = 100 the windows cover the map
+    about three times over.
+    """
     n_buckets = (n_ref >> shift) + 1
     n = n_r.shape[0]
     counts = np.zeros((SORT_BLOCKS, n_buckets), np.int64)
@@ -535,15 +564,22 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     fast = k == 2 and planes.shape[0] > 0 and np.float64(L) * np.float64(dmax) < 2.0**53
     match = np.empty(n, np.int64)
     n_r = np.empty(n, np.int64)
-    for lo in range(0, n, QUERY_BLOCK):
-        t = centres_t[lo:lo + QUERY_BLOCK]
-        cand, first, block_n_r = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref)
-        pairs = _pairs_by_window(cand, first, block_n_r, n_ref)
+    shift = _bucket_shift(n_ref, planes.shape[0] * 8)
+    proposals = _proposals(centres_t, L, q_start, q_stop)
+    upto = np.cumsum(proposals)  # proposals of the queries up to each, inclusive
+    lo = 0
+    while lo < n:  # blocks of at most QUERY_BLOCK queries and PAIR_BUDGET proposals (at least one query)
+        hi = min(n, lo + QUERY_BLOCK,
+                 max(lo + 1, np.searchsorted(upto, upto[lo] - proposals[lo] + PAIR_BUDGET, "right")))
+        t = centres_t[lo:hi]
+        cand, first, block_n_r = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi])
+        pairs = _pairs_by_window(cand, first, block_n_r, n_ref, shift)
         q_words = _query_words(t, L, q_planes, d, (L + 63) // 64) if fast else np.zeros((t.shape[0], 0), np.uint64)
         _, block_match = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax,
                                       fast)
-        match[lo:lo + t.shape[0]] = block_match
-        n_r[lo:lo + t.shape[0]] = block_n_r
+        match[lo:hi] = block_match
+        n_r[lo:hi] = block_n_r
+        lo = hi
     return match, n_r
 
 
