@@ -411,14 +411,20 @@ def _proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: np.nd
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
-             ids: np.ndarray, n_ref: int, proposals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(cand, first, n_r)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``."""
+             ids: np.ndarray, n_ref: int, proposals: np.ndarray, shift: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(cand, first, n_r, counts)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``.
+
+    ``counts[block, bucket]`` counts each block of queries' candidates per bucket
+    (``centre >> shift``) for :func:`_pairs_by_window`, while they are still in cache.
+    """
     n = centres_t.shape[0]
     half = L // 2
     first = np.zeros(n + 1, np.int64)
     first[1:] = np.cumsum(proposals)
     cand = np.empty(first[n], np.int64)
     n_r = np.empty(n, np.int64)
+    counts = np.zeros((SORT_BLOCKS, (n_ref >> shift) + 1), np.int64)
     for blk in numba.prange(SORT_BLOCKS):
         slots = np.empty(0, np.int64)
         for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
@@ -429,7 +435,9 @@ def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, 
                 slots = np.empty(1 << bits, np.int64)
             n_r[qi] = _candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
                                   slots[: 1 << bits], bits)
-    return cand, first, n_r
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                counts[blk, cand[j] >> shift] += 1
+    return cand, first, n_r, counts
 
 
 @numba.njit(cache=True, nogil=True)
@@ -447,24 +455,19 @@ def _bucket_shift(n_ref: int, map_bytes: int) -> int:
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, n_ref: int, shift: int) -> np.ndarray:
+def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, counts: np.ndarray,
+                     shift: int) -> np.ndarray:
     """Every (candidate, query) pair as ``centre << 20 | query``, ordered by ``centre >> shift``.
 
-    A counting sort, its counts and scatter split over blocks of queries, stable: inside a
-    bucket pairs keep query order. Scoring pairs in this order reads the reference
+    A counting sort (the counts from :func:`_propose`), its scatter split over the same
+    blocks of queries, stable: inside a bucket pairs keep query order. Scoring pairs in this order reads the reference
     planes almost sequentially, once per batch, instead of one scattered window per
     pair: at 10M places and a thousand queries of L = 100 the windows cover the map
     about three times over.
     """
-    n_buckets = (n_ref >> shift) + 1
     n = n_r.shape[0]
-    counts = np.zeros((SORT_BLOCKS, n_buckets), np.int64)
-    for blk in numba.prange(SORT_BLOCKS):
-        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
-            for j in range(first[qi], first[qi] + n_r[qi]):
-                counts[blk, cand[j] >> shift] += 1
     total = 0
-    for b in range(n_buckets):
+    for b in range(counts.shape[1]):
         for blk in range(SORT_BLOCKS):
             c = counts[blk, b]
             counts[blk, b] = total
@@ -572,8 +575,9 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
         hi = min(n, lo + QUERY_BLOCK,
                  max(lo + 1, np.searchsorted(upto, upto[lo] - proposals[lo] + PAIR_BUDGET, "right")))
         t = centres_t[lo:hi]
-        cand, first, block_n_r = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi])
-        pairs = _pairs_by_window(cand, first, block_n_r, n_ref, shift)
+        cand, first, block_n_r, counts = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi],
+                                                  shift)
+        pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
         q_words = _query_words(t, L, q_planes, d, (L + 63) // 64) if fast else np.zeros((t.shape[0], 0), np.uint64)
         _, block_match = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax,
                                       fast)
