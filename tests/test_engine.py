@@ -252,8 +252,8 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     expected = np.concatenate([(cand[first[i]:first[i] + n_r[i]] << 20) | i for i in range(len(t))])
     np.testing.assert_array_equal(in_order, expected)
     np.testing.assert_array_equal(by_window, expected[np.argsort(expected >> 32, kind="stable")])
-    words = _query_words(t, L, q_planes, d, 1)
-    answers = [_score_pairs(p, t, L, hashes, words, ref_hash, planes, gaps, w, tables, d, k, dmax, True)[1]
+    words = _query_words(t, L, q_planes, d)
+    answers = [_score_pairs(p, t, L, hashes, words, ref_hash, planes, gaps, w, tables, d, k, dmax, True)
                for p in (in_order, by_window)]
     np.testing.assert_array_equal(answers[0], answers[1])
     np.testing.assert_array_equal(answers[0], run(idx, q, t, L)[0])

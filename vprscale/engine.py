@@ -368,10 +368,10 @@ def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarr
                 ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
     """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
 
-    The proposals are first copied out of the lists by a loop without data-dependent
-    branches; then an open-addressing set in ``slots`` (``2**bits`` entries, at least twice
-    the proposals) removes repeats in O(1) each. (Sorting the proposals cost more than
-    scoring them.)
+    The proposals are first copied out of the lists, which lie next to each other
+    (:class:`QueryFrames`); then an open-addressing set in ``slots`` (``2**bits`` entries,
+    at least twice the proposals) removes repeats in O(1) each. (Sorting the proposals
+    cost more than scoring them.)
     """
     m = 0
     for i in range(L):
@@ -460,10 +460,10 @@ def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, count
     """Every (candidate, query) pair as ``centre << 20 | query``, ordered by ``centre >> shift``.
 
     A counting sort (the counts from :func:`_propose`), its scatter split over the same
-    blocks of queries, stable: inside a bucket pairs keep query order. Scoring pairs in this order reads the reference
-    planes almost sequentially, once per batch, instead of one scattered window per
-    pair: at 10M places and a thousand queries of L = 100 the windows cover the map
-    about three times over.
+    blocks of queries, stable: inside a bucket pairs keep query order. Scoring pairs in
+    this order reads the reference planes almost sequentially, once per batch, instead
+    of one scattered window per pair: at 10M places and a thousand queries of L = 100
+    the windows cover the map about three times over.
     """
     n = n_r.shape[0]
     total = 0
@@ -484,11 +484,11 @@ def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, count
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int, n_words: int) -> np.ndarray:
+def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int) -> np.ndarray:
     """Every query window's bit planes, (query, word·plane), read out of the query frames' planes."""
-    out = np.empty((centres_t.shape[0], n_words * d), np.uint64)
+    out = np.empty((centres_t.shape[0], (L + 63) // 64 * d), np.uint64)
     for qi in numba.prange(centres_t.shape[0]):
-        for e in range(n_words * d):
+        for e in range(out.shape[1]):
             out[qi, e] = _window_words(q_planes, d, centres_t[qi] - L // 2, e)
     return out
 
@@ -496,8 +496,8 @@ def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int, n_
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
 def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
                  ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
-                 d: int, k: int, dmax: np.int64, fast: bool) -> tuple[np.ndarray, np.ndarray]:
-    """``(score, centre)`` of each query's best pair, ties to the smaller centre.
+                 d: int, k: int, dmax: np.int64, fast: bool) -> np.ndarray:
+    """The centre of each query's best pair, ties to the smaller centre.
 
     Runs of the sorted pairs are scored in parallel, each run keeping its own best per
     query; the runs' bests are then merged. The minimum does not depend on the order, so
@@ -537,7 +537,7 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
             s, c = run_s[run, qi], run_c[run, qi]
             if s < best_s[qi] or (s == best_s[qi] and c < best[qi]):
                 best_s[qi], best[qi] = s, c
-    return best_s, best
+    return best
 
 
 @numba.njit(cache=True, nogil=True)
@@ -557,9 +557,8 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     hash set per query), all (candidate, query) pairs of the block are sorted by where
     their reference window lies (:func:`_pairs_by_window`), and scored in that order, so
     that the bit planes of the map stream through the caches instead of being fetched
-    window by window. For K = 2 a
-    window inside the map is scored on bit planes (:func:`_score_planes`); other windows,
-    and K > 2, frame by frame (:func:`_score`).
+    window by window. For K = 2 a window inside the map is scored on bit planes
+    (:func:`_score_planes`); other windows, and K > 2, frame by frame (:func:`_score`).
     """
     n = centres_t.shape[0]
     n_ref = ref_hash.shape[0]
@@ -578,10 +577,8 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
         cand, first, block_n_r, counts = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi],
                                                   shift)
         pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
-        q_words = _query_words(t, L, q_planes, d, (L + 63) // 64) if fast else np.zeros((t.shape[0], 0), np.uint64)
-        _, block_match = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax,
-                                      fast)
-        match[lo:hi] = block_match
+        q_words = _query_words(t, L, q_planes, d) if fast else np.zeros((t.shape[0], 0), np.uint64)
+        match[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax, fast)
         n_r[lo:hi] = block_n_r
         lo = hi
     return match, n_r
