@@ -10,7 +10,7 @@ import pytest
 
 from vprscale.coarsehash import CoarseHasher, pack, quantize_projected, unpack
 from vprscale.errors import InputError
-from vprscale.index import inverted_lists
+from vprscale.lists import inverted_lists
 from vprscale.kmeans1d import kmeans_1d, kmeans_1d_exact
 
 

@@ -98,7 +98,7 @@ def test_index_refuses_bad_input(tiny_store, tmp_path, capsys):
 
 @pytest.mark.parametrize("high", [2**20, 2**63])  # the packed (address, id) sort, and the stable-argsort fallback
 def test_inverted_lists_sort_by_address_then_id(high):
-    from vprscale.index import inverted_lists
+    from vprscale.lists import inverted_lists
 
     rng = np.random.default_rng(4)
     h = rng.choice(rng.integers(0, high, 300, dtype=np.uint64), 5000)

@@ -10,6 +10,7 @@ task, so tasks never race and a resumed build simply rewrites unfinished chunks.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import sys
@@ -23,11 +24,14 @@ import numpy as np
 import zarr
 
 import vprscale
+from vprscale import compact
 from vprscale.blocks import BLOCK, apply_by_block, chunk_bounds
 from vprscale.cluster import cluster_peak_rss, dask_client
 from vprscale.errors import InputError
-from vprscale.homogenise import homogenised, window_mean
+from vprscale.homogenise import window_mean
 from vprscale.merge import MergeTransform, noisy_rows, project_rows
+from vprscale.passes import reduce_pass
+from vprscale.pca import block_moments
 from vprscale.progress import Timings, run_tasks
 from vprscale.rawchunks import write_rows
 from vprscale.recipe import Recipe, load_recipe
@@ -68,6 +72,7 @@ class BuildRequest:
     fas_dim: int = 4096
     rescale: bool = True
     quiet: bool = False
+    layout: str | None = None  # "full" or "compact"; default: the recipe's
 
 
 def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
@@ -108,8 +113,13 @@ class Layout:
 
 
 def dataset_gt(layout: Layout, fas_gt: np.ndarray, start: int, stop: int) -> np.ndarray:
-    """Ground truth of query rows ``[start, stop)`` (SPEC §2 step 8); −1 means none."""
-    u = np.arange(start, stop, dtype=np.int64)
+    """Ground truth of query rows ``[start, stop)`` (docs/dataset.md, step 8); −1 means none."""
+    return gt_of(layout, fas_gt, np.arange(start, stop, dtype=np.int64))
+
+
+def gt_of(layout: Layout, fas_gt: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Ground truth of query rows ``u``; −1 means none."""
+    u = np.asarray(u, np.int64)
     gt = u.copy()
     fas = u >= layout.n_deep
     j = fas_gt[u[fas] - layout.n_deep]
@@ -130,25 +140,42 @@ class ChunkWriter:
     noise_mean: np.ndarray
     noise_std: np.ndarray
     fas_gt: np.ndarray
+    fas_ref: np.ndarray  # the kept FAS rows, projected
+    fas_query: np.ndarray
 
-    def __call__(self, a: int, b: int, fas_ref: np.ndarray, fas_query: np.ndarray) -> None:
+    def deep_rows(self, a: int, b: int) -> np.ndarray:
+        """Deep1B reference rows ``[a, min(b, n_deep))``: homogenised, projected, rescaled."""
+        d_hi = min(b, self.layout.n_deep)
+        if a >= d_hi:
+            return np.empty((0, self.recipe.dim), np.float32)
+        h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
+        return apply_by_block(project_rows, h, a, self.mean, self.matrix)
+
+    def ref_rows(self, a: int, b: int) -> np.ndarray:
+        """Reference rows ``[a, b)`` exactly as the full layout stores them."""
+        n_deep = self.layout.n_deep
+        fas = self.fas_ref[max(0, a - n_deep) : max(0, min(b, self.layout.n_ref) - n_deep)]
+        return np.concatenate([self.deep_rows(a, b), fas])
+
+    def query_rows(self, deep: np.ndarray, a: int, b: int) -> list[np.ndarray]:
+        """Query rows ``[a, b)`` of each noise level, given the Deep1B reference rows from ``a``."""
+        n_deep = self.layout.n_deep
+        fas = self.fas_query[max(0, a - n_deep) : max(0, min(b, self.layout.n_query) - n_deep)]
+        return [np.concatenate([q, fas]) for q in noisy_rows(deep, a, self.recipe.seed, self.noise_mean,
+                                                             self.noise_std, tuple(NOISE_LEVELS.values()))]
+
+    def __call__(self, a: int, b: int) -> None:
         lay = self.layout
-        d_hi = min(b, lay.n_deep)
-        if a < d_hi:
-            h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
-            deep = apply_by_block(project_rows, h, a, self.mean, self.matrix)
-        else:
-            deep = np.empty((0, self.recipe.dim), np.float32)
-        queries = noisy_rows(deep, a, self.recipe.seed, self.noise_mean, self.noise_std,
-                             tuple(NOISE_LEVELS.values()))
+        deep = self.deep_rows(a, b)
+        fas_ref = self.fas_ref[max(0, a - lay.n_deep) : max(0, min(b, lay.n_ref) - lay.n_deep)]
         group = zarr.open_group(self.store, mode="r+")
         if a < lay.n_ref:
             write_rows(group["ref"], a, np.concatenate([deep, fas_ref]))
             group["ref_part"][a : min(b, lay.n_ref)] = self._parts(a, min(b, lay.n_ref))
         if a < lay.n_query:
             q_hi = min(b, lay.n_query)
-            for name, q in zip(NOISE_LEVELS, queries, strict=True):
-                write_rows(group[name], a, np.concatenate([q, fas_query]))
+            for name, q in zip(NOISE_LEVELS, self.query_rows(deep, a, b), strict=True):
+                write_rows(group[name], a, q)
             group["gt"][a:q_hi] = dataset_gt(lay, self.fas_gt, a, q_hi)
             group["query_part"][a:q_hi] = self._parts(a, q_hi)
 
@@ -238,71 +265,104 @@ def build(req: BuildRequest) -> dict[str, Any]:
         return _build(recipe, deep, traverse, final, req)
 
 
+EVAL_LENGTHS = (1, 50, 100)  # the sequence lengths whose windows a compact store keeps
+
+
+class DeepMoments:
+    """Pass-1 task: per-block moments of the homogenised Deep1B rows of a chunk."""
+
+    def __init__(self, source: RowSource, recipe: Recipe) -> None:
+        self.source, self.recipe = source, recipe
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        return block_moments(window_mean(self.source, self.recipe.deep1b_rows_read, a, b, self.recipe.window), a)
+
+
+def _add_blocks(acc: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    for m in blocks:  # block by block, in order: the same bits for any chunking
+        acc += m
+    return acc
+
+
 def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
            req: BuildRequest) -> dict[str, Any]:
     t_start = time.perf_counter()
     timings = Timings(req.quiet)
     lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
                  recipe.fas_rows("query", traverse.query.n_rows))
-    provenance = {"recipe": recipe.as_dict(), "rescale": req.rescale,
+    layout = req.layout or recipe.layout
+    provenance = {"recipe": {**recipe.as_dict(), "layout": layout}, "rescale": req.rescale,
                   "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
     partial = PartialOutput(final, provenance)
     resumed = partial.open()
     if resumed and not req.quiet:
         print(f"resuming the unfinished build in {partial.path}", file=sys.stderr)
     store = str(partial.path)
+    work = partial.path / ".work"
+    work.mkdir(exist_ok=True)
     d = recipe.dim
     with dask_client(req.scheduler, req.workers) as client:
         if not partial.done("fit"):
             group = zarr.open_group(store, mode="a", zarr_format=3)
-            for name, rows in (("ref", lay.n_ref), ("query_qm1", lay.n_query), ("query_qm2", lay.n_query)):
-                group.create_array(name, shape=(rows, d), chunks=(recipe.chunk_rows, d), dtype="f4",
-                                   overwrite=True, **codecs("descriptors"))
-            group.create_array("gt", shape=(lay.n_query,), chunks=(recipe.chunk_rows,), dtype="i8",
-                               overwrite=True, **codecs("labels"))
-            for name, rows in (("ref_part", lay.n_ref), ("query_part", lay.n_query)):
-                group.create_array(name, shape=(rows,), chunks=(recipe.chunk_rows,), dtype="u1",
-                                   overwrite=True, **codecs("labels"))
             with timings.stage("fit transforms (Deep1B exact PCA, FAS PCA, noise model)"):
-                h = homogenised(deep, recipe.deep1b_rows_read, lay.n_deep, recipe.window, recipe.chunk_rows)
-                merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed, req.rescale).fit(h, traverse)
-            _save_transforms(group, merge, partial.path)
+                moments = reduce_pass(work, "Deep1B moments", chunk_bounds(lay.n_deep, recipe.chunk_rows),
+                                      DeepMoments(deep, recipe), _add_blocks, np.zeros((d + 1, d + 1)),
+                                      quiet=req.quiet)
+                merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed, req.rescale).fit(moments,
+                                                                                                       traverse)
+            _save_transforms(group, merge, work)
             partial.mark("fit")
         group = zarr.open_group(store, mode="r+")
         t = group["transforms"]
-        fas_ref = np.load(partial.path / ".work" / "fas_ref.npy")
-        fas_query = np.load(partial.path / ".work" / "fas_query.npy")
+        fas_ref, fas_query = np.load(work / "fas_ref.npy"), np.load(work / "fas_query.npy")
         writer = ChunkWriter(store, deep, recipe, lay, t["deep1b_mean"][:],
                              t["deep1b_components"][:].T * t["deep1b_scale"][:],
-                             t["noise_mean"][:], t["noise_std"][:], traverse.gt)
-        tasks = []
-        for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.chunk_rows)):
-            if partial.done(f"chunk-{c}"):
-                continue
-            fr = fas_ref[max(0, a - lay.n_deep) : max(0, min(b, lay.n_ref) - lay.n_deep)]
-            fq = fas_query[max(0, a - lay.n_deep) : max(0, min(b, lay.n_query) - lay.n_deep)]
-            tasks.append(dask.delayed(_write_and_mark)(writer, a, b, fr, fq, partial, f"chunk-{c}"))
-        with timings.stage(f"write {len(tasks)} chunks (homogenise, project, rescale, noise)"):
-            run_tasks(tasks, "write chunks")
+                             t["noise_mean"][:], t["noise_std"][:], traverse.gt, fas_ref, fas_query)
+        if layout == "full":
+            _write_full(group, writer, partial, timings)
+            extra: dict[str, Any] = {}
+        else:
+            extra = compact.write_compact(group, writer, partial, timings, t["ref_moments"][:], EVAL_LENGTHS,
+                                          req.quiet)
         peak = cluster_peak_rss(client)
     elapsed = time.perf_counter() - t_start
-    summary = {"store": str(final), "scale": recipe.scale, "ref_rows": lay.n_ref,
+    summary = {"store": str(final), "scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref,
                "query_rows": lay.n_query, "resumed": resumed, "stages_s": timings.stages,
                "wall_s": elapsed, "peak_rss_bytes": peak}
     group = zarr.open_group(store, mode="r+")
     group.attrs[ATTR] = {**provenance, "complete": True, "versions": _versions(), "seed": recipe.seed,
-                         "layout": {"n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
-                                    "n_fas_query": lay.n_fas_query},
-                         "built": {k: v for k, v in summary.items() if k != "store"}}
-    shutil.rmtree(partial.path / ".work")
+                         "layout": {"kind": layout, "n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
+                                    "n_fas_query": lay.n_fas_query, **extra}}
+    (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},
+                                                        indent=1, default=str))
+    shutil.rmtree(work)
     partial.publish()
     summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
     return summary
 
 
-def _write_and_mark(writer: ChunkWriter, a: int, b: int, fas_ref: np.ndarray, fas_query: np.ndarray,
-                    partial: PartialOutput, unit: str) -> None:
-    writer(a, b, fas_ref, fas_query)
+def _write_full(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, timings: Timings) -> None:
+    """Pass 2 of the full layout: every row of every array, one chunk per task."""
+    lay, recipe, d = writer.layout, writer.recipe, writer.recipe.dim
+    if not partial.done("arrays"):
+        for name, rows in (("ref", lay.n_ref), ("query_qm1", lay.n_query), ("query_qm2", lay.n_query)):
+            group.create_array(name, shape=(rows, d), chunks=(recipe.chunk_rows, d), dtype="f4",
+                               overwrite=True, **codecs("descriptors"))
+        group.create_array("gt", shape=(lay.n_query,), chunks=(recipe.chunk_rows,), dtype="i8",
+                           overwrite=True, **codecs("labels"))
+        for name, rows in (("ref_part", lay.n_ref), ("query_part", lay.n_query)):
+            group.create_array(name, shape=(rows,), chunks=(recipe.chunk_rows,), dtype="u1",
+                               overwrite=True, **codecs("labels"))
+        partial.mark("arrays")
+    tasks = [dask.delayed(_write_and_mark)(writer, a, b, partial, f"chunk-{c}")
+             for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.chunk_rows))
+             if not partial.done(f"chunk-{c}")]
+    with timings.stage(f"write {len(tasks)} chunks (homogenise, project, rescale, noise)"):
+        run_tasks(tasks, "write chunks")
+
+
+def _write_and_mark(writer: ChunkWriter, a: int, b: int, partial: PartialOutput, unit: str) -> None:
+    writer(a, b)
     partial.mark(unit)
 
 
@@ -313,16 +373,16 @@ def _save_transforms(group: zarr.Group, merge: MergeTransform, work: Path) -> No
               "deep1b_scale": merge.scale_, "fas_mean": merge.fas_pca_.mean_,
               "fas_components": merge.fas_pca_.components_,
               "noise_pca_mean": merge.noise_pca_.mean_, "noise_pca_components": merge.noise_pca_.components_,
-              "noise_mean": merge.noise_mean_, "noise_std": merge.noise_std_}
+              "noise_mean": merge.noise_mean_, "noise_std": merge.noise_std_,
+              "deep1b_moments": merge.deep_moments_, "ref_moments": merge.ref_moments()}
     for name, arr in arrays.items():
         t.create_array(name, data=np.asarray(arr, dtype=np.float64))
-    (work / ".work").mkdir(exist_ok=True)
-    np.save(work / ".work" / "fas_ref.npy", merge.fas_ref_)
-    np.save(work / ".work" / "fas_query.npy", merge.fas_query_)
+    np.save(work / "fas_ref.npy", merge.fas_ref_)
+    np.save(work / "fas_query.npy", merge.fas_query_)
 
 
 def format_summary(s: dict[str, Any]) -> str:
-    lines = [f"built {s['store']}: {s['ref_rows']:,} ref rows, {s['query_rows']:,} query rows"
+    lines = [f"built {s['store']} ({s['layout']} layout): {s['ref_rows']:,} ref rows, {s['query_rows']:,} query rows"
              + (" (resumed)" if s.get("resumed") else "")]
     for name, secs in s["stages_s"].items():
         lines.append(f"  {secs:8.1f} s  {name}")

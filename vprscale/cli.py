@@ -50,7 +50,8 @@ def cmd_build(args: argparse.Namespace) -> int:
 
     summary = build(BuildRequest(scale=args.scale, out=Path(args.out), deep1b=args.deep1b, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
-                                 force=args.force, fas_dim=args.fas_dim, rescale=args.rescale))
+                                 force=args.force, fas_dim=args.fas_dim, rescale=args.rescale,
+                                 layout=args.layout))
     if not summary.get("dry_run") and not summary.get("skipped"):
         print(format_summary(summary))
     _write_summary(args, summary)
@@ -104,7 +105,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     summary = evaluate(EvalRequest(store=Path(args.store), index=Path(args.index) if args.index else None,
                                    noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
-                                   z=args.z, d_sweep=args.d, out=Path(args.out) if args.out else None,
+                                   z=args.z, baseline_queries=args.baseline_queries, d_sweep=args.d, out=Path(args.out) if args.out else None,
                                    workers=args.workers, scheduler=args.scheduler))
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
@@ -181,6 +182,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="rebuild a complete store (replaced only when done)")
     p.add_argument("--no-rescale", dest="rescale", action="store_false",
                    help="skip the variance rescaling of Deep1B (ablation of Fig. 4d; writes <scale>-norescale.zarr)")
+    p.add_argument("--layout", choices=["full", "compact"], default=None,
+                   help="full: every row of every array; compact: only what the index and the evaluation read "
+                        "(default: the recipe's; compact at 100M and 1B)")
     _add_cluster(p)
     p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_build)
@@ -203,6 +207,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True,
                    help="also run the baseline of SPEC §3.4 (default on)")
     p.add_argument("--z", type=_positive_int, default=None, help="query stride (default: the recipe's)")
+    p.add_argument("--baseline-queries", type=_positive_int, default=None,
+                   help="localise an evenly spaced sample of this many centres per baseline run (default: all "
+                        "below 10^8 query rows, 64 beyond: each baseline query scans every place)")
     p.add_argument("--d", type=_csv(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
     _add_cluster(p)

@@ -16,7 +16,7 @@ import numpy as np
 from vprscale.errors import InputError
 from vprscale.hashkernels import column_histogram, hash_rows, project_rows
 from vprscale.kmeans1d import kmeans_1d
-from vprscale.pca import ExactPCA
+from vprscale.pca import ExactPCA, moments_of
 from vprscale.progress import compute
 
 _CHUNK = 65536
@@ -110,22 +110,46 @@ class CoarseHasher:
             raise InputError(f"--d {d} --k {self.k}: K^d = {self.k}^{d} addresses exceed 2^64")
         return d
 
-    def fit(self, ref: np.ndarray | da.Array) -> CoarseHasher:
-        """Exact PCA, then per-component 1-D k-means; two streamed passes over ``ref``."""
+    def fit(self, ref: np.ndarray | da.Array, moments: np.ndarray | None = None) -> CoarseHasher:
+        """Exact PCA, then per-component 1-D k-means; two streamed passes over ``ref``.
+
+        ``moments`` (``[[XᵀX, Σx], [Σxᵀ, n]]`` of ``ref``, e.g. the ones a build derives
+        while it writes the rows) spare the PCA its pass.
+        """
         x = _as_dask(ref)
-        n, dim = x.shape
+        self.fit_pca(moments if moments is not None else moments_of(x))
+        parts = [dask.delayed(self.column_histogram)(blk) for blk in x.to_delayed().ravel()]
+        self.fit_centres(compute(*parts, desc="histograms"))
+        return self
+
+    def fit_pca(self, moments: np.ndarray) -> CoarseHasher:
+        """The PCA step of :meth:`fit`, from the summed moments of the reference rows."""
+        dim = moments.shape[0] - 1
+        n = int(moments[dim, dim])
         self.d_ = self._check(n, dim)
-        pca = ExactPCA(self.d_).fit(x)
+        pca = ExactPCA(self.d_).fit_moments(moments)
         self.mean_, self.components_ = pca.mean_, pca.components_
         self.explained_variance_ = pca.explained_variance_
-        # One pass: histograms over ±SPAN standard deviations (known exactly from the PCA);
-        # the rare values beyond are kept exactly and enter the k-means as points of their own.
-        w = np.ascontiguousarray(self.components_.T)
+        self.n_ref_ = n
+        return self
+
+    def _histogram_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo, width)``: histograms over ±SPAN standard deviations (known exactly from the PCA)."""
         sigma = np.sqrt(np.maximum(self.explained_variance_, np.finfo(np.float64).tiny))
-        lo, width = -SPAN * sigma, 2 * SPAN * sigma / self.bins
-        parts = [dask.delayed(column_histogram)(blk, self.mean_, w, lo, width, self.bins)
-                 for blk in x.to_delayed().ravel()]
-        results = compute(*parts, desc="histograms")
+        return -SPAN * sigma, 2 * SPAN * sigma / self.bins
+
+    def column_histogram(self, rows: np.ndarray) -> tuple:
+        """One chunk's share of the k-means statistics (see :meth:`fit_centres`)."""
+        lo, width = self._histogram_grid()
+        return column_histogram(rows, self.mean_, np.ascontiguousarray(self.components_.T), lo, width, self.bins)
+
+    def fit_centres(self, results: list[tuple]) -> CoarseHasher:
+        """The k-means step of :meth:`fit`, from every chunk's :meth:`column_histogram`.
+
+        The rare values beyond ±SPAN σ are kept exactly and enter the k-means as points of
+        their own; everything here is a sum, a min or a max, so the chunking cannot matter.
+        """
+        lo, width = self._histogram_grid()
         counts = np.sum([r[0] for r in results], axis=0)
         self.ranges_ = np.stack([np.min([r[1][0] for r in results], axis=0),
                                  np.max([r[1][1] for r in results], axis=0)], axis=1)
@@ -140,7 +164,6 @@ class CoarseHasher:
             weights = np.concatenate([np.ones(len(below)), counts[j], np.ones(len(above))])
             centres.append(kmeans_1d(values, weights, self.k))
         self.centres_ = np.stack(centres)
-        self.n_ref_ = n
         return self
 
     def transform(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:

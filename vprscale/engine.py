@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numba
 import numpy as np
-import pyarrow.parquet as pq
 
 from vprscale.coarsehash import hash_descriptors
 from vprscale.index import load_index_meta
@@ -103,25 +102,20 @@ class Index:
 
     @classmethod
     def load(cls, path: str | Path) -> Index:
+        """Open an index directory; the lists and the map are memory-mapped, not read."""
         path = Path(path)
         meta = load_index_meta(path)
         m = {k: np.load(path / "model" / f"{k}.npy") for k in ("mean", "components", "centres")}
-        lists = pq.read_table(path / "lists.parquet")
-        hashes = lists["hash"].to_numpy()
-        ids = lists["ref_id"].to_numpy().astype(np.int64)
-        buckets = pq.read_table(path / "buckets.parquet")
-        addresses = buckets["hash"].to_numpy()
-        offsets = np.r_[buckets["offset"].to_numpy().astype(np.int64), len(ids)]
-        ref_hash = np.empty(meta["n_ref"], dtype=np.uint64)
-        ref_hash[ids] = hashes
-        return cls(meta["d"], meta["k"], m["mean"], m["components"], m["centres"], addresses, offsets, ids,
-                   buckets["best_id"].to_numpy().astype(np.int64), ref_hash, meta)
+        arrays = {k: np.load(path / f"{k}.npy", mmap_mode="r")
+                  for k in ("addresses", "offsets", "ids", "best", "ref_hash")}
+        return cls(meta["d"], meta["k"], m["mean"], m["components"], m["centres"], arrays["addresses"],
+                   arrays["offsets"], arrays["ids"], arrays["best"], arrays["ref_hash"], meta)
 
     @classmethod
     def from_addresses(cls, ref_hash: np.ndarray, centres: np.ndarray, errors: np.ndarray | None = None,
                        mean: np.ndarray | None = None, components: np.ndarray | None = None) -> Index:
         """An index over given reference addresses (for hand-built cases and tests)."""
-        from vprscale.index import inverted_lists
+        from vprscale.lists import inverted_lists
 
         ref_hash = np.asarray(ref_hash, np.uint64)
         d, k = centres.shape

@@ -19,15 +19,18 @@ import numba
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import zarr
 from tqdm import tqdm
 
 from vprscale.accounting import baseline_ops, method_ops
 from vprscale.baseline import baseline_batch
 from vprscale.cluster import cluster_peak_rss, dask_client
+from vprscale.compact import baseline_map
 from vprscale.engine import Index, QueryFrames, in_list_distance, match_batch
 from vprscale.errors import InputError
-from vprscale.index import build_index, default_index_dir, load_index_meta, store_identity
-from vprscale.pca import ExactPCA
+from vprscale.index import build_index, default_index_dir, load_index_meta, ref_moments, store_identity, store_layout
+from vprscale.pca import ExactPCA, moments_of
+from vprscale.protocol import Centres, part_weights, query_centres, window_frames
 from vprscale.rawchunks import rows_of
 from vprscale.store import ATTR, check_writable, exclusive, open_complete_group
 
@@ -38,6 +41,7 @@ RADII = np.arange(21)
 # per query per core.
 CORES = numba.get_num_threads()
 PARTS = {"all": None, "deep1b": 0, "fas": 1}
+BASELINE_SUBSAMPLE = 64  # baseline queries per run at 10^8 query rows and beyond (each scans every place)
 
 
 @dataclass
@@ -51,6 +55,7 @@ class EvalRequest:
     modes: list[str] = field(default_factory=lambda: ["paper", "aligned"])
     baseline: bool = True
     z: int | None = None
+    baseline_queries: int | None = None  # queries per baseline run; None: all below 10^8 query rows, else a sample
     d_sweep: list[int] | None = None
     out: Path | None = None
     workers: int = 2
@@ -58,18 +63,56 @@ class EvalRequest:
     quiet: bool = False
 
 
-def query_centres(gt: np.ndarray, z: int, L: int) -> np.ndarray:
-    """Centres ``0, z, 2z, …`` with a truth and the whole window inside the query set."""
-    half = L // 2
-    t = np.arange(0, len(gt), z, dtype=np.int64)
-    ok = (gt[t] >= 0) & (t - half >= 0) & (t - half + L <= len(gt))
-    return t[ok]
+class QuerySet:
+    """The query frames of a store that an evaluation may read, with their truth and part.
 
+    A full store holds every frame; a compact one only the windows its build kept
+    (:mod:`vprscale.compact`). Either way ``gt_at``/``part_at`` answer for any frame
+    (−1 / 255 where the store holds nothing), and ``rows`` reads descriptors of held frames.
+    """
 
-def needed_frames(centres: list[np.ndarray], lengths: list[int]) -> np.ndarray:
-    """Every query frame inside some evaluated window."""
-    frames = [(c[:, None] + np.arange(L)[None, :] - L // 2).ravel() for c, L in zip(centres, lengths, strict=True)]
-    return np.unique(np.concatenate(frames)) if frames else np.empty(0, np.int64)
+    def __init__(self, group: zarr.Group, layout: dict[str, Any]) -> None:
+        self.group = group
+        self.compact = layout["kind"] == "compact"
+        self.n_deep = int(layout["n_deep1b"])
+        if self.compact:
+            self.n_query = int(layout["n_query"])
+            self.frames = group["query_frames"][:]
+            self.lengths = set(layout["eval_lengths"])
+        else:
+            self.n_query = int(group["gt"].shape[0])
+            self.frames = None
+        self._gt = group["gt"][:]
+        self._part = group["query_part"][:]
+
+    def _pos(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.asarray(t, np.int64)
+        if not self.compact:
+            return t, np.ones(len(t), bool)
+        pos = np.minimum(np.searchsorted(self.frames, t), max(0, len(self.frames) - 1))
+        return pos, (self.frames[pos] == t) if len(self.frames) else np.zeros(len(t), bool)
+
+    def gt_at(self, t: np.ndarray) -> np.ndarray:
+        pos, held = self._pos(t)
+        return np.where(held, self._gt[pos], -1)
+
+    def part_at(self, t: np.ndarray) -> np.ndarray:
+        pos, held = self._pos(t)
+        return np.where(held, self._part[pos], 255).astype(np.uint8)
+
+    def centres(self, z: int, L: int) -> Centres:
+        c = query_centres(self.gt_at, self.n_query, self.n_deep, z, L)
+        if self.compact and len(c.t):
+            missing = ~np.isin(window_frames([c.t], [L]), self.frames)
+            if missing.any() or L not in self.lengths:
+                raise InputError(f"--L {L} --z {z}: this compact store holds the query windows of "
+                                 f"L = {sorted(self.lengths)} at its recipe's stride only")
+        return c
+
+    def rows(self, noise: str, frames: np.ndarray) -> np.ndarray:
+        pos, held = self._pos(frames)
+        assert held.all(), "frames outside the held windows"
+        return self.group[NOISES[noise]].get_orthogonal_selection((pos, slice(None)))
 
 
 def recall_curve(error: np.ndarray) -> np.ndarray:
@@ -121,14 +164,14 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     t_start = time.perf_counter()
     group = open_complete_group(req.store)
     meta = group.attrs[ATTR]
+    layout = store_layout(group)
     identity = store_identity(req.store)
-    gt = group["gt"][:]
-    part = group["query_part"][:]
-    n_q = len(gt)
-    too_long = [L for L in req.lengths if L > n_q]
+    qs = QuerySet(group, layout)
+    too_long = [L for L in req.lengths if L > qs.n_query]
     if too_long:
-        raise InputError(f"--L {too_long[0]}: longer than the {n_q:,} query frames")
+        raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
+    dim = int(meta["recipe"]["dim"])
     with dask_client(req.scheduler, req.workers) as client:
         index_paths = _indexes(req, identity)
         indexes = []
@@ -137,62 +180,100 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             if idx.meta["store"]["identity"] != identity:
                 raise InputError(f"{path}: this index was built from another store "
                                  f"({idx.meta['store']['path']}), not {req.store}")
-            if idx.components.shape[1] != group["ref"].shape[1]:
+            if idx.components.shape[1] != dim:
                 raise InputError(f"{path}: index expects {idx.components.shape[1]}-d descriptors, "
-                                 f"the store holds {group['ref'].shape[1]}-d")
+                                 f"the store holds {dim}-d")
             indexes.append((path, idx))
         out = Path(req.out) if req.out else (index_paths[0] / "eval" if len(index_paths) == 1 else
                                              req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
         check_writable(out)
-        pca1 = base_x = None
-        if req.baseline:  # the baseline's whole map: one float64 per reference, projected chunk by chunk
-            ref = rows_of(group["ref"])
-            pca1 = ExactPCA(1).fit(ref)
-            base_x = ref.map_blocks(lambda b: pca1.transform(b).astype(np.float64)[:, 0], drop_axis=1,
-                                    dtype=np.float64).compute()
+        base = _baseline_map(group, layout) if req.baseline else None
         with exclusive(out):
-            rows, queries = _grid(req, group, gt, part, z, indexes, base_x, pca1)
+            rows, queries = _grid(req, qs, z, dim, indexes, base)
             provenance = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                           "store_identity": identity}
             _write_parquet(out / "results.parquet", rows, provenance)
             _write_parquet(out / "queries.parquet", queries, provenance)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
+                       "baseline_queries": _baseline_limit(req, qs), "layout": layout["kind"],
                        "indexes": [str(p) for p in index_paths], **provenance}
             (out / "eval.json").write_text(json.dumps(summary, indent=1))
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
 
 
-def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[list[dict], list[dict]]:
+@dataclass
+class BaselineMap:
+    """The d = 1 baseline's map (every reference's first principal component) and its projection."""
+
+    x: np.ndarray  # float32, one per reference
+    mean: np.ndarray
+    component: np.ndarray  # (1, D)
+
+    def project(self, rows: np.ndarray) -> np.ndarray:
+        return baseline_map(rows, self.mean, self.component).astype(np.float64)
+
+
+def _baseline_map(group: zarr.Group, layout: dict[str, Any]) -> BaselineMap:
+    """The baseline's map: kept by a compact build, else projected chunk by chunk from ``ref``.
+
+    Its PCA (d = 1) is the first component of the references' PCA, fitted on the moments
+    the build derived, so both layouts give the baseline the same map.
+    """
+    if layout["kind"] == "compact":
+        model = group["transforms/coarsehash"]
+        return BaselineMap(group["base_x1"][:], model["mean"][:], model["components"][:1])
+    ref = rows_of(group["ref"])
+    moments = ref_moments(group)
+    pca = ExactPCA(1).fit_moments(moments if moments is not None else moments_of(ref))
+    x = ref.map_blocks(baseline_map, pca.mean_, pca.components_, drop_axis=1, dtype=np.float32).compute()
+    return BaselineMap(x, pca.mean_, pca.components_)
+
+
+def _baseline_limit(req: EvalRequest, qs: QuerySet) -> int | None:
+    """Queries the baseline localises per run (None: all); a full scan of 10^8 places costs ~0.1 s a query."""
+    if req.baseline_queries is not None:
+        return req.baseline_queries
+    return BASELINE_SUBSAMPLE if qs.n_query >= 10**8 else None
+
+
+def _subsample(n: int, limit: int | None) -> np.ndarray:
+    """``limit`` evenly spaced positions of ``n`` (all when there are no more)."""
+    if limit is None or n <= limit:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
+
+
+def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None
+          ) -> tuple[list[dict], list[dict]]:
     rows: list[dict] = []
     queries: list[dict] = []
-    centres = {L: query_centres(gt, z, L) for L in req.lengths}
-    frames = needed_frames([centres[L] for L in req.lengths], req.lengths)
-    n_q = len(gt)
-    dim = group["ref"].shape[1]
+    centres = {L: qs.centres(z, L) for L in req.lengths}
+    frames = window_frames([centres[L].t for L in req.lengths], req.lengths)
+    weights = part_weights(qs.n_query, qs.n_deep)
+    limit = _baseline_limit(req, qs)
     combos = len(req.noises) * len(indexes) * len(req.lengths)
     bar = tqdm(total=combos, desc="evaluate", unit="combo", file=sys.stderr, disable=None, leave=False)
     for noise in req.noises:
-        x_q = group[NOISES[noise]].get_orthogonal_selection((frames, slice(None)))
-        y_base = None
-        if base_x is not None:
-            y_base = np.zeros(n_q)
-            y_base[frames] = pca1.transform(x_q).astype(np.float64)[:, 0]
+        x_q = qs.rows(noise, frames)
+        y_base = base.project(x_q) if base is not None else None
         for path, idx in indexes:
             idx.query_frames(idx.hash_queries(x_q[:1]))  # load the compiled kernels outside the timing
             t0 = time.perf_counter()  # the per-frame work: hash, nearest occupied, list retrieval, planes
             h = idx.hash_queries(x_q)
             qf = idx.query_frames(h, frames)
             hash_us = (time.perf_counter() - t0) / max(1, len(frames)) * 1e6
-            occupied = np.zeros(n_q, bool)
-            occupied[frames] = idx.addresses[qf.addr] == h
+            occupied = idx.addresses[qf.addr] == h  # by position among the frames
             args = idx.kernel_args()
             for L in req.lengths:
-                t = centres[L]
-                key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(path)}
-                fallback = float(1 - occupied[t].mean()) if len(t) else 0.0
-                results = _method_runs(req, idx, qf.positions(t, L), L, qf, gt[t], args)
+                c = centres[L]
+                t, pos = c.t, qf.positions(c.t, L)
+                truth, parts = qs.gt_at(t), qs.part_at(t)
+                key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(path), "fas_stride": c.fas_stride}
+                w = weights if c.fas_stride is not None else None
+                fallback = float(1 - occupied[pos].mean()) if len(t) else 0.0
+                results = _method_runs(req, idx, pos, L, qf, truth, args)
                 paper_nr = None
                 for mode, (match, n_r, secs, in_list) in results.items():
                     if mode == "paper" and L > 1:
@@ -203,16 +284,19 @@ def _grid(req: EvalRequest, group, gt, part, z, indexes, base_x, pca1) -> tuple[
                                      len(idx.addresses), fallback)
                     us = secs * CORES / max(1, len(t)) * 1e6 + hash_us
                     _emit(rows, queries, {**key, "method": "coarsehash", "mode": None if L == 1 else mode},
-                          t, gt, part, match, n_r, (us, hash_us), ops["total"], in_list)
-                if base_x is not None:
+                          t, truth, parts, match, n_r, (us, hash_us), ops["total"], in_list, w)
+                if base is not None:
                     nr = 1 if L == 1 else max(1, int(round(float(paper_nr.mean())))) if len(t) else 1
-                    baseline_batch(t[:1], L, nr, base_x, y_base, float(np.ptp(base_x)))  # compile outside the timing
+                    sub = _subsample(len(t), limit)
+                    x_range = float(np.ptp(base.x))
+                    baseline_batch(pos[:1], L, nr, base.x, y_base, x_range)  # compile outside the timing
                     t0 = time.perf_counter()
-                    match, n_r = baseline_batch(t, L, nr, base_x, y_base, float(np.ptp(base_x)))
+                    match, n_r = baseline_batch(pos[sub], L, nr, base.x, y_base, x_range)
                     secs = time.perf_counter() - t0
-                    ops = baseline_ops(dim, len(base_x), L, nr)
+                    ops = baseline_ops(dim, len(base.x), L, nr)
                     _emit(rows, queries, {**key, "d": 1, "K": None, "method": "baseline", "mode": None},
-                          t, gt, part, match, n_r, (secs * CORES / max(1, len(t)) * 1e6, None), ops["total"], None)
+                          t[sub], truth[sub], parts[sub], match, n_r, (secs * CORES / max(1, len(sub)) * 1e6, None),
+                          ops["total"], None, w)
                 bar.update()
     bar.close()
     return rows, queries
@@ -243,15 +327,27 @@ def _method_runs(req: EvalRequest, idx: Index, pos: np.ndarray, L: int, qf: Quer
     return out
 
 
-def _emit(rows: list, queries: list, key: dict, t, gt, part, match, n_r, us: tuple[float, float | None], ops: float,
-          in_list) -> None:
-    """Rows of ``results`` and ``queries`` for one run; ``us`` is (µs per query, of which per-frame work)."""
-    error = np.abs(match - gt[t])
-    parts = part[t]
+def _emit(rows: list, queries: list, key: dict, t, truth, parts, match, n_r, us: tuple[float, float | None],
+          ops: float, in_list, weights: dict[str, float] | None) -> None:
+    """Rows of ``results`` and ``queries`` for one run; ``us`` is (µs per query, of which per-frame work).
+
+    With ``weights`` (a stratified sample) the overall recall weights each part's recall by
+    its share of the query rows; without, it is the share of all queries localised.
+    """
+    error = np.abs(np.asarray(match, np.int64) - truth)
+    curves = {}
     for name, code in PARTS.items():
         sel = np.ones(len(t), bool) if code is None else parts == code
         curve = recall_curve(error[sel])
         in_curve = recall_curve(in_list[sel]) if in_list is not None else None
+        curves[name] = (curve, in_curve)
+        if name == "all" and weights is not None:
+            by_part = [(weights[p], recall_curve(error[parts == PARTS[p]]),
+                        recall_curve(in_list[parts == PARTS[p]]) if in_list is not None else None)
+                       for p in ("deep1b", "fas") if (parts == PARTS[p]).any()]
+            total = sum(wt for wt, _, _ in by_part)
+            curve = sum(wt * c for wt, c, _ in by_part) / total
+            in_curve = sum(wt * c for wt, _, c in by_part) / total if in_list is not None else None
         nr = n_r[sel]
         stats = {"n_queries": int(sel.sum()),
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
@@ -262,7 +358,7 @@ def _emit(rows: list, queries: list, key: dict, t, gt, part, match, n_r, us: tup
             rows.append({**key, "part": name, "radius": int(r), "recall": float(curve[r]),
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
     for i in range(len(t)):
-        queries.append({**key, "t": int(t[i]), "gt": int(gt[t[i]]), "match": int(match[i]), "error": int(error[i]),
+        queries.append({**key, "t": int(t[i]), "gt": int(truth[i]), "match": int(match[i]), "error": int(error[i]),
                         "n_r": int(n_r[i]), "in_list": int(in_list[i]) if in_list is not None else None,
                         "part": "deep1b" if parts[i] == 0 else "fas"})
 

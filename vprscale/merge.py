@@ -7,13 +7,12 @@ chunk (steps 6–7) by pure numpy kernels, so workers receive only a few small m
 from __future__ import annotations
 
 import dask
-import dask.array as da
 import numba
 import numpy as np
 
 from vprscale.blocks import BLOCK, block_spans
 from vprscale.gaussian import block_standard_normal
-from vprscale.pca import ExactPCA, RandomizedPCA
+from vprscale.pca import ExactPCA, RandomizedPCA, block_moments
 from vprscale.progress import compute
 from vprscale.sources.fas import Traverse
 
@@ -52,8 +51,11 @@ class MergeTransform:
         self.dim, self.n_fas_ref, self.n_fas_query, self.seed = dim, n_fas_ref, n_fas_query, seed
         self.rescale = rescale
 
-    def fit(self, deep_homogenised: da.Array, traverse: Traverse) -> MergeTransform:
-        self.deep_pca_ = ExactPCA(self.dim).fit(deep_homogenised)
+    def fit(self, deep_moments: np.ndarray, traverse: Traverse) -> MergeTransform:
+        """Fit from the summed moments of the homogenised Deep1B rows (:func:`~vprscale.pca.block_moments`)
+        and the FAS traverse."""
+        self.deep_moments_ = deep_moments
+        self.deep_pca_ = ExactPCA(self.dim).fit_moments(deep_moments)
         self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed)
         if self.n_fas_ref == traverse.ref.n_rows:
             # The PCA of the kept rows is the noise PCA: the queries are projected in its last
@@ -71,6 +73,32 @@ class MergeTransform:
         fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
         self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_) if self.rescale else np.ones(self.dim)
         return self
+
+    @property
+    def deep_matrix_(self) -> np.ndarray:
+        """The (D × D) map of centred homogenised Deep1B rows to reference rows: PCA, then rescaling."""
+        return self.deep_pca_.components_.T * self.scale_
+
+    def ref_moments(self) -> np.ndarray:
+        """Moments ``[[RᵀR, Σr], [Σrᵀ, n]]`` of the dataset's reference rows, without a pass over them.
+
+        The Deep1B part is an affine image ``(h − μ)A`` of the homogenised rows, so its
+        moments follow from theirs: ``Σr = (Σh − nμ)A`` and ``RᵀR = Aᵀ(HᵀH − μΣhᵀ − Σhμᵀ +
+        nμμᵀ)A``; the FAS part's are summed from its (few) rows. The index fits its PCA on
+        these, so a store that never writes its reference rows (the compact layout) is
+        indexed exactly like one that does.
+        """
+        d = self.dim
+        m = self.deep_moments_
+        hh, sh, n = m[:d, :d], m[:d, d], m[d, d]
+        mu = self.deep_pca_.mean_
+        a = self.deep_matrix_
+        centred = hh - np.outer(mu, sh) - np.outer(sh, mu) + n * np.outer(mu, mu)
+        out = np.zeros((d + 1, d + 1))
+        out[:d, :d] = a.T @ centred @ a
+        out[:d, d] = out[d, :d] = (sh - n * mu) @ a
+        out[d, d] = n
+        return out + block_moments(self.fas_ref_, 0).sum(axis=0)
 
     def _queries(self, traverse: Traverse) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One pass over the FAS queries: the kept ones projected, and the noise model (step 5),

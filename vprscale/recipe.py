@@ -16,6 +16,7 @@ _FIELDS: dict[str, type | tuple[type, ...]] = {
     "fas_query_rows": (int, str), "query_stride": int, "window": int, "dim": int, "seed": int,
     "chunk_rows": int,
 }
+_OPTIONAL: dict[str, tuple[str, ...]] = {"layout": ("full", "compact")}
 
 
 def recipe_dir() -> Path:
@@ -38,6 +39,7 @@ class Recipe:
     dim: int
     seed: int
     chunk_rows: int
+    layout: str = "full"  # "compact" keeps only what the index and the evaluation read (100M and up)
 
     def fas_rows(self, which: str, available: int) -> int:
         """Rows of the FAS reference or query traverse kept ("all" or a count)."""
@@ -54,10 +56,13 @@ class Recipe:
                 raise InputError(f"{origin}: missing key '{key}'")
             if not isinstance(data[key], kind) or isinstance(data[key], bool):
                 raise InputError(f"{origin}: key '{key}' has the wrong type ({type(data[key]).__name__})")
-        unknown = set(data) - set(_FIELDS)
+        unknown = set(data) - set(_FIELDS) - set(_OPTIONAL)
         if unknown:
             raise InputError(f"{origin}: unknown key(s) {sorted(unknown)}")
-        r = cls(**{k: data[k] for k in _FIELDS})
+        for key, choices in _OPTIONAL.items():
+            if key in data and data[key] not in choices:
+                raise InputError(f"{origin}: key '{key}' must be one of {', '.join(choices)}, got {data[key]!r}")
+        r = cls(**{k: data[k] for k in _FIELDS}, **{k: data[k] for k in _OPTIONAL if k in data})
         for key in ("fas_ref_rows", "fas_query_rows"):
             v = getattr(r, key)
             if isinstance(v, str) and v != "all" or isinstance(v, int) and v <= 0:
