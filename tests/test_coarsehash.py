@@ -10,8 +10,8 @@ import pytest
 
 from vprscale.coarsehash import CoarseHasher, pack, quantize_projected, unpack
 from vprscale.errors import InputError
-from vprscale.lists import inverted_lists
 from vprscale.kmeans1d import kmeans_1d, kmeans_1d_exact
+from vprscale.lists import inverted_lists
 
 
 def factorial_design(sigmas, repeat=5):

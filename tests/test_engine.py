@@ -7,7 +7,8 @@ import pytest
 
 from vprscale.baseline import baseline_batch, nearest
 from vprscale.engine import Index, OnlineMatcher, match_batch
-from vprscale.evaluate import query_centres, recall_curve
+from vprscale.evaluate import recall_curve
+from vprscale.protocol import MIN_FAS, part_weights, query_centres
 
 CENTRES = np.tile([[-1.0, 1.0]], (4, 1))  # d = 4, K = 2, equal gaps: δ = 2·Hamming in real units
 
@@ -102,8 +103,28 @@ def test_baseline_nearest_and_candidate_count():
 
 def test_query_centres_keep_whole_windows_with_truth():
     gt = np.array([0, 1, -1, 3, 4, 5, 6, 7, 8, 9, 10])
-    np.testing.assert_array_equal(query_centres(gt, 2, 1), [0, 4, 6, 8, 10])
-    np.testing.assert_array_equal(query_centres(gt, 2, 4), [4, 6, 8])  # window t−2 … t+1
+    c = query_centres(gt.__getitem__, len(gt), len(gt), 2, 1)
+    np.testing.assert_array_equal(c.t, [0, 4, 6, 8, 10])
+    assert c.fas_stride is None
+    np.testing.assert_array_equal(query_centres(gt.__getitem__, len(gt), len(gt), 2, 4).t, [4, 6, 8])  # t−2 … t+1
+
+
+def test_query_centres_stratify_a_sparse_fas_part():
+    """10M-like: the common stride leaves 3 FAS centres; the FAS part gets a stride of its own."""
+    n_deep, n_fas, z = 100_000, 2_700, 1_000
+    gt = np.r_[np.arange(n_deep), n_deep + np.arange(n_fas)]
+    gt[n_deep + 5 :: 7] = -1  # some FAS frames have no truth
+    c = query_centres(gt.__getitem__, len(gt), n_deep, z, 100)
+    deep, fas = c.t[c.t < n_deep], c.t[c.t >= n_deep]
+    np.testing.assert_array_equal(deep, np.arange(z, n_deep, z))  # t = 0 has no whole window
+    assert len(fas) >= MIN_FAS and c.fas_stride is not None and c.fas_stride < z
+    assert (gt[fas] >= 0).all() and (fas + 50 <= len(gt)).all()
+    assert ((fas - n_deep) % c.fas_stride == 0).all()
+    coarser = np.arange(n_deep, len(gt), c.fas_stride + 1)
+    coarser = coarser[(gt[coarser] >= 0) & (coarser + 50 <= len(gt))]
+    assert len(coarser) < MIN_FAS  # the largest stride that gives enough
+    w = part_weights(len(gt), n_deep)
+    assert w["deep1b"] + w["fas"] == pytest.approx(1) and w["fas"] == pytest.approx(n_fas / len(gt))
 
 
 def test_recall_at_each_radius():

@@ -34,7 +34,9 @@ def test_results_grid_and_columns(evaluated):
     assert baseline["us_per_frame"].isna().all()
 
 
-def test_recall_is_monotone_and_parts_add_up(evaluated):
+def test_recall_is_monotone_and_parts_add_up(evaluated, tiny_store):
+    import zarr
+
     res, q = evaluated
     for _, g in res.groupby(["noise", "method", "mode", "L", "part"], dropna=False):
         assert np.all(np.diff(g.sort_values("radius")["recall"].to_numpy()) >= 0)
@@ -44,7 +46,14 @@ def test_recall_is_monotone_and_parts_add_up(evaluated):
     sel = q[(q.noise == "qm1") & (q["mode"] == "aligned") & (q.L == 5)]
     row = res[(res.noise == "qm1") & (res["mode"] == "aligned") & (res.L == 5) & (res.part == "all") &
               (res.radius == 10)]
-    assert row["recall"].iloc[0] == pytest.approx((sel["error"] <= 10).mean())
+    # The tiny store's FAS part is too short for 200 centres at z = 250: it is stratified, and the
+    # overall figure weights each part by its share of the query rows.
+    assert row["fas_stride"].notna().all() and (q.part == "fas").sum() >= 200
+    lay = zarr.open_group(tiny_store, mode="r").attrs["vprscale"]["layout"]
+    n_q = lay["n_deep1b"] + lay["n_fas_query"]
+    by_part = sel.groupby("part")["error"].apply(lambda e: (e <= 10).mean())
+    expected = (lay["n_deep1b"] * by_part["deep1b"] + lay["n_fas_query"] * by_part["fas"]) / n_q
+    assert row["recall"].iloc[0] == pytest.approx(expected)
 
 
 def test_baseline_uses_the_paper_mode_mean_n_r(evaluated):

@@ -41,7 +41,8 @@ def test_index_json_and_storage(tiny_index):
     st = meta["storage"]
     assert st["P1"]["paper"] == 8 * 52_500 and st["P1"]["packed"] == 2 * 52_500
     assert st["P3"]["paper"] == 8 * 12 * 96 and st["P4"]["paper"] == 8 * 96 and st["P2"]["paper"] == 8 * 12 * 2
-    assert st["P1"]["disk"] == (tiny_index / "lists.parquet").stat().st_size
+    # P1 on disk is the map of every reference's address, 2 bytes at d = 12 (plus the .npy header)
+    assert st["P1"]["disk"] == (tiny_index / "ref_hash.npy").stat().st_size == 2 * 52_500 + 128
     assert st["total"]["paper"] == sum(st[p]["paper"] for p in ("P1", "P2", "P3", "P4"))
 
 

@@ -59,8 +59,10 @@ def test_merge_projects_queries_in_the_pca_pass_as_a_separate_pass_would():
     from vprscale.sources.synthetic import FasParams, SyntheticFAS
 
     traverse = SyntheticFAS(3, FasParams(dim=128, n_ref=3000, n_query=2000)).traverse()
+    from vprscale.pca import moments_of
+
     deep = da.from_array(np.random.default_rng(0).normal(size=(2000, 96)).astype(np.float32), chunks=(500, 96))
-    m = MergeTransform(96, traverse.ref.n_rows, 1500, seed=3).fit(deep, traverse)
+    m = MergeTransform(96, traverse.ref.n_rows, 1500, seed=3).fit(moments_of(deep), traverse)
     assert m.noise_pca_ is m.fas_pca_ and m.fas_query_.shape == (1500, 96)
     fq, mu, sd = m._queries(traverse)
     np.testing.assert_allclose(m.fas_query_, fq, atol=1e-5 * np.abs(fq).max())

@@ -11,6 +11,7 @@ task, so tasks never race and a resumed build simply rewrites unfinished chunks.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import sys
@@ -22,17 +23,21 @@ from typing import Any
 import dask
 import numpy as np
 import zarr
+from threadpoolctl import threadpool_limits
 
 import vprscale
 from vprscale import compact
 from vprscale.blocks import BLOCK, apply_by_block, chunk_bounds
 from vprscale.cluster import cluster_peak_rss, dask_client
+from vprscale.coarsehash import hash_descriptors
 from vprscale.errors import InputError
 from vprscale.homogenise import window_mean
+from vprscale.lists import address_dtype
 from vprscale.merge import MergeTransform, noisy_rows, project_rows
 from vprscale.passes import reduce_pass
 from vprscale.pca import block_moments
 from vprscale.progress import Timings, run_tasks
+from vprscale.protocol import MIN_FAS
 from vprscale.rawchunks import write_rows
 from vprscale.recipe import Recipe, load_recipe
 from vprscale.sources.base import RowSource
@@ -42,6 +47,8 @@ from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.store import ATTR, PartialOutput, check_writable, exclusive
 
 NOISE_LEVELS = {"query_qm1": 1.0, "query_qm2": 2.0}
+WRITE_BYTES_PER_S = 400e6  # the page cache's write-back on this kind of machine, measured
+PARALLEL_EFFICIENCY = 0.8  # two tasks share memory bandwidth and the chunk reads
 DEEP1B, FAS = 0, 1
 
 
@@ -188,41 +195,76 @@ def _versions() -> dict[str, str]:
             "zarr": zarr.__version__, "python": sys.version.split()[0]}
 
 
-def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers: int,
+def _per_row(fn, rows: int) -> float:
+    """Seconds per row of ``fn()`` over ``rows`` rows, best of two warm runs."""
+    fn()
+    best = math.inf
+    for _ in range(2):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best / rows
+
+
+def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers: int, layout: str,
          measure: bool = True) -> dict[str, Any]:
-    """What a build reads, writes and needs, with a time estimate from measured throughput."""
+    """What a build reads, writes and needs, with a time estimate from measured per-row costs.
+
+    Each stage of the passes (homogenising, moments, projection, noise, hashing) is timed
+    on one block of rows on one thread, as a task runs it, and the passes are added up:
+    full = 2 homogenisations, moments, projection, noise and the writes of three float32
+    rows; compact = 3 homogenisations, moments, 2 projections, the histograms and the
+    hashing. The FAS part is a few randomized-PCA passes over 4096-d rows.
+    """
     lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
                  recipe.fas_rows("query", traverse.query.n_rows))
     d = recipe.dim
-    write = 4 * d * (lay.n_ref + 2 * lay.n_query) + 9 * lay.n_query + lay.n_ref
+    d_hash = max(1, math.ceil(math.log2(lay.n_ref)))
+    if layout == "full":
+        write = 4 * d * (lay.n_ref + 2 * lay.n_query) + 9 * lay.n_query + lay.n_ref
+    else:
+        held = 120 * (lay.n_query // recipe.query_stride + 2 * MIN_FAS) * 100  # windows of L ≤ 100, 1.2 safety
+        write = (address_dtype(d_hash, 2).itemsize + 8) * lay.n_ref + held * (8 * d + 9)
     free = shutil.disk_usage(out if out.exists() else out.parent if out.parent.exists() else Path.cwd()).free
     if not measure:
         return {"bytes_written_max": write, "disk_free": free}
-    window_mean(deep, recipe.deep1b_rows_read, 0, 64, recipe.window)  # warm caches and the JIT first
-    traverse.ref.read(0, 16)
-    t0 = time.perf_counter()
-    sample = min(BLOCK, recipe.deep1b_rows_kept)
-    h = window_mean(deep, recipe.deep1b_rows_read, 0, sample, recipe.window)
-    noisy_rows(h, 0, recipe.seed, np.zeros(d), np.ones(d), (1.0, 2.0))
-    per_row = (time.perf_counter() - t0) / sample
-    t0 = time.perf_counter()
-    fas_sample = min(2048, traverse.ref.n_rows)
-    x = traverse.ref.read(0, fas_sample)
-    x.T @ (x @ np.ones((x.shape[1], 128), np.float32))  # one power-iteration product per row
-    fas_per_row = (time.perf_counter() - t0) / fas_sample
+    rows = min(BLOCK, recipe.deep1b_rows_kept)
+    with threadpool_limits(limits=1, user_api="blas"):
+        def homogenise() -> np.ndarray:
+            return window_mean(deep, recipe.deep1b_rows_read, 0, rows, recipe.window)
+
+        cost = {"homogenise": _per_row(homogenise, rows)}
+        h = homogenise()
+        cost["moments"] = _per_row(lambda: block_moments(h, 0), rows)
+        matrix = np.eye(d)
+        cost["project"] = _per_row(lambda: project_rows(h, np.zeros(d), matrix), rows)
+        cost["noise"] = _per_row(lambda: noisy_rows(h, 0, recipe.seed, np.zeros(d), np.ones(d), (1.0, 2.0)), rows)
+        comp = np.linalg.qr(np.random.default_rng(0).standard_normal((d, d)))[0][:d_hash]
+        centres = np.tile([-0.1, 0.1], (d_hash, 1))
+        cost["hash"] = _per_row(lambda: hash_descriptors(h, np.zeros(d), comp, centres), rows)
+        fas_sample = min(2048, traverse.ref.n_rows)
+        x = traverse.ref.read(0, fas_sample)
+        fas_per_row = _per_row(lambda: x.T @ (x @ np.ones((x.shape[1], 128), np.float32)), fas_sample)
+    c = cost
+    if layout == "full":
+        per_deep = 2 * c["homogenise"] + c["moments"] + c["project"] + c["noise"] + 12 * d / WRITE_BYTES_PER_S
+    else:
+        per_deep = 3 * c["homogenise"] + c["moments"] + 2 * c["project"] + 2 * c["hash"] + 12 / WRITE_BYTES_PER_S
     fas_passes = 3 if lay.n_fas_ref == traverse.ref.n_rows else 6  # randomized PCA passes
-    parallel = max(1, min(workers, os.cpu_count() or 1))
-    est = (per_row * recipe.deep1b_rows_kept * 2.2
-           + fas_per_row * (traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 2)) / parallel
-    read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * 2 + 4 * traverse.ref.dim * (
+    parallel = max(1, min(workers, os.cpu_count() or 1)) * PARALLEL_EFFICIENCY
+    est = (per_deep * recipe.deep1b_rows_kept + fas_per_row * (traverse.ref.n_rows * fas_passes
+                                                                 + traverse.query.n_rows * 2)) / parallel
+    passes = 2 if layout == "full" else 3
+    read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * passes + 4 * traverse.ref.dim * (
         traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3)
     chunk_mem = recipe.chunk_rows * d * (8 + 8 + 4 * 6)
     fas_mem = 4 * traverse.ref.dim * (8192 * 3 + 128 * 4) + 8 * traverse.ref.dim * 128 * 3
-    return {"scale": recipe.scale, "ref_rows": lay.n_ref, "query_rows": lay.n_query,
+    hist_mem = 8 * d_hash * (1 << 14) * 24 if layout == "compact" else 0  # per-chunk histograms of a group
+    return {"scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref, "query_rows": lay.n_query,
             "deep1b_rows_read": recipe.deep1b_rows_read, "fas_ref_rows": lay.n_fas_ref,
             "fas_query_rows": lay.n_fas_query, "bytes_read": read, "bytes_written_max": write,
-            "disk_free": free, "memory_estimate": workers * chunk_mem + fas_mem + 300 * 2**20,
-            "seconds_estimate": est, "deep1b": deep.name, "fas": traverse.ref.name}
+            "disk_free": free, "memory_estimate": workers * chunk_mem + fas_mem + hist_mem + 300 * 2**20,
+            "seconds_estimate": est, "per_row_s": cost, "deep1b": deep.name, "fas": traverse.ref.name}
 
 
 def _gib(x: float) -> str:
@@ -230,7 +272,7 @@ def _gib(x: float) -> str:
 
 
 def print_plan(p: dict[str, Any], out: Path) -> None:
-    print(f"build {p['scale']} → {out}")
+    print(f"build {p['scale']} ({p['layout']} layout) → {out}")
     for kind in ("ref", "query"):
         rows, fas = p[f"{kind}_rows"], p[f"fas_{kind}_rows"]
         print(f"  {kind + ' rows':<11} {rows:>15,}   (Deep1B {rows - fas:,} + FAS {fas:,})")
@@ -247,7 +289,7 @@ def build(req: BuildRequest) -> dict[str, Any]:
     deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
     out = Path(req.out)
     final = out / f"{recipe.scale}{'' if req.rescale else '-norescale'}.zarr"
-    p = plan(recipe, deep, traverse, out, req.workers, measure=req.dry_run)
+    p = plan(recipe, deep, traverse, out, req.workers, req.layout or recipe.layout, measure=req.dry_run)
     if req.dry_run:
         print_plan(p, final)
     if p["bytes_written_max"] > p["disk_free"]:

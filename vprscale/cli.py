@@ -105,7 +105,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     summary = evaluate(EvalRequest(store=Path(args.store), index=Path(args.index) if args.index else None,
                                    noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
-                                   z=args.z, baseline_queries=args.baseline_queries, d_sweep=args.d, out=Path(args.out) if args.out else None,
+                                   z=args.z, baseline_queries=args.baseline_queries,
+                                   d_sweep=args.d, out=Path(args.out) if args.out else None,
                                    workers=args.workers, scheduler=args.scheduler))
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "

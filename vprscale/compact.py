@@ -3,7 +3,7 @@
 A full store costs 1.15 KB per place (a reference row and two query rows of 96 float32),
 while the index needs a few bytes. At 100M places and beyond the build therefore keeps:
 
-- per reference: its CoarseHash address (``ref_hash``, uint32 while d ≤ 32), its
+- per reference: its CoarseHash address (``ref_hash``, 4 bytes while d ≤ 32), its
   quantisation error (``ref_err``, float32: the single best of an address is the least of
   these, ties to the smaller id) and its first principal component (``base_x1``, float32:
   the map of the d = 1 baseline), 12 bytes in all;
@@ -28,6 +28,7 @@ import zarr
 
 from vprscale.blocks import BLOCK, chunk_bounds
 from vprscale.coarsehash import CoarseHasher, hash_descriptors, project
+from vprscale.lists import address_dtype
 from vprscale.passes import reduce_pass
 from vprscale.progress import Timings, compute
 from vprscale.protocol import query_centres, window_frames
@@ -37,11 +38,6 @@ if TYPE_CHECKING:
     from vprscale.build import ChunkWriter
 
 MODEL = ("mean", "components", "centres", "explained_variance", "ranges")
-
-
-def address_dtype(d: int, k: int) -> np.dtype:
-    """The narrowest unsigned integer that holds ``K^d`` addresses."""
-    return np.dtype(np.uint32) if k**d <= 2**32 else np.dtype(np.uint64)
 
 
 class _Histograms:

@@ -16,7 +16,7 @@ Outputs, all in the index directory:
 - ``lists.parquet`` (``hash``, ``ref_id``) and ``buckets.parquet`` (``hash``, ``size``,
   ``best_id``, ``offset``) for SQL.
 
-Ids are uint32 below 2^32 references, addresses uint32 while ``K^d ≤ 2^32``; the engine
+Ids are uint32 below 2^32 references, addresses as narrow as ``K^d`` allows; the engine
 memory-maps the ``.npy`` files, so a query touches only the lists and windows it reads.
 """
 
@@ -37,6 +37,14 @@ PREFIX_BITS = 16
 ROW_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
 
 Reader = Callable[[int, int], tuple[np.ndarray, np.ndarray]]  # rows [a, b) → (addresses, errors)
+
+
+def address_dtype(d: int, k: int) -> np.dtype:
+    """The narrowest unsigned integer that holds ``K^d`` addresses (2 bytes up to d = 16 at K = 2)."""
+    for t in (np.uint16, np.uint32):
+        if k**d <= np.iinfo(t).max + 1:
+            return np.dtype(t)
+    return np.dtype(np.uint64)
 
 
 def inverted_lists(h: np.ndarray, err: np.ndarray) -> dict[str, np.ndarray]:
@@ -111,7 +119,7 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
     ``occupied`` and ``partitions``.
     """
     bits = max(1, math.ceil(d * math.log2(k)))
-    addr_t = np.dtype(np.uint32) if bits <= 32 else np.dtype(np.uint64)
+    addr_t = address_dtype(d, k)
     id_t = np.dtype(np.uint32) if n_ref < 2**32 else np.dtype(np.uint64)
     shift = np.uint64(max(0, bits - PREFIX_BITS))
     ref_hash = np.lib.format.open_memmap(out / "ref_hash.npy", mode="w+", dtype=addr_t, shape=(n_ref,))

@@ -1,0 +1,88 @@
+"""The compact layout: the same addresses, lists and matches as the full layout of the same data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import zarr
+
+from vprscale.cli import main
+from vprscale.errors import InputError
+
+from .conftest import write_recipe
+
+LISTS = ("ref_hash", "ids", "addresses", "offsets", "best")
+
+
+@pytest.fixture(scope="module")
+def compact_store(sources, tmp_path_factory) -> Path:
+    """The tiny recipe (the one ``tiny_store`` is built from), in the compact layout."""
+    from vprscale.build import BuildRequest, build
+
+    root = tmp_path_factory.mktemp("compact")
+    recipe = write_recipe(root / "tiny.toml")
+    build(BuildRequest(scale=str(recipe), out=root / "out", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+                       workers=2, quiet=True, layout="compact"))
+    return root / "out" / "tiny.zarr"
+
+
+@pytest.fixture(scope="module")
+def both_indexes(compact_store, tiny_store, tmp_path_factory) -> tuple[Path, Path]:
+    from vprscale.index import build_index
+
+    root = tmp_path_factory.mktemp("indexes")
+    compact = Path(build_index(compact_store, out=root / "compact.index", quiet=True)["index"])
+    full = Path(build_index(tiny_store, d=16, out=root / "full.index", quiet=True)["index"])
+    return compact, full
+
+
+def test_compact_store_keeps_only_what_is_read(compact_store):
+    g = zarr.open_group(compact_store, mode="r")
+    assert "ref" not in g and g.attrs["vprscale"]["layout"]["kind"] == "compact"
+    n_ref = 50_000 + 2_500
+    assert g["ref_hash"].shape == (n_ref,) and g["ref_hash"].dtype == np.uint16  # d = 16
+    assert g["ref_err"].dtype == np.float32 and g["base_x1"].shape == (n_ref,)
+    frames = g["query_frames"][:]
+    assert len(frames) < 52_000 and np.all(np.diff(frames) > 0)  # only the evaluated windows, ascending
+    assert g["query_qm1"].shape == (len(frames), 96) == g["query_qm2"].shape
+
+
+def test_compact_rows_equal_the_full_rows(compact_store, tiny_store):
+    """The kept query rows are the full store's rows of the same frames, bit for bit."""
+    c, f = zarr.open_group(compact_store, mode="r"), zarr.open_group(tiny_store, mode="r")
+    frames = c["query_frames"][:]
+    for name in ("query_qm1", "query_qm2"):
+        np.testing.assert_array_equal(c[name][:], f[name].get_orthogonal_selection((frames, slice(None))))
+    np.testing.assert_array_equal(c["gt"][:], f["gt"][:][frames])
+    np.testing.assert_array_equal(c["query_part"][:], f["query_part"][:][frames])
+
+
+def test_same_addresses_lists_and_model(both_indexes):
+    compact, full = both_indexes
+    for name in LISTS:
+        np.testing.assert_array_equal(np.load(compact / f"{name}.npy"), np.load(full / f"{name}.npy"), err_msg=name)
+    for name in ("mean", "components", "centres"):
+        np.testing.assert_array_equal(np.load(compact / "model" / f"{name}.npy"),
+                                      np.load(full / "model" / f"{name}.npy"), err_msg=name)
+
+
+def test_same_matches(both_indexes, compact_store, tiny_store, tmp_path):
+    compact, full = both_indexes
+    tables = []
+    for store, index, out in ((compact_store, compact, tmp_path / "c"), (tiny_store, full, tmp_path / "f")):
+        assert main(["eval", str(store), str(index), "--L", "1,50", "--noise", "qm1", "--out", str(out)]) == 0
+        tables.append(pq.read_table(out / "queries.parquet").to_pandas())
+    cols = ["method", "mode", "L", "t", "gt", "match", "n_r", "in_list", "part"]
+    assert len(tables[0]) > 1000 and tables[0][cols].equals(tables[1][cols])
+
+
+def test_compact_store_refuses_what_it_cannot_answer(compact_store, both_indexes, tmp_path):
+    from vprscale.index import build_index
+
+    with pytest.raises(InputError, match="d = 16"):
+        build_index(compact_store, d=12, out=tmp_path / "x.index", quiet=True)
+    assert main(["eval", str(compact_store), str(both_indexes[0]), "--L", "7", "--out", str(tmp_path / "e")]) == 2
+    assert not (tmp_path / "e" / "results.parquet").exists()
