@@ -100,16 +100,15 @@ def bench_lookup(index: str, n: int = 50) -> str:
     addresses = pq.read_table(Path(index) / "buckets.parquet", columns=["hash"])["hash"].to_numpy()
     picks = np.random.default_rng(0).choice(addresses, n)
     t0 = time.perf_counter()
-    con = connect(index)
-    t1 = time.perf_counter()
-    query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(picks[0])}", 10.0)
-    cold = time.perf_counter() - t1
-    times = []
-    for h in picks[1:]:
-        t = time.perf_counter()
-        query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(h)}", 10.0)
-        times.append(time.perf_counter() - t)
-    con.close()
+    with connect(index) as con:
+        t1 = time.perf_counter()
+        query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(picks[0])}", 10.0)
+        cold = time.perf_counter() - t1
+        times = []
+        for h in picks[1:]:
+            t = time.perf_counter()
+            query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(h)}", 10.0)
+            times.append(time.perf_counter() - t)
     return (f"  DuckDB look-up of one address: median {1e3 * np.median(times):.2f} ms, "
             f"p95 {1e3 * np.percentile(times, 95):.2f} ms on an open console; first query {1e3 * cold:.1f} ms, "
             f"sandboxed connection set-up {1e3 * (t1 - t0):.1f} ms")

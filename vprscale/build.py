@@ -223,7 +223,7 @@ def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers
     if layout == "full":
         write = 4 * d * (lay.n_ref + 2 * lay.n_query) + 9 * lay.n_query + lay.n_ref
     else:
-        held = 120 * (lay.n_query // recipe.query_stride + 2 * MIN_FAS) * 100  # windows of L ≤ 100, 1.2 safety
+        held = 120 * (lay.n_query // recipe.query_stride + 2 * MIN_FAS)  # windows of L ≤ 100, 1.2 safety
         write = (address_dtype(d_hash, 2).itemsize + 8) * lay.n_ref + held * (8 * d + 9)
     free = shutil.disk_usage(out if out.exists() else out.parent if out.parent.exists() else Path.cwd()).free
     if not measure:

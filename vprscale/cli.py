@@ -27,6 +27,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive, finite number")
+    return value
+
+
 def _write_summary(args: argparse.Namespace, data: dict) -> None:
     """``--summary FILE``: the command's summary as JSON (what pipelines read back)."""
     if getattr(args, "summary", None):
@@ -79,8 +89,9 @@ def cmd_sql(args: argparse.Namespace) -> int:
     from vprscale.sql import run_sql, shell
 
     if args.query is None:
-        return shell(args.index, timeout=args.timeout)
-    print(run_sql(args.index, args.query, fmt=args.format, timeout=args.timeout), end="")
+        return shell(args.index, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads)
+    print(run_sql(args.index, args.query, fmt=args.format, timeout=args.timeout, memory_limit=args.memory_limit,
+                  threads=args.threads), end="")
     return 0
 
 
@@ -248,7 +259,10 @@ def parser() -> argparse.ArgumentParser:
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--csv", dest="format", action="store_const", const="csv")
     fmt.add_argument("--json", dest="format", action="store_const", const="json")
-    p.add_argument("--timeout", type=float, default=30.0, help="seconds before a query is interrupted")
+    p.add_argument("--timeout", type=_positive_float, default=30.0,
+                   help="seconds before a query is stopped (default 30)")
+    p.add_argument("--memory-limit", default="2GB", help="DuckDB's memory cap (default 2GB)")
+    p.add_argument("--threads", type=_positive_int, default=2, help="DuckDB's threads (default 2)")
     p.set_defaults(func=cmd_sql, format="table")
 
     p = sub.add_parser("occupancy", help="bucket sizes, occupied share of K^d and per-component balance")

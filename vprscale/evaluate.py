@@ -270,7 +270,8 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                 c = centres[L]
                 t, pos = c.t, qf.positions(c.t, L)
                 truth, parts = qs.gt_at(t), qs.part_at(t)
-                key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(path), "fas_stride": c.fas_stride}
+                key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(Path(path).resolve()),
+                       "fas_stride": c.fas_stride}
                 w = weights if c.fas_stride is not None else None
                 fallback = float(1 - occupied[pos].mean()) if len(t) else 0.0
                 results = _method_runs(req, idx, pos, L, qf, truth, args)

@@ -161,8 +161,11 @@ def load_index_meta(index: str | Path) -> dict[str, Any]:
     meta_file = p / "index.json"
     if not meta_file.is_file():
         raise InputError(f"{p}: not a vprscale index (no index.json)")
-    meta = json.loads(meta_file.read_text())
-    if not meta.get("complete") or meta.get("kind") != "coarsehash-index":
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != "coarsehash-index":
         raise InputError(f"{p}: the index is incomplete or of another kind")
     if meta.get("format", 1) < INDEX_FORMAT:
         raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")

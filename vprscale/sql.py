@@ -4,24 +4,34 @@ Views: ``lists(hash, ref_id)``, ``buckets(hash, size, best_id, offset)``,
 ``model(component, cluster, centre, refs, share, variance)``, and ``results`` /
 ``queries`` when ``vprscale eval`` output sits in the index's ``eval/`` folder.
 
-The sandbox: exactly one SELECT (or WITH … SELECT) statement; file access limited to the
-index directory; external access off and the configuration locked before the user's
-statement runs; a timeout that interrupts the query.
+The sandbox: the views are Arrow datasets handed to DuckDB by this process, so DuckDB
+itself needs no file access at all and has it switched off (no path is ever written into
+SQL); its only allowed directory is a fresh, empty spill directory of its own (DuckDB
+would otherwise allow ``<cwd>/.tmp``), removed afterwards; memory, threads and spill size
+are capped; exactly one SELECT (or WITH … SELECT) statement runs, after the configuration
+is locked; and a timeout interrupts it, and abandons it if it does not stop.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import shutil
 import sys
+import tempfile
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import duckdb
 import pyarrow.csv as pacsv
+import pyarrow.dataset as pads
 
 from vprscale.errors import InputError
 from vprscale.index import load_index_meta
+
+GRACE_S = 5.0  # how long an interrupted query may take to stop before it is abandoned
 
 
 def _views(index: Path) -> dict[str, Path]:
@@ -34,20 +44,33 @@ def _views(index: Path) -> dict[str, Path]:
     return views
 
 
-def connect(index: str | Path) -> duckdb.DuckDBPyConnection:
-    """An in-memory connection with the index views, locked down."""
+@contextmanager
+def connect(index: str | Path, memory_limit: str = "2GB", threads: int = 2,
+            spill_limit: str = "2GB") -> Iterator[duckdb.DuckDBPyConnection]:
+    """An in-memory connection with the index views, locked down (see the module's docstring)."""
     root = Path(index).resolve()
     load_index_meta(root)
+    spill = tempfile.mkdtemp(prefix="vprscale-sql-")
     con = duckdb.connect(":memory:")
-    for name, path in _views(root).items():
-        con.execute(f"CREATE VIEW {name} AS SELECT * FROM read_parquet('{path.as_posix()}')")
-    con.execute(f"SET allowed_directories = ['{root.as_posix()}/']")
-    con.execute("SET enable_external_access = false")
-    con.execute("SET autoinstall_known_extensions = false")
-    con.execute("SET autoload_known_extensions = false")
-    con.execute("SET parquet_metadata_cache = true")  # repeated look-ups skip re-reading the footers
-    con.execute("SET lock_configuration = true")
-    return con
+    try:
+        for name, path in _views(root).items():
+            try:
+                con.register(name, pads.dataset(path, format="parquet"))
+            except (OSError, ValueError) as exc:  # pyarrow's errors for missing or damaged files
+                raise InputError(f"{path}: cannot be read as Parquet ({str(exc).splitlines()[0]})") from None
+        settings = [("temp_directory", spill), ("memory_limit", memory_limit), ("threads", threads),
+                    ("max_temp_directory_size", spill_limit), ("enable_external_access", False),
+                    ("autoinstall_known_extensions", False), ("autoload_known_extensions", False),
+                    ("allow_community_extensions", False), ("lock_configuration", True)]
+        for name, value in settings:  # the names are ours; the values go in as bound parameters
+            try:
+                con.execute(f"SET {name} = ?", [value])
+            except duckdb.Error as exc:
+                raise InputError(f"--{name.replace('_', '-')} {value}: {str(exc).splitlines()[0]}") from None
+        yield con
+    finally:
+        con.close()
+        shutil.rmtree(spill, ignore_errors=True)
 
 
 def check_statement(con: duckdb.DuckDBPyConnection, query: str) -> None:
@@ -64,18 +87,38 @@ def check_statement(con: duckdb.DuckDBPyConnection, query: str) -> None:
 
 
 def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
-    """Run a checked statement with a timeout; returns a pyarrow table."""
+    """Run a checked statement with a timeout; returns a pyarrow table.
+
+    The statement runs on a daemon thread; at the timeout it is interrupted, and if it has
+    not stopped ``GRACE_S`` later it is abandoned (the error is raised and the process may
+    exit while DuckDB still unwinds).
+    """
+    if not timeout > 0:
+        raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
     check_statement(con, query)
-    timer = threading.Timer(timeout, con.interrupt)
-    timer.start()
-    try:
-        return con.sql(query).to_arrow_table()
-    except duckdb.InterruptException:
-        raise InputError(f"query: interrupted after the {timeout:g} s timeout") from None
-    except duckdb.Error as exc:
+    box: dict = {}
+
+    def run() -> None:
+        try:
+            box["table"] = con.sql(query).to_arrow_table()
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            box["error"] = exc
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    worker.join(timeout)
+    if worker.is_alive():
+        con.interrupt()
+        worker.join(GRACE_S)
+        raise InputError(f"query: stopped at the {timeout:g} s timeout")
+    exc = box.get("error")
+    if isinstance(exc, duckdb.InterruptException):
+        raise InputError(f"query: stopped at the {timeout:g} s timeout")
+    if isinstance(exc, duckdb.Error):
         raise InputError(f"query: {str(exc).splitlines()[0]}") from None
-    finally:
-        timer.cancel()
+    if exc is not None:
+        raise exc
+    return box["table"]
 
 
 def format_table(table, fmt: str) -> str:
@@ -93,15 +136,16 @@ def format_table(table, fmt: str) -> str:
     return "\n".join([line, "  ".join("-" * w for w in widths), *body, f"({len(rows)} rows)"]) + "\n"
 
 
-def run_sql(index: str | Path, query: str, fmt: str = "table", timeout: float = 30.0) -> str:
+def run_sql(index: str | Path, query: str, fmt: str = "table", timeout: float = 30.0, memory_limit: str = "2GB",
+            threads: int = 2) -> str:
     """One read-only query over an index, formatted as a table, CSV or JSON lines."""
-    with connect(index) as con:
+    with connect(index, memory_limit, threads) as con:
         return format_table(query_table(con, query, timeout), fmt)
 
 
-def shell(index: str | Path, timeout: float = 30.0) -> int:
+def shell(index: str | Path, timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:
     """An interactive console: statements end with ';', an empty line or EOF quits."""
-    with connect(index) as con:
+    with connect(index, memory_limit, threads) as con:
         print(f"vprscale sql on {index}: views {', '.join(_views(Path(index).resolve()))}; end with ';'",
               file=sys.stderr)
         buf: list[str] = []
