@@ -1,11 +1,13 @@
 """``vprscale run``: batch pipelines of stages (synth, build, index, eval, report) from TOML.
 
 A pipeline file names an output directory and an ordered list of stages. Each stage's
-fingerprint covers its kind, its parameters and the fingerprints of the stages it reads
-from; a stage whose fingerprint matches its last complete run (and whose outputs still
-exist) is skipped, so re-running a finished pipeline does no work and changing a parameter
-re-runs that stage and everything downstream of it. Every run writes a JSON summary and a
-log under ``<out>/runs/``; two runs on the same output directory never overlap.
+fingerprint covers its kind, its parameters, what it reads (a build's recipe file and
+source files), the fingerprints of the stages it reads from, and vprscale's code; a stage
+whose fingerprint matches its last complete run (and whose outputs still exist) is
+skipped, so re-running a finished pipeline does no work and changing a parameter, an
+input or the code re-runs that stage and everything downstream of it. Every run writes a
+JSON summary (times, peak memory, bytes on disk per stage) and a log under
+``<out>/runs/``; two runs on the same output directory never overlap.
 
 Relative paths are taken from the current directory (run pipelines from the repository root).
 """
@@ -141,8 +143,7 @@ class _Tee(io.TextIOBase):
 def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False) -> dict[str, Any]:
     """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``).
 
-    ``force`` re-runs every stage (for example after upgrading vprscale's code, which the
-    fingerprints do not cover beyond its version number).
+    ``force`` re-runs every stage even where nothing it depends on changed.
     """
     pipe = load_pipeline(path)
     pipe.out.mkdir(parents=True, exist_ok=True)
@@ -156,10 +157,11 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         state = json.loads(state_file.read_text()) if state_file.is_file() else {}
         fingerprints: dict[str, str] = {}
         outputs: dict[str, dict[str, Any]] = {}
+        code = code_fingerprint()
         tee_err = _Tee(sys.stderr, log)
         try:
             for stage in pipe.stages:
-                fp = _fingerprint(stage, fingerprints)
+                fp = _fingerprint(stage, fingerprints, code)
                 fingerprints[stage.name] = fp
                 prev = state.get(stage.name, {})
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp}
@@ -196,18 +198,46 @@ def _write_json(path: Path, data: dict) -> None:
     tmp.replace(path)
 
 
-def _fingerprint(stage: Stage, upstream: dict[str, str]) -> str:
+def code_fingerprint() -> str:
+    """A digest of vprscale's own source files: a change of code re-runs the stages it may change."""
+    root = Path(vprscale.__file__).parent
+    digest = hashlib.sha256(vprscale.__version__.encode())
+    for f in sorted(root.rglob("*.py")):
+        digest.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _inputs(stage: Stage) -> dict[str, Any]:
+    """What a stage reads besides its parameters: a build's recipe file and source files."""
+    if stage.kind != "build":
+        return {}
+    from vprscale.recipe import recipe_path
+    from vprscale.sources.deep1b import open_deep1b
+    from vprscale.sources.fas import open_fas
+
+    recipe = recipe_path(stage.params["scale"])
+    found: dict[str, Any] = {"recipe": hashlib.sha256(recipe.read_bytes()).hexdigest()}
+    if stage.params.get("deep1b"):
+        found["deep1b"] = open_deep1b(stage.params["deep1b"]).fingerprint()
+    if stage.params.get("fas"):
+        found["fas"] = open_fas(stage.params["fas"]).fingerprint()
+    return found
+
+
+def _fingerprint(stage: Stage, upstream: dict[str, str], code: str) -> str:
+    """A stage's identity: its kind and parameters, what it reads, its upstream stages and the code."""
     refs = {}
     for key, value in stage.params.items():
         for ref in value if isinstance(value, list) else [value]:
             if isinstance(ref, str) and ref in upstream:
                 refs[f"{key}:{ref}"] = upstream[ref]
-    body = {"kind": stage.kind, "params": stage.params, "upstream": refs, "version": vprscale.__version__}
-    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()[:16]
+    body = {"kind": stage.kind, "params": stage.params, "upstream": refs, "inputs": _inputs(stage), "code": code}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _outputs_exist(outputs: dict[str, Any]) -> bool:
-    paths = [v for k, v in outputs.items() if k not in ("figures", "peak_rss_bytes") and isinstance(v, str)]
+    paths = [v for k, v in outputs.items() if k not in ("figures", "peak_rss_bytes", "bytes_on_disk")
+             and isinstance(v, str)]
     return bool(paths) and all(Path(p).exists() for p in paths)
 
 
@@ -269,4 +299,7 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
     if stage.kind == "eval":
         out = {"eval": out["out"]}
     out["peak_rss_bytes"] = result.get("peak_rss_bytes")
+    main = out.get("store") or out.get("index") or out.get("eval") or out.get("dir")
+    if main and Path(main).exists():
+        out["bytes_on_disk"] = sum(f.stat().st_size for f in Path(main).rglob("*") if f.is_file())
     return out

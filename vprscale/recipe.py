@@ -82,13 +82,21 @@ def known_scales() -> list[str]:
     return sorted(p.stem for p in recipe_dir().glob("*.toml"))
 
 
-def load_recipe(scale: str) -> Recipe:
-    """The recipe of a named scale (``20K``, ``1M``, …) or of a TOML file path."""
+def recipe_path(scale: str) -> Path:
+    """The file of a named scale (``20K``, ``1M``, …), or ``scale`` itself if it is a TOML path."""
     path = Path(scale)
     if not path.suffix == ".toml":
         path = recipe_dir() / f"{scale}.toml"
         if not path.is_file():
             raise InputError(f"--scale {scale}: unknown scale; known: {', '.join(known_scales())}")
+    elif not path.is_file():
+        raise InputError(f"{path}: no such recipe file")
+    return path
+
+
+def load_recipe(scale: str) -> Recipe:
+    """The recipe of a named scale (``20K``, ``1M``, …) or of a TOML file path."""
+    path = recipe_path(scale)
     return Recipe.from_dict(read_toml(path, "recipe"), str(path))
 
 

@@ -20,4 +20,6 @@ def file_fingerprint(path: str | os.PathLike) -> dict[str, Any]:
         if size > _SAMPLE:
             fh.seek(max(_SAMPLE, size - _SAMPLE))
             h.update(fh.read(_SAMPLE))
-    return {"path": str(p.resolve()), "bytes": size, "sha256_head_tail": h.hexdigest()}
+    # The modification time catches a change in the middle, which the sampled hash cannot see.
+    return {"path": str(p.resolve()), "bytes": size, "mtime_ns": p.stat().st_mtime_ns,
+            "sha256_head_tail": h.hexdigest()}
