@@ -112,3 +112,29 @@ def test_inverted_lists_sort_by_address_then_id(high):
         ids = np.flatnonzero(h == a)
         assert off == np.searchsorted(h[order], a) and size == len(ids)
         assert best == ids[np.argmin(err[ids])]  # least error, ties to the smallest id
+
+
+def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
+    """Sorting partition by partition (bounded memory) gives the lists of one global sort."""
+    from vprscale.lists import inverted_lists, write_lists
+
+    rng = np.random.default_rng(1)
+    n = 100_000
+    h = np.minimum(rng.integers(0, 2**18, n), rng.integers(0, 2**18, n)).astype(np.uint64)  # skewed buckets
+    err = rng.random(n).astype(np.float32)
+    err[::7] = 0.5  # ties: the smallest id is the single best
+    bounds = [(a, min(n, a + 7000)) for a in range(0, n, 7000)]
+    got = {}
+    for part_rows in (1 << 30, 5000):
+        out = tmp_path / str(part_rows)
+        out.mkdir()
+        r = write_lists(out, lambda a, b: (h[a:b], err[a:b]), bounds, n, 18, 2, quiet=True, part_rows=part_rows)
+        assert r["partitions"] == (1 if part_rows > n else 21) and not (out / ".partitions").exists()
+        got[part_rows] = {k: np.load(out / f"{k}.npy") for k in ("ids", "addresses", "offsets", "best", "ref_hash")}
+    want = inverted_lists(h, err)
+    np.testing.assert_array_equal(got[5000]["ids"], want["order"])
+    np.testing.assert_array_equal(got[5000]["addresses"], want["addresses"])
+    np.testing.assert_array_equal(got[5000]["offsets"], np.r_[want["offsets"], n])
+    np.testing.assert_array_equal(got[5000]["best"], want["best"])
+    for k in got[5000]:
+        np.testing.assert_array_equal(got[5000][k], got[1 << 30][k], err_msg=k)

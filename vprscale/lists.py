@@ -2,11 +2,11 @@
 
 A billion (address, id) pairs sorted in memory would take 16 GB and more. The addresses are
 first scanned once (written to ``ref_hash.npy``, counted per 16-bit prefix and per code
-level); the prefixes are cut into partitions of at most ``PART_ROWS`` references, and each
-partition is then gathered from the chunks, sorted on its own and appended to the outputs.
-Partitions are ranges of addresses, so appending them in order gives the globally sorted
-lists. Memory is bounded by one partition (about 7 GB at ``PART_ROWS`` = 2^27), whatever
-the number of references.
+level); the prefixes are cut into partitions of at most ``PART_ROWS`` references, a second
+pass scatters every reference to its partition's files, and each partition is then sorted
+on its own and appended to the outputs. Partitions are ranges of addresses, so appending
+them in order gives the globally sorted lists. Memory is bounded by one partition (about
+4 GB at ``PART_ROWS`` = 2^26), whatever the number of references.
 
 Outputs, all in the index directory:
 
@@ -23,6 +23,7 @@ memory-maps the ``.npy`` files, so a query touches only the lists and windows it
 from __future__ import annotations
 
 import math
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -32,7 +33,7 @@ import pyarrow.parquet as pq
 
 from vprscale.passes import ChunkProgress
 
-PART_ROWS = 1 << 27
+PART_ROWS = 1 << 26
 PREFIX_BITS = 16
 ROW_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
 
@@ -110,6 +111,54 @@ def _prefix_cuts(counts: np.ndarray, limit: int) -> list[tuple[int, int]]:
     return cuts
 
 
+def _scatter(work: Path, read: Reader, bounds: list[tuple[int, int]], ref_hash: np.ndarray,
+             cuts: list[tuple[int, int]], shift: np.uint64, id_t: np.dtype, quiet: bool) -> list:
+    """Loaders of each partition's ``(addresses, errors, ids)``, ids ascending.
+
+    With one partition everything is read straight into memory. With more, one pass over
+    the chunks appends every reference to its partition's files (12 bytes a reference), so
+    that no partition has to scan the whole set again; each loader reads its files back
+    and deletes them.
+    """
+    if len(cuts) == 1:
+        def whole() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            err = np.concatenate([np.asarray(read(a, b)[1], np.float32) for a, b in bounds])
+            return np.asarray(ref_hash), err, np.arange(len(ref_hash), dtype=id_t)
+        return [whole]
+    work.mkdir(exist_ok=True)
+    names = [(work / f"{i}.hash", work / f"{i}.err", work / f"{i}.ids") for i in range(len(cuts))]
+    handles = [[n.open("wb") for n in trio] for trio in names]
+    edges = np.array([hi for _, hi in cuts[:-1]], np.int64)
+    progress = None if quiet else ChunkProgress("scatter partitions", len(bounds))
+    for a, b in bounds:
+        h = np.asarray(ref_hash[a:b])
+        err = np.asarray(read(a, b)[1], np.float32)
+        which = np.searchsorted(edges, (h >> h.dtype.type(shift)).astype(np.int64), side="right")
+        order = np.argsort(which, kind="stable")  # ids stay ascending inside each partition
+        starts = np.searchsorted(which[order], np.arange(len(cuts) + 1))
+        ids = np.arange(a, b, dtype=id_t)
+        for i in range(len(cuts)):
+            sel = order[starts[i] : starts[i + 1]]
+            for f, x in zip(handles[i], (h[sel], err[sel], ids[sel]), strict=True):
+                x.tofile(f)
+        if progress:
+            progress.update(1)
+    for trio in handles:
+        for f in trio:
+            f.close()
+
+    def loader(i: int):
+        def load() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            out = tuple(np.fromfile(n, dtype=t) for n, t in zip(names[i], (ref_hash.dtype, np.float32, id_t),
+                                                                 strict=True))
+            for n in names[i]:
+                n.unlink()
+            return out
+        return load
+
+    return [loader(i) for i in range(len(cuts))]
+
+
 def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: int, d: int, k: int,
                 quiet: bool = False, part_rows: int = PART_ROWS) -> dict:
     """Sort the references of ``read`` into inverted lists in ``out``; returns counts and sizes.
@@ -150,40 +199,34 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
                                   compression="zstd", use_dictionary=False,
                                   column_encoding={"hash": "DELTA_BINARY_PACKED", "size": "PLAIN",
                                                    "best_id": "PLAIN", "offset": "DELTA_BINARY_PACKED"})
+    parts = _scatter(out / ".partitions", read, bounds, ref_hash, cuts, shift, id_t, quiet)
     progress = None if quiet or len(cuts) == 1 else ChunkProgress("sort partitions", len(cuts))
     offset = 0
-    for lo, hi in cuts:
-        sel_h, sel_e, sel_id = [], [], []
-        for a, b in bounds:
-            h = ref_hash[a:b]
-            p = h >> addr_t.type(shift)
-            mask = (p >= lo) & (p < hi)
-            if len(cuts) == 1:
-                mask = slice(None)
-            sel_h.append(np.asarray(h[mask]))
-            sel_e.append(np.asarray(read(a, b)[1])[mask])
-            sel_id.append(np.arange(a, b, dtype=np.int64)[mask])
-        ids = np.concatenate(sel_id)
-        lists = inverted_lists(np.concatenate(sel_h), np.concatenate(sel_e))
-        del sel_h, sel_e, sel_id
+    for part in parts:
+        h, err, ids = part()
+        lists = inverted_lists(h, err)
+        del h, err
         order = ids[lists["order"]]
+        best = ids[lists["best"]]
+        del ids
         files["ids"].append(order)
         files["addresses"].append(lists["addresses"])
         files["offsets"].append(lists["offsets"] + offset)
-        files["best"].append(ids[lists["best"]])
+        files["best"].append(best)
         for r in range(0, len(order), 1 << 24):  # bounded Arrow buffers
             lists_pq.write_table(pa.table({"hash": pa.array(lists["hash"][r : r + (1 << 24)], pa.uint64()),
-                                           "ref_id": pa.array(order[r : r + (1 << 24)].astype(id_t))}),
+                                           "ref_id": pa.array(order[r : r + (1 << 24)])}),
                                  row_group_size=ROW_GROUP)
         buckets_pq.write_table(pa.table({"hash": pa.array(lists["addresses"], pa.uint64()),
                                          "size": pa.array(lists["sizes"], pa.uint32()),
-                                         "best_id": pa.array(ids[lists["best"]].astype(id_t)),
+                                         "best_id": pa.array(best),
                                          "offset": pa.array((lists["offsets"] + offset).astype(np.uint64))}),
                                row_group_size=ROW_GROUP)
         offset += len(order)
-        del lists, order, ids
+        del lists, order, best
         if progress:
             progress.update(1)
+    shutil.rmtree(out / ".partitions", ignore_errors=True)
     files["offsets"].append(np.array([offset]))
     for f in files.values():
         f.close()
