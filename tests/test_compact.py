@@ -86,3 +86,53 @@ def test_compact_store_refuses_what_it_cannot_answer(compact_store, both_indexes
         build_index(compact_store, d=12, out=tmp_path / "x.index", quiet=True)
     assert main(["eval", str(compact_store), str(both_indexes[0]), "--L", "7", "--out", str(tmp_path / "e")]) == 2
     assert not (tmp_path / "e" / "results.parquet").exists()
+
+
+COMPACT_ARRAYS = ("ref_hash", "ref_err", "base_x1", "query_qm1", "query_qm2", "query_frames", "gt", "query_part")
+
+
+def _compact_bytes(path: Path) -> dict[str, bytes]:
+    g = zarr.open_group(path, mode="r")
+    return {k: g[k][:].tobytes() for k in COMPACT_ARRAYS} | {"model": g["transforms/coarsehash/centres"][:].tobytes()}
+
+
+def test_killed_compact_build_resumes_from_its_checkpoints_to_identical_bytes(tmp_path, sources):
+    """Killed in the middle of the moments pass, then of the hashing pass: same bytes as one run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    recipe = write_recipe(tmp_path / "tiny.toml", deep1b_rows_read=600_000, deep1b_rows_kept=600_000,
+                          layout="compact")
+    cmd = [sys.executable, "-m", "vprscale.cli", "build", "--scale", str(recipe), "--fas", str(sources["fas"]),
+           "--out", str(tmp_path / "a"), "--workers", "1"]
+    work = tmp_path / "a" / ".tiny.zarr.partial" / ".work"
+    for checkpoint in ("Deep1B moments.pass", "hash references.pass"):
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None and not (work / checkpoint).is_file():
+            time.sleep(0.01)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        assert proc.returncode == -signal.SIGKILL, f"the build finished before its {checkpoint} checkpoint"
+        assert not (tmp_path / "a" / "tiny.zarr").exists()
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    assert "resumed" in out.stdout
+    from vprscale.build import BuildRequest, build
+
+    build(BuildRequest(scale=str(recipe), out=tmp_path / "b", fas=str(sources["fas"]), workers=2, quiet=True))
+    assert _compact_bytes(tmp_path / "a" / "tiny.zarr") == _compact_bytes(tmp_path / "b" / "tiny.zarr")
+
+
+def test_distributed_compact_build_equals_local(compact_store, sources, tmp_path):
+    from distributed import LocalCluster
+
+    from vprscale.build import BuildRequest, build
+
+    recipe = write_recipe(tmp_path / "tiny.toml")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        build(BuildRequest(scale=str(recipe), out=tmp_path / "d", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+                           scheduler=cluster.scheduler_address, quiet=True, layout="compact"))
+    assert _compact_bytes(compact_store) == _compact_bytes(tmp_path / "d" / "tiny.zarr")
