@@ -1,4 +1,4 @@
-"""Unitary operations per query (paper §Discussion, SPEC §3.6)."""
+"""Unitary operations per query (paper §Discussion, docs/accounting.md)."""
 
 from __future__ import annotations
 

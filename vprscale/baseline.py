@@ -1,4 +1,4 @@
-"""The baseline of SPEC §3.4: modified SeqSLAM on a one-component PCA, same storage budget.
+"""The baseline of docs/method.md: modified SeqSLAM on a one-component PCA, same storage budget.
 
 For each query centre it scans all references by ``|x_i − y_t|``, keeps the ``N_r`` nearest
 (ties: smaller id) and scores each as a sequence centre with ``Σ_l |x_{c+l} − y_{t+l}|``;

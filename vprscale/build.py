@@ -1,4 +1,4 @@
-"""``vprscale build``: stream the sources through SPEC §2 into ``<out>/<scale>.zarr``.
+"""``vprscale build``: stream the sources through docs/dataset.md into ``<out>/<scale>.zarr``.
 
 Two passes over Deep1B. Pass 1 accumulates the moments of the homogenised rows for the
 exact PCA, while the FAS PCAs and the noise model are fitted; the fitted transforms are

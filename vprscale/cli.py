@@ -183,7 +183,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_synth)
 
-    p = sub.add_parser("build", help="build a localisation dataset (SPEC §2) into <out>/<scale>.zarr")
+    p = sub.add_parser("build", help="build a localisation dataset (docs/dataset.md) into <out>/<scale>.zarr")
     p.add_argument("--scale", required=True, help="20K, 1M, 10M, 100M, 1B or a recipe .toml")
     p.add_argument("--deep1b", help="fvecs file, directory of fvecs chunks, or .fbin (default: synthetic)")
     p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")
@@ -210,14 +210,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_index)
 
-    p = sub.add_parser("eval", help="localise query sequences and evaluate the grid of SPEC §3.5")
+    p = sub.add_parser("eval", help="localise query sequences and evaluate the grid of docs/protocol.md")
     p.add_argument("store", help="a complete <scale>.zarr dataset store")
     p.add_argument("index", nargs="?", help="an index of that store (or use --d to index several widths)")
     p.add_argument("--noise", type=_csv(str), default=["qm1", "qm2"], help="qm1,qm2")
     p.add_argument("--L", type=_csv(int), default=[1, 50, 100], help="sequence lengths, e.g. 1,50,100")
     p.add_argument("--modes", type=_csv(str), default=["paper", "aligned"], help="paper,aligned")
     p.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True,
-                   help="also run the baseline of SPEC §3.4 (default on)")
+                   help="also run the baseline of docs/method.md (default on)")
     p.add_argument("--z", type=_positive_int, default=None, help="query stride (default: the recipe's)")
     p.add_argument("--baseline-queries", type=_positive_int, default=None,
                    help="localise an evenly spaced sample of this many centres per baseline run (default: all "

@@ -1,4 +1,4 @@
-"""The CoarseHash method (SPEC §3.1–3.2): PCA, per-component scalar quantisation, hashing.
+"""The CoarseHash method (docs/method.md): PCA, per-component scalar quantisation, hashing.
 
 ``CoarseHasher`` is an estimator: parameters in ``__init__``, ``fit`` on the reference rows,
 fitted attributes ending in ``_``. Every method takes a numpy array or a Dask array; a numpy
@@ -75,7 +75,7 @@ def unpack(h: np.ndarray, d: int, k: int) -> np.ndarray:
 
 
 def quantization_error(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """``Σ_j min_k |y_j − c_jk|``: how far a row is from its address (SPEC §3.1 single best)."""
+    """``Σ_j min_k |y_j − c_jk|``: how far a row is from its address (the single best of docs/method.md)."""
     return quantize_with_error(y, centres)[1]
 
 

@@ -1,4 +1,4 @@
-"""The query engine (SPEC §3.2–3.3): a loaded index, query hashing and sequence matching.
+"""The query engine (docs/method.md): a loaded index, query hashing and sequence matching.
 
 An index is held as compact arrays: the sorted occupied addresses, CSR offsets into the
 reference ids, the single best per address, and every reference's own address. Sequence
@@ -27,7 +27,7 @@ COPIED_LISTS = 1 << 25  # ids (256 MB) up to which query frames get their own co
 
 @dataclass
 class QueryFrames:
-    """The per-frame work on query frames, done once per frame as it arrives (SPEC §3.2).
+    """The per-frame work on query frames, done once per frame as it arrives (docs/method.md).
 
     A frame is hashed, given the nearest occupied address, and has that address's list
     retrieved (the paper's O(1) list look-up per new frame); for K = 2 its address also
@@ -158,7 +158,7 @@ class Index:
         return w, tables, np.int64(w[:, 0, -1].sum())
 
     def hash_queries(self, x: np.ndarray) -> np.ndarray:
-        """Own addresses of query rows (SPEC §3.2)."""
+        """Own addresses of query rows (docs/method.md)."""
         return hash_descriptors(x, self.mean, self.components, self.centres)[1]
 
     @cached_property
@@ -175,7 +175,7 @@ class Index:
         return first.astype(np.int64), shift
 
     def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None) -> QueryFrames:
-        """The per-frame work on query frames with own addresses ``h`` (SPEC §3.2).
+        """The per-frame work on query frames with own addresses ``h`` (docs/method.md).
 
         ``frames`` (ascending; default ``0 … len(h) − 1``) number them in their sequence.
         See :class:`QueryFrames`.

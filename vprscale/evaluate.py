@@ -1,4 +1,4 @@
-"""``vprscale eval``: the evaluation protocol of SPEC §3.5 over a store and its indexes.
+"""``vprscale eval``: the evaluation protocol of docs/protocol.md over a store and its indexes.
 
 For every noise level, index width, sequence length and method it localises the query
 centres ``t = 0, z, 2z, …`` (with a truth and the whole window inside the query set),

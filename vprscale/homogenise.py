@@ -1,4 +1,4 @@
-"""Sliding-window homogenisation of unordered Deep1B rows (SPEC §2 step 1).
+"""Sliding-window homogenisation of unordered Deep1B rows (docs/dataset.md, step 1).
 
 Row ``i`` becomes the mean of source rows ``[max(0, i − w/2), min(n, i + w/2))``. The window
 sum is a running float64 sum restarted at every absolute block, so a row's value depends

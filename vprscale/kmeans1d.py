@@ -1,4 +1,4 @@
-"""Exact 1-D k-means of weighted points (the per-component quantiser of SPEC §3.1).
+"""Exact 1-D k-means of weighted points (the per-component quantiser of docs/method.md).
 
 In one dimension the optimal clusters are contiguous runs of the sorted points, so the
 global optimum is a dynamic programme over split points (Wang & Song 2011); the

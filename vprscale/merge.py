@@ -1,6 +1,6 @@
 """Aligning Deep1B with FAS100K: PCA of each, variance rescaling and the query noise model.
 
-``MergeTransform`` is fitted once per dataset (SPEC §2 steps 2–5) and then applied chunk by
+``MergeTransform`` is fitted once per dataset (docs/dataset.md, steps 2–5) and then applied chunk by
 chunk (steps 6–7) by pure numpy kernels, so workers receive only a few small matrices.
 """
 
@@ -31,7 +31,7 @@ def _query_chunk(traverse: Traverse, comp: np.ndarray, mean: np.ndarray, noise_c
 
 
 class MergeTransform:
-    """Fitted alignment of the two sources (SPEC §2 steps 2–5).
+    """Fitted alignment of the two sources (docs/dataset.md, steps 2–5).
 
     Parameters
     ----------

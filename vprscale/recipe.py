@@ -27,7 +27,7 @@ def recipe_dir() -> Path:
 
 @dataclass(frozen=True)
 class Recipe:
-    """How one localisation dataset is made (SPEC §2)."""
+    """How one localisation dataset is made (docs/dataset.md)."""
 
     scale: str
     deep1b_rows_read: int

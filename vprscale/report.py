@@ -1,4 +1,4 @@
-"""``vprscale report``: the paper's figures (SPEC §4) and a Markdown report from eval results.
+"""``vprscale report``: the paper's figures and a Markdown report from eval results.
 
 Inputs are evaluation directories (or their ``results.parquet``); the indexes and stores
 they name supply storage, occupancy and timing. Figures are written as PNG and PDF.
@@ -285,7 +285,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance) -> str
                          "" if frame is None or frame != frame else f"{frame:.2f}",
                          f"{b.us_per_query:.2f}", _ratio(b.us_per_query / max(m.us_per_query, 1e-9))])
     md += ["## Compute per query: CoarseHash (paper mode) vs baseline, QM1", "",
-           "Operations by the formulas of SPEC §3.6; times measured on this machine, batched over all cores "
+           "Operations by the formulas of docs/accounting.md; times measured on this machine, batched over all cores "
            "and given per query per core (wall time × threads / queries), including the per-frame work of one "
            "new frame (hash, nearest occupied address, list retrieval) as in online use; the column beside "
            "gives that per-frame part.", "",
@@ -375,7 +375,7 @@ def _paper_comparison(res, indexes, scales, mains) -> list[str]:
         b = sub[sub.method == "baseline"]
         if not m.empty and not b.empty:
             lines.append(f"| baseline / method operations, {scale}, L = 50 | ≈ {PAPER['baseline_ratio']}× (10M) | "
-                         f"{_ratio(b.ops_per_query.iloc[0] / m.ops_per_query.iloc[0])} | SPEC §3.6 formulas |")
+                         f"{_ratio(b.ops_per_query.iloc[0] / m.ops_per_query.iloc[0])} | docs/accounting.md formulas |")
     if "20K" in scales:
         sub = res[(res.scale == "20K") & (res.part == "fas") & (res.radius == 20) & (res.noise == "qm1")
                   & (res.L == 50)]

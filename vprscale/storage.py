@@ -1,4 +1,4 @@
-"""Storage accounting of a CoarseHash index (SPEC §3.6): P1–P4 three ways.
+"""Storage accounting of a CoarseHash index (docs/accounting.md): P1–P4 three ways.
 
 P1 is the reference-id → address map, P2 the cluster centres, P3 the PCA matrix, P4 the
 mean descriptor. "paper" counts as the paper did (8-byte numbers throughout), "packed"

@@ -1,4 +1,4 @@
-"""Readers of the two real Deep1B layouts (SPEC §1.1), memory-mapped inside each read.
+"""Readers of the two real Deep1B layouts (docs/dataset.md), memory-mapped inside each read.
 
 fvecs: records of a little-endian int32 ``d`` then ``d`` float32; a directory of chunk
 files (``base_00``, ``base_01`` …) is one array in name order.

@@ -1,4 +1,4 @@
-"""Reader of the FAS100K traverse pair (SPEC §1.2): one ``.npz`` holding NetVLAD descriptors.
+"""Reader of the FAS100K traverse pair (docs/dataset.md): one ``.npz`` holding NetVLAD descriptors.
 
 ``arr_0`` reference descriptors, ``arr_1`` query descriptors, ``arr_2`` the ground-truth
 reference index of each query, ``arr_3`` / ``arr_4`` reference / query positions. The

@@ -1,4 +1,4 @@
-"""Deterministic stand-ins for Deep1B and FAS100K (SPEC §1.3), drawn block by block.
+"""Deterministic stand-ins for Deep1B and FAS100K (docs/dataset.md), drawn block by block.
 
 Every row is a pure function of ``(seed, its absolute block)``, so a source can be read
 lazily in any chunking, by any number of workers, and always gives the same bytes; the same
