@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
-
-from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS  # noqa: E402
-from vprscale.sources.writers import write_fas_npz, write_fbin, write_fvecs  # noqa: E402
+from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
+from vprscale.sources.writers import write_fas_npz, write_fbin, write_fvecs
 
 SMALL_FAS = FasParams(dim=128, n_ref=3000, n_query=2000, segment_frames=(150, 500))
 DEEP_ROWS = 70_000

@@ -1,3 +1,29 @@
-"""vprscale: out-of-core dataset engineering and evaluation for coarse-hash place recognition."""
+"""vprscale: out-of-core dataset engineering and evaluation for coarse-hash place recognition.
 
-__version__ = "0.1.0"
+The public Python API::
+
+    from vprscale import CoarseHasher, ExactPCA, RandomizedPCA, Index, OnlineMatcher
+
+(imported on first use, so that ``import vprscale`` and the command line start fast).
+"""
+
+import os
+
+# Dask's array query planning rewrites graphs in ways the streamed passes do not expect; it
+# is switched off here, before anything imports dask.array, so the Python API and the
+# command line run the same path.
+os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
+
+__version__ = "0.2.0"
+
+_PUBLIC = {"CoarseHasher": "vprscale.coarsehash", "ExactPCA": "vprscale.pca", "RandomizedPCA": "vprscale.pca",
+           "Index": "vprscale.engine", "OnlineMatcher": "vprscale.engine"}
+__all__ = [*_PUBLIC, "__version__"]
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        import importlib
+
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
+    raise AttributeError(f"module 'vprscale' has no attribute {name!r}")

@@ -10,9 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
-
-from vprscale.errors import InputError  # noqa: E402
+from vprscale.errors import InputError
 
 EXIT_USAGE = 2
 

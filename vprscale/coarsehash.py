@@ -12,12 +12,15 @@ import math
 import dask
 import dask.array as da
 import numpy as np
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.validation import check_is_fitted
 
 from vprscale.errors import InputError
 from vprscale.hashkernels import column_histogram, hash_rows, project_rows
 from vprscale.kmeans1d import kmeans_1d
 from vprscale.pca import ExactPCA, moments_of
 from vprscale.progress import compute
+from vprscale.validation import check_rows
 
 _CHUNK = 65536
 SPAN = 8.0  # the streamed histograms cover ±SPAN standard deviations of each component
@@ -79,7 +82,7 @@ def quantization_error(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return quantize_with_error(y, centres)[1]
 
 
-class CoarseHasher:
+class CoarseHasher(TransformerMixin, BaseEstimator):
     """Coarse scalar-quantisation hashing of descriptors.
 
     Parameters
@@ -92,31 +95,36 @@ class CoarseHasher:
         beyond ±8σ kept exactly.
 
     Fitted attributes: ``d_``, ``mean_``, ``components_`` (d × D), ``explained_variance_``,
-    ``centres_`` (d × K, ascending), ``ranges_`` (d × 2), ``n_ref_``.
+    ``centres_`` (d × K, ascending), ``ranges_`` (d × 2), ``n_ref_``, ``n_features_in_``.
+
+    A scikit-learn transformer: ``transform`` gives the PCA projections (float64),
+    ``quantize`` the per-component codes and ``hash`` the addresses; every method checks
+    that its rows have the width the hasher was fitted on.
     """
 
     def __init__(self, d: int | None = None, k: int = 2, bins: int = 1 << 14) -> None:
         self.d, self.k, self.bins = d, k, bins
 
     def _check(self, n: int, dim: int) -> int:
-        if self.k < 2:
-            raise InputError(f"--k {self.k}: K must be at least 2")
+        """The width d to fit; bad parameters are errors naming them."""
+        if isinstance(self.k, bool) or not isinstance(self.k, int | np.integer) or self.k < 2:
+            raise InputError(f"k = {self.k!r}: K must be an integer of at least 2")
         if self.k > 255:
-            raise InputError(f"--k {self.k}: K must be at most 255 (codes are uint8)")
-        d = self.d if self.d is not None else max(1, math.ceil(math.log2(n)))
-        if not 1 <= d <= dim:
-            raise InputError(f"--d {d}: must be between 1 and the descriptor width {dim}")
+            raise InputError(f"k = {self.k}: K must be at most 255 (codes are uint8)")
+        d = self.d if self.d is not None else min(dim, max(1, math.ceil(math.log2(max(n, 2)))))
+        if isinstance(d, bool) or not isinstance(d, int | np.integer) or not 1 <= d <= dim:
+            raise InputError(f"d = {d!r}: must be an integer between 1 and the descriptor width {dim}")
         if self.k**d > 2**64:
-            raise InputError(f"--d {d} --k {self.k}: K^d = {self.k}^{d} addresses exceed 2^64")
-        return d
+            raise InputError(f"d = {d}, k = {self.k}: K^d = {self.k}^{d} addresses exceed 2^64")
+        return int(d)
 
-    def fit(self, ref: np.ndarray | da.Array, moments: np.ndarray | None = None) -> CoarseHasher:
-        """Exact PCA, then per-component 1-D k-means; two streamed passes over ``ref``.
+    def fit(self, X: np.ndarray | da.Array, y: None = None, moments: np.ndarray | None = None) -> CoarseHasher:
+        """Exact PCA, then per-component 1-D k-means; two streamed passes over the reference rows ``X``.
 
-        ``moments`` (``[[XᵀX, Σx], [Σxᵀ, n]]`` of ``ref``, e.g. the ones a build derives
+        ``moments`` (``[[XᵀX, Σx], [Σxᵀ, n]]`` of ``X``, e.g. the ones a build derives
         while it writes the rows) spare the PCA its pass.
         """
-        x = _as_dask(ref)
+        x = _as_dask(check_rows(self, X, reset=True))
         self.fit_pca(moments if moments is not None else moments_of(x))
         parts = [dask.delayed(self.column_histogram)(blk) for blk in x.to_delayed().ravel()]
         self.fit_centres(compute(*parts, desc="histograms"))
@@ -127,6 +135,7 @@ class CoarseHasher:
         dim = moments.shape[0] - 1
         n = int(moments[dim, dim])
         self.d_ = self._check(n, dim)
+        self.n_features_in_ = dim
         pca = ExactPCA(self.d_).fit_moments(moments)
         self.mean_, self.components_ = pca.mean_, pca.components_
         self.explained_variance_ = pca.explained_variance_
@@ -166,15 +175,22 @@ class CoarseHasher:
         self.centres_ = np.stack(centres)
         return self
 
-    def transform(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
+    def _rows(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
+        check_is_fitted(self, "centres_")
+        return check_rows(self, x, reset=False)
+
+    def transform(self, X: np.ndarray | da.Array) -> np.ndarray | da.Array:
         """PCA projection (float64) of rows."""
+        x = self._rows(X)
         if isinstance(x, da.Array):
             return x.map_blocks(project, self.mean_, self.components_, dtype=np.float64,
                                 chunks=(x.chunks[0], (self.components_.shape[0],)))
         return project(x, self.mean_, self.components_)
 
-    def quantize(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
+    def quantize(self, X: np.ndarray | da.Array) -> np.ndarray | da.Array:
         """Per-component codes (uint8) of rows."""
+        x = self._rows(X)
+
         def codes(b: np.ndarray) -> np.ndarray:
             return hash_descriptors(b, self.mean_, self.components_, self.centres_)[0]
 
@@ -182,8 +198,10 @@ class CoarseHasher:
             return x.map_blocks(codes, dtype=np.uint8, chunks=(x.chunks[0], (self.d_,)))
         return codes(x)
 
-    def hash(self, x: np.ndarray | da.Array) -> np.ndarray | da.Array:
+    def hash(self, X: np.ndarray | da.Array) -> np.ndarray | da.Array:
         """uint64 addresses of rows."""
+        x = self._rows(X)
+
         def addresses(b: np.ndarray) -> np.ndarray:
             return hash_descriptors(b, self.mean_, self.components_, self.centres_)[1]
 

@@ -148,5 +148,6 @@ def load_model(group: zarr.Group) -> CoarseHasher:
     for name in MODEL:
         setattr(hasher, f"{name}_", m[name][:])
     hasher.d_ = int(m.attrs["d"])
+    hasher.n_features_in_ = hasher.components_.shape[1]
     hasher.n_ref_ = int(group["ref_hash"].shape[0])
     return hasher

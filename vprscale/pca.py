@@ -20,9 +20,12 @@ from collections.abc import Sequence
 import dask
 import dask.array as da
 import numpy as np
+from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.validation import check_is_fitted
 
-from vprscale.blocks import block_spans
+from vprscale.blocks import BLOCK, block_spans
 from vprscale.progress import compute
+from vprscale.validation import check_rows
 
 
 def block_moments(x: np.ndarray, start: int) -> np.ndarray:
@@ -60,43 +63,94 @@ def sign_flip(components: np.ndarray) -> np.ndarray:
     return components * signs[:, None]
 
 
-class ExactPCA:
-    """Exact centred PCA from streamed float64 moments.
+class ExactPCA(TransformerMixin, BaseEstimator):
+    """Exact centred PCA from streamed float64 moments (a scikit-learn estimator).
 
     Parameters
     ----------
-    n_components : number of components kept.
+    n_components : number of components kept (default: all).
 
     Fitted attributes: ``mean_`` (D,), ``components_`` (n_components, D),
-    ``explained_variance_`` (n_components,) with ddof 0, ``n_samples_``.
+    ``explained_variance_`` (n_components,) with ddof 0, ``n_samples_``,
+    ``n_features_in_``, ``moments_`` (the summed ``[[XᵀX, Σx], [Σxᵀ, n]]``).
+
+    ``partial_fit`` is exact: the moments of whole blocks of ``BLOCK`` rows (counted from
+    the first row seen) are summed in order and the rows of an unfinished block wait for
+    the next call, so fitting on any split of the rows gives, bit for bit, the fitted
+    attributes of one ``fit`` on all of them.
     """
 
-    def __init__(self, n_components: int) -> None:
+    def __init__(self, n_components: int | None = None) -> None:
         self.n_components = n_components
+
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.transformer_tags.preserves_dtype = ["float32"]  # projections are float32, like the descriptors
+        return tags
+
+    def fit(self, X: np.ndarray | da.Array, y: None = None) -> ExactPCA:
+        """Fit on a numpy array or a Dask array (its chunks streamed, partial sums added in order)."""
+        for attr in ("_acc", "_pending", "_folded"):
+            self.__dict__.pop(attr, None)
+        if isinstance(X, da.Array):
+            X = check_rows(self, X, reset=True)
+            return self.fit_moments(moments_of(X.rechunk({0: BLOCK * max(1, X.chunks[0][0] // BLOCK)})))
+        return self.partial_fit(X)
+
+    def partial_fit(self, X: np.ndarray, y: None = None) -> ExactPCA:
+        """Add rows to the fit (numpy rows; see the class docstring for why it is exact)."""
+        first = not hasattr(self, "_acc")
+        X = check_rows(self, X, reset=first)
+        d = X.shape[1]
+        if first:
+            self._acc, self._folded, self._pending = np.zeros((d + 1, d + 1)), 0, np.empty((0, d))
+        X = np.asarray(X)
+        i = 0
+        if len(self._pending):  # complete the unfinished block first
+            i = min(len(X), BLOCK - len(self._pending))
+            self._pending = np.concatenate([self._pending, np.asarray(X[:i], np.float64)])
+            if len(self._pending) == BLOCK:
+                self._fold(self._pending)
+                self._pending = np.empty((0, d))
+        whole = i + (len(X) - i) // BLOCK * BLOCK
+        for a in range(i, whole, 16 * BLOCK):  # whole blocks straight from the input, no float64 copy of it
+            self._fold(X[a : min(whole, a + 16 * BLOCK)])
+        if whole < len(X):
+            self._pending = np.asarray(X[whole:], np.float64)
+        tail = block_moments(self._pending, self._folded).sum(axis=0) if len(self._pending) else 0.0
+        return self.fit_moments(self._acc + tail)
+
+    def _fold(self, rows: np.ndarray) -> None:
+        for m in block_moments(rows, self._folded):  # block by block, in order
+            self._acc += m
+        self._folded += len(rows)
 
     def fit_moments(self, moments: np.ndarray) -> ExactPCA:
         """Fit from summed moments ``[[XᵀX, Σx], [Σxᵀ, n]]``."""
         d = moments.shape[0] - 1
-        if not 0 < self.n_components <= d:
-            raise ValueError(f"n_components = {self.n_components} must be in [1, {d}]")
+        k = d if self.n_components is None else self.n_components
+        if not 0 < k <= d:
+            raise ValueError(f"n_components = {k} must be in [1, {d}]")
         n = moments[d, d]
+        if n <= 0:
+            raise ValueError("ExactPCA needs at least one row to fit")
         mean = moments[:d, d] / n
         cov = moments[:d, :d] / n - np.outer(mean, mean)
         values, vectors = np.linalg.eigh(cov)
-        order = np.argsort(values)[::-1][: self.n_components]
+        order = np.argsort(values)[::-1][:k]
+        self.moments_ = moments
         self.mean_ = mean
         self.components_ = sign_flip(vectors[:, order].T)
         self.explained_variance_ = np.maximum(values[order], 0.0)
         self.n_samples_ = int(n)
+        self.n_features_in_ = d
         return self
 
-    def fit(self, x: np.ndarray | da.Array, start: int = 0) -> ExactPCA:
-        """Fit on a numpy array or a Dask array (chunks streamed, partials summed in order)."""
-        return self.fit_moments(moments_of(x, start))
-
-    def transform(self, x: np.ndarray) -> np.ndarray:
+    def transform(self, X: np.ndarray) -> np.ndarray:
         """Centre and project; float64 arithmetic, float32 result."""
-        return ((np.asarray(x, np.float64) - self.mean_) @ self.components_.T).astype(np.float32)
+        check_is_fitted(self, "components_")
+        X = check_rows(self, X, reset=False)
+        return ((np.asarray(X, np.float64) - self.mean_) @ self.components_.T).astype(np.float32)
 
 
 def moments_of(x: np.ndarray | da.Array, start: int = 0) -> np.ndarray:
@@ -116,7 +170,7 @@ def _gram_product(x: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (x.T @ (x @ b)).astype(np.float64)[None]
 
 
-class RandomizedPCA:
+class RandomizedPCA(TransformerMixin, BaseEstimator):
     """Centred PCA of a wide streamed matrix by randomized subspace iteration on ``XᵀX``.
 
     Each pass reads every chunk once and forms ``X_cᵀ (X_c B)`` from it, so one power
@@ -139,14 +193,19 @@ class RandomizedPCA:
     def __init__(self, n_components: int, oversample: int = 32, n_iter: int = 1, seed: int = 0) -> None:
         self.n_components, self.oversample, self.n_iter, self.seed = n_components, oversample, n_iter, seed
 
-    def fit(self, x: da.Array) -> RandomizedPCA:
-        """Fit on a Dask array of rows."""
-        self.fit_transform(x)
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.transformer_tags.preserves_dtype = ["float32"]  # projections are float32, like the descriptors
+        return tags
+
+    def fit(self, X: np.ndarray | da.Array, y: None = None) -> RandomizedPCA:
+        """Fit on rows (a Dask array is streamed chunk by chunk)."""
+        self.fit_transform(X)
         return self
 
-    def fit_transform(self, x: da.Array) -> np.ndarray:
+    def fit_transform(self, X: np.ndarray | da.Array, y: None = None) -> np.ndarray:
         """Fit, and return the centred projections (float32) of the fitted rows."""
-        return self.fit_project(x)[0]
+        return self.fit_project(X)[0]
 
     def fit_project(self, x: da.Array, others: Sequence[da.Array] = ()) -> list[np.ndarray]:
         """Fit on ``x``; the centred projections (float32) of ``x`` and of each of ``others``.
@@ -156,7 +215,12 @@ class RandomizedPCA:
         other arrays are projected on the subspace in the same last pass and rotated like
         ``x``'s rows, which spares them a pass of their own once the components are known.
         """
+        x = check_rows(self, x, reset=True)
+        if not isinstance(x, da.Array):
+            x = da.from_array(np.asarray(x, np.float32), chunks=(max(1, min(len(x), 4096)), x.shape[1]))
         n, d = x.shape
+        if not 0 < self.n_components <= min(n, d):
+            raise ValueError(f"n_components = {self.n_components} must be in [1, min(rows, columns) = {min(n, d)}]")
         k = min(self.n_components + self.oversample, d, n)
         omega = np.random.default_rng(self.seed).standard_normal((d, k)).astype(np.float32)
 
@@ -189,9 +253,12 @@ class RandomizedPCA:
         self.components_ = flipped
         self.explained_variance_ = (proj**2).sum(axis=0) / n
         self.n_samples_ = n
+        self.n_features_in_ = d
         return [proj.astype(np.float32)] + [(((r.astype(np.float64) - shift) @ v) * signs).astype(np.float32)
                                             for r in rest]
 
-    def transform(self, x: np.ndarray) -> np.ndarray:
+    def transform(self, X: np.ndarray) -> np.ndarray:
         """Centre and project; float64 arithmetic, float32 result."""
-        return ((np.asarray(x, np.float64) - self.mean_) @ self.components_.T).astype(np.float32)
+        check_is_fitted(self, "components_")
+        X = check_rows(self, X, reset=False)
+        return ((np.asarray(X, np.float64) - self.mean_) @ self.components_.T).astype(np.float32)
