@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from vprscale.baseline import baseline_batch, nearest
-from vprscale.engine import Index, OnlineMatcher, match_batch
+from vprscale.engine import Index
 from vprscale.evaluate import recall_curve
+from vprscale.kernels import match_batch
+from vprscale.online import OnlineMatcher
 from vprscale.protocol import MIN_FAS, part_weights, query_centres
 
 CENTRES = np.tile([[-1.0, 1.0]], (4, 1))  # d = 4, K = 2, equal gaps: δ = 2·Hamming in real units
@@ -32,7 +34,7 @@ def test_single_best_and_in_list_bound():
     idx = Index.from_addresses(np.array([3, 3, 3, 5], np.uint64), CENTRES, errors=np.array([0.3, 0.1, 0.1, 0.0]))
     a = idx.nearest_occupied(np.array([3], np.uint64))
     assert idx.best[a][0] == 1  # least error, ties to the smaller id
-    from vprscale.engine import in_list_distance
+    from vprscale.kernels import in_list_distance
 
     np.testing.assert_array_equal(in_list_distance(a, np.array([3]), idx.offsets, idx.ids), [1])
 
@@ -82,12 +84,41 @@ def test_online_matches_batch_frame_by_frame():
     q = ref[truth] ^ (rng.random(len(truth)) < 0.2).astype(np.uint64) << rng.integers(0, 4, len(truth)).astype(
         np.uint64)
     for aligned in (False, True):
-        online = OnlineMatcher(idx, L=9, aligned=aligned)
-        got = [online.push_address(int(h)) for h in q]
-        centres = np.arange(4, len(q) - 4)
-        batch, _ = run(idx, q, centres, L=9, aligned=aligned)
-        assert got[:8] == [None] * 8
-        np.testing.assert_array_equal(np.array(got[8:]), batch)
+        for L in (1, 8, 9):
+            online = OnlineMatcher(idx, L=L, mode="aligned" if aligned else "paper")
+            got, n_rs = [], []
+            for h in q:
+                got.append(online.push_address(int(h)))
+                n_rs.append(online.n_r)
+            half = L // 2
+            centres = np.arange(half, len(q) - (L - 1 - half))
+            batch, batch_nr = run(idx, q, centres, L=L, aligned=aligned)
+            if L == 1:  # a single frame's match is its address's single best
+                a = idx.nearest_occupied(q)
+                batch, batch_nr = idx.best[a], idx.offsets[a + 1] - idx.offsets[a]
+            assert got[: L - 1] == [None] * (L - 1)
+            np.testing.assert_array_equal(np.array(got[L - 1 :]), batch)
+            np.testing.assert_array_equal(np.array(n_rs[L - 1 :]), batch_nr)
+
+
+def test_online_matches_index_match_on_every_centre_with_bounded_state(tiny_store, tiny_index):
+    """Every frame of a real traverse, both modes: the online matches are the batch matches,
+    and the matcher holds the same bytes after 3,000 frames as after 100."""
+    import zarr
+
+    idx = Index.load(tiny_index)
+    x = zarr.open_group(tiny_store, mode="r")["query_qm1"][47_000:50_000]
+    for mode in ("paper", "aligned"):
+        online = OnlineMatcher(idx, L=50, mode=mode)
+        held = None
+        got = []
+        for i, row in enumerate(x):
+            got.append(online.push(row))
+            if i == 100:
+                held = online.state_bytes
+        match, n_r = idx.match(x, 50, mode=mode)
+        np.testing.assert_array_equal(np.array(got[49:]), match)
+        assert online.state_bytes == held
 
 
 def test_baseline_nearest_and_candidate_count():
@@ -195,7 +226,7 @@ def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
     matches in one call on every thread, on one thread, and query by query."""
     import numba
 
-    from vprscale.engine import QUERY_BLOCK
+    from vprscale.kernels import QUERY_BLOCK
 
     rng = np.random.default_rng(11)
     d, L = 10, 9
@@ -221,7 +252,7 @@ def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
 def test_blocks_split_by_proposals_give_the_same_matches():
     """Long lists (d = 3 over 40,000 places): 127 queries propose more pairs than one block
     holds, so the batch is split by proposals; each query's match and N_r are those it gets alone."""
-    from vprscale.engine import PAIR_BUDGET
+    from vprscale.kernels import PAIR_BUDGET
 
     rng = np.random.default_rng(3)
     ref = rng.integers(0, 8, 40_000).astype(np.uint64)
@@ -255,7 +286,7 @@ def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
 def test_pairs_sorted_by_window_score_as_in_query_order():
     """The window-ordered pair sort (used for maps larger than the caches) is a stable
     bucket sort of the pairs, and scoring them in that order gives the query-order answer."""
-    from vprscale.engine import _pairs_by_window, _proposals, _propose, _query_words, _score_pairs
+    from vprscale.kernels import _pairs_by_window, _proposals, _propose, _query_words, _score_pairs
 
     rng = np.random.default_rng(4)
     d, L = 10, 9
@@ -302,3 +333,25 @@ def test_nearest_occupied_equals_a_full_scan(d, k):
     a = idx.addresses.astype(np.int64)
     gap = np.abs(a[None, :] - h.astype(np.int64)[:, None])
     np.testing.assert_array_equal(idx.nearest_occupied(h), gap.argmin(axis=1))  # argmin: first, i.e. smaller
+
+
+def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_index, tmp_path):
+    import pyarrow.parquet as pq
+    import zarr
+
+    from vprscale.cli import main
+
+    x = zarr.open_group(tiny_store, mode="r")["query_qm1"][48_000:49_000]
+    np.save(tmp_path / "q.npy", x)
+    assert main(["localise", str(tiny_index), str(tmp_path / "q.npy"), "--L", "50", "--mode", "aligned",
+                 "--out", str(tmp_path / "m.parquet")]) == 0
+    t = pq.read_table(tmp_path / "m.parquet").to_pandas()
+    assert len(t) == 1000 and t["match"].isna().sum() == 49
+    match, n_r = Index.load(tiny_index).match(x, 50, mode="aligned")
+    np.testing.assert_array_equal(t["match"].dropna().to_numpy(np.int64), match)
+    np.testing.assert_array_equal(t["centre"].dropna().to_numpy(np.int64), np.arange(25, 1000 - 24))
+    assert main(["localise", str(tiny_index), str(tiny_store / "query_qm2"), "--L", "5", "--out",
+                 str(tmp_path / "s.parquet")]) == 0
+    assert pq.read_metadata(tmp_path / "s.parquet").num_rows == 52_000
+    np.save(tmp_path / "bad.npy", x[:, :7])
+    assert main(["localise", str(tiny_index), str(tmp_path / "bad.npy")]) == 2

@@ -17,7 +17,7 @@ os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
 __version__ = "0.2.0"
 
 _PUBLIC = {"CoarseHasher": "vprscale.coarsehash", "ExactPCA": "vprscale.pca", "RandomizedPCA": "vprscale.pca",
-           "Index": "vprscale.engine", "OnlineMatcher": "vprscale.engine"}
+           "Index": "vprscale.engine", "OnlineMatcher": "vprscale.online"}
 __all__ = [*_PUBLIC, "__version__"]
 
 

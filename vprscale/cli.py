@@ -100,6 +100,17 @@ def cmd_occupancy(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_localise(args: argparse.Namespace) -> int:
+    from vprscale.localise import localise
+
+    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out)
+    if args.out is None:
+        print(f"{summary['frames']:,} frames localised ({summary['us_per_frame']:.1f} µs per frame); "
+              "give --out FILE to keep the matches")
+    _write_summary(args, summary)
+    return 0
+
+
 def _csv(kind):
     def parse(text: str) -> list:
         try:
@@ -262,6 +273,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--memory-limit", default="2GB", help="DuckDB's memory cap (default 2GB)")
     p.add_argument("--threads", type=_positive_int, default=2, help="DuckDB's threads (default 2)")
     p.set_defaults(func=cmd_sql, format="table")
+
+    p = sub.add_parser("localise", help="match a traverse frame by frame (online) and write one row per frame")
+    p.add_argument("index", help="an index directory")
+    p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
+    p.add_argument("--L", type=_positive_int, default=100, help="sequence length (default 100)")
+    p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
+    p.add_argument("--out", help="Parquet file of (frame, centre, match, n_r), one row per frame")
+    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
+    p.set_defaults(func=cmd_localise)
 
     p = sub.add_parser("occupancy", help="bucket sizes, occupied share of K^d and per-component balance")
     p.add_argument("index", help="an index directory")

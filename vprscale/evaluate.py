@@ -26,9 +26,10 @@ from vprscale.accounting import baseline_ops, method_ops
 from vprscale.baseline import baseline_batch
 from vprscale.cluster import cluster_peak_rss, dask_client
 from vprscale.compact import baseline_map
-from vprscale.engine import Index, QueryFrames, in_list_distance, match_batch
+from vprscale.engine import Index, QueryFrames
 from vprscale.errors import InputError
 from vprscale.index import build_index, default_index_dir, load_index_meta, ref_moments, store_identity, store_layout
+from vprscale.kernels import in_list_distance, match_batch
 from vprscale.pca import ExactPCA, moments_of
 from vprscale.protocol import Centres, part_weights, query_centres, window_frames
 from vprscale.rawchunks import rows_of

@@ -77,6 +77,20 @@ def inverted_lists(h: np.ndarray, err: np.ndarray) -> dict[str, np.ndarray]:
     return {"order": order, "hash": hs, "addresses": hs[starts], "sizes": sizes, "offsets": starts, "best": best}
 
 
+def write_views(out: Path, addresses: np.ndarray, offsets: np.ndarray, ids: np.ndarray, best: np.ndarray) -> None:
+    """``lists.parquet`` and ``buckets.parquet`` (the SQL views) of lists held in memory."""
+    sizes = np.diff(np.asarray(offsets, np.int64))
+    id_t = pa.from_numpy_dtype(np.asarray(ids).dtype)
+    pq.write_table(pa.table({"hash": pa.array(np.repeat(np.asarray(addresses, np.uint64), sizes), pa.uint64()),
+                             "ref_id": pa.array(np.asarray(ids), id_t)}), out / "lists.parquet",
+                   row_group_size=ROW_GROUP, compression="zstd")
+    pq.write_table(pa.table({"hash": pa.array(np.asarray(addresses, np.uint64), pa.uint64()),
+                             "size": pa.array(sizes.astype(np.uint32)),
+                             "best_id": pa.array(np.asarray(best), pa.from_numpy_dtype(np.asarray(best).dtype)),
+                             "offset": pa.array(np.asarray(offsets[:-1], np.uint64))}),
+                   out / "buckets.parquet", row_group_size=ROW_GROUP, compression="zstd")
+
+
 class _Appender:
     """A ``.npy`` file written by appending: the header is rewritten with the final length."""
 
