@@ -10,9 +10,10 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from vprscale.errors import InputError
+from vprscale.errors import InputError, JobFailed
 
-EXIT_USAGE = 2
+EXIT_USAGE = 2  # bad input
+EXIT_FAILURE = 1  # vprscale itself failed
 
 
 def _positive_int(text: str) -> int:
@@ -96,7 +97,8 @@ def cmd_sql(args: argparse.Namespace) -> int:
 def cmd_occupancy(args: argparse.Namespace) -> int:
     from vprscale.occupancy import format_occupancy, occupancy
 
-    print(format_occupancy(occupancy(args.index, top=args.top)))
+    occ = occupancy(args.index, top=args.top)
+    print(json.dumps(occ) if args.json else format_occupancy(occ))
     return 0
 
 
@@ -170,29 +172,37 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_cluster(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler "
-                   "(tcp://host:8786); default: a local in-process cluster")
-    p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1,
-                   help="threads of the local cluster (default: all cores)")
+def _shared_flags() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
+    """The flags several commands share, declared once: (cluster, summary)."""
+    cluster = argparse.ArgumentParser(add_help=False)
+    cluster.add_argument("--scheduler", metavar="ADDRESS",
+                         help="address of a Dask distributed scheduler (tcp://host:8786); default: none, the "
+                              "work runs on threads of this process")
+    cluster.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1,
+                         help="threads of this process for Dask and for the numba kernels (default: all cores)")
+    summary = argparse.ArgumentParser(add_help=False)
+    summary.add_argument("--summary", metavar="FILE", help="also write the command's summary as JSON to FILE")
+    return cluster, summary
 
 
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(prog="vprscale", description=__doc__)
     top.add_argument("--version", action="version", version=_version())
     sub = top.add_subparsers(dest="command", required=True)
+    cluster, summary = _shared_flags()
 
-    p = sub.add_parser("synth", help="write synthetic Deep1B (fvecs, fbin) and FAS100K (npz) files")
+    p = sub.add_parser("synth", parents=[summary],
+                       help="write synthetic Deep1B (fvecs, fbin) and FAS100K (npz) files")
     p.add_argument("--out", required=True, help="directory to write into")
     p.add_argument("--deep1b-rows", type=_positive_int, default=1_000_000)
     p.add_argument("--fas-dim", type=_positive_int, default=4096, help="FAS descriptor width (real: 4096)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rows-per-file", type=_positive_int, default=None,
                    help="split the fvecs output into base_NN files of this many rows")
-    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_synth)
 
-    p = sub.add_parser("build", help="build a localisation dataset (docs/dataset.md) into <out>/<scale>.zarr")
+    p = sub.add_parser("build", parents=[cluster, summary],
+                       help="build a localisation dataset (docs/dataset.md) into <out>/<scale>.zarr")
     p.add_argument("--scale", required=True, help="20K, 1M, 10M, 100M, 1B or a recipe .toml")
     p.add_argument("--deep1b", help="fvecs file, directory of fvecs chunks, or .fbin (default: synthetic)")
     p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")
@@ -206,20 +216,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", choices=["full", "compact"], default=None,
                    help="full: every row of every array; compact: only what the index and the evaluation read "
                         "(default: the recipe's; compact at 100M and 1B)")
-    _add_cluster(p)
-    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_build)
 
-    p = sub.add_parser("index", help="fit CoarseHash on a dataset store and write its inverted lists")
+    p = sub.add_parser("index", parents=[cluster, summary],
+                       help="fit CoarseHash on a dataset store and write its inverted lists")
     p.add_argument("store", help="a complete <scale>.zarr dataset store")
     p.add_argument("--d", type=_positive_int, default=None, help="hash digits (default ⌈log2 N_ref⌉)")
     p.add_argument("--k", type=int, default=2, help="levels per component (default 2)")
     p.add_argument("--out", help="index directory (default: beside the store, <scale>-d<d>-k<K>.index)")
-    _add_cluster(p)
-    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_index)
 
-    p = sub.add_parser("eval", help="localise query sequences and evaluate the grid of docs/protocol.md")
+    p = sub.add_parser("eval", parents=[cluster, summary],
+                       help="localise query sequences and evaluate the grid of docs/protocol.md")
     p.add_argument("store", help="a complete <scale>.zarr dataset store")
     p.add_argument("index", nargs="?", help="an index of that store (or use --d to index several widths)")
     p.add_argument("--noise", type=_csv(str), default=["qm1", "qm2"], help="qm1,qm2")
@@ -233,15 +241,13 @@ def parser() -> argparse.ArgumentParser:
                         "below 10^8 query rows, 64 beyond: each baseline query scans every place)")
     p.add_argument("--d", type=_csv(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
-    _add_cluster(p)
-    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("report", help="figures and report.md from evaluation results")
+    p = sub.add_parser("report", parents=[summary],
+                       help="figures and report.md from evaluation results")
     p.add_argument("results", nargs="+", help="eval output directories (or results.parquet files)")
     p.add_argument("--out", required=True, help="report directory, e.g. reports/<name>")
     p.add_argument("--index", action="append", default=[], help="an extra index (e.g. the no-rescale ablation)")
-    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("run", help="run a pipeline (pipelines/*.toml), skipping stages that are up to date")
@@ -274,16 +280,17 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=_positive_int, default=2, help="DuckDB's threads (default 2)")
     p.set_defaults(func=cmd_sql, format="table")
 
-    p = sub.add_parser("localise", help="match a traverse frame by frame (online) and write one row per frame")
+    p = sub.add_parser("localise", parents=[summary],
+                       help="match a traverse frame by frame (online) and write one row per frame")
     p.add_argument("index", help="an index directory")
     p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
     p.add_argument("--L", type=_positive_int, default=100, help="sequence length (default 100)")
     p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
     p.add_argument("--out", help="Parquet file of (frame, centre, match, n_r), one row per frame")
-    p.add_argument("--summary", metavar="FILE", help="also write the summary as JSON to FILE")
     p.set_defaults(func=cmd_localise)
 
     p = sub.add_parser("occupancy", help="bucket sizes, occupied share of K^d and per-component balance")
+    p.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     p.add_argument("index", help="an index directory")
     p.add_argument("--top", type=_positive_int, default=10, help="how many of the largest buckets to list")
     p.set_defaults(func=cmd_occupancy)
@@ -304,6 +311,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         print(f"vprscale {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except JobFailed as exc:
+        print(f"vprscale {args.command}: failed: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -7,3 +7,7 @@ keeps its traceback.
 
 class InputError(ValueError):
     """Bad input: the message names the file, row or parameter and what is wrong."""
+
+
+class JobFailed(RuntimeError):
+    """A job of vprscale's own failed (a pipeline stage crashed): exit status 1, not bad input."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,9 +39,8 @@ from vprscale.store import ATTR, check_writable, exclusive, open_complete_group
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
 MODES = ("paper", "aligned")
 RADII = np.arange(21)
-# Batched kernels run on numba's threads: measured wall time × threads / queries is the time
-# per query per core.
-CORES = numba.get_num_threads()
+# Batched kernels run on numba's threads (``--workers`` of them): measured wall time × threads /
+# queries is the time per query per core.
 PARTS = {"all": None, "deep1b": 0, "fas": 1}
 BASELINE_SUBSAMPLE = 64  # baseline queries per run at 10^8 query rows and beyond (each scans every place)
 
@@ -173,7 +173,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
     dim = int(meta["recipe"]["dim"])
-    with dask_client(req.scheduler, req.workers) as client:
+    threads = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(req.workers, numba.config.NUMBA_NUM_THREADS)))
+    with dask_client(req.scheduler, req.workers) as client, _restore_threads(threads):
         index_paths = _indexes(req, identity)
         indexes = []
         for path in index_paths:
@@ -202,6 +204,14 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             (out / "eval.json").write_text(json.dumps(summary, indent=1))
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
+
+
+@contextmanager
+def _restore_threads(n: int):
+    try:
+        yield
+    finally:
+        numba.set_num_threads(n)
 
 
 @dataclass
@@ -284,7 +294,7 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                         continue
                     ops = method_ops(dim, idx.d, idx.k, L, float(n_r.mean()) if len(n_r) else 0.0,
                                      len(idx.addresses), fallback)
-                    us = secs * CORES / max(1, len(t)) * 1e6 + hash_us
+                    us = secs * numba.get_num_threads() / max(1, len(t)) * 1e6 + hash_us
                     _emit(rows, queries, {**key, "method": "coarsehash", "mode": None if L == 1 else mode},
                           t, truth, parts, match, n_r, (us, hash_us), ops["total"], in_list, w)
                 if base is not None:
@@ -296,9 +306,9 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                     match, n_r = baseline_batch(pos[sub], L, nr, base.x, y_base, x_range)
                     secs = time.perf_counter() - t0
                     ops = baseline_ops(dim, len(base.x), L, nr)
+                    us = secs * numba.get_num_threads() / max(1, len(sub)) * 1e6
                     _emit(rows, queries, {**key, "d": 1, "K": None, "method": "baseline", "mode": None},
-                          t[sub], truth[sub], parts[sub], match, n_r, (secs * CORES / max(1, len(sub)) * 1e6, None),
-                          ops["total"], None, w)
+                          t[sub], truth[sub], parts[sub], match, n_r, (us, None), ops["total"], None, w)
                 bar.update()
     bar.close()
     return rows, queries

@@ -15,11 +15,14 @@ def occupancy(index: str | Path, top: int = 10) -> dict[str, Any]:
     """Bucket-size histogram, occupied share of K^d, largest buckets, per-component balance."""
     index = Path(index)
     meta = load_index_meta(index)
-    buckets = pq.read_table(index / "buckets.parquet", columns=["hash", "size"])
-    sizes = buckets["size"].to_numpy()
-    hashes = buckets["hash"].to_numpy()
-    values, counts = np.unique(sizes, return_counts=True)
-    largest = np.argsort(-sizes.astype(np.int64), kind="stable")[:top]
+    sizes = np.diff(np.load(index / "offsets.npy", mmap_mode="r"))  # the lists' lengths, no Parquet decode
+    hashes = np.load(index / "addresses.npy", mmap_mode="r")
+    counts = np.bincount(sizes)
+    values = np.flatnonzero(counts)
+    counts = counts[values]
+    top = min(top, len(sizes))
+    cut = np.argpartition(-sizes, top - 1)[:top] if top else np.empty(0, np.int64)
+    largest = cut[np.lexsort((cut, -sizes[cut]))]  # largest first, ties by address order
     model = pq.read_table(index / "components.parquet").to_pylist()
     return {"d": meta["d"], "k": meta["k"], "n_ref": meta["n_ref"], "occupied": len(sizes),
             "address_space": meta["k"] ** meta["d"], "occupied_share": len(sizes) / meta["k"] ** meta["d"],

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import vprscale
-from vprscale.errors import InputError
+from vprscale.errors import InputError, JobFailed
 from vprscale.recipe import read_toml
 from vprscale.store import exclusive
 
@@ -291,8 +291,9 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
     for line in proc.stdout:
         console.write(line)
     if proc.wait() != 0:
-        raise InputError(f"{pipe.path}: stage '{stage.name}' failed (exit status {proc.returncode}); "
-                         f"see the log under {pipe.out / 'runs'}")
+        message = (f"{pipe.path}: stage '{stage.name}' failed (exit status {proc.returncode}); "
+                   f"see the log under {pipe.out / 'runs'}")
+        raise InputError(message) if proc.returncode == 2 else JobFailed(message)
     result = json.loads(summary_file.read_text())
     summary_file.unlink()
     out = {k: result[k] for k in _OUTPUT_KEYS[stage.kind] if k in result}
