@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import zipfile
 
 import numpy as np
@@ -107,14 +108,36 @@ def test_fbin_size_must_match_header(tmp_path, extra):
         FbinSource(path)
 
 
-def test_fbin_offsets_do_not_overflow_int32():
-    # 6 M rows × 96: byte offsets past 2**31 must be Python ints.
-    class Probe(FbinSource):
-        def __init__(self):
-            self.n_rows, self.dim, self.name = 6_000_000, 96, "probe"
+def test_fbin_reads_rows_past_2_31_bytes(tmp_path):
+    """A sparse 6M-row fbin: rows whose byte offsets pass 2^31 (and 2^32) are read where they are."""
+    n, d = 6_000_000, 96
+    path = tmp_path / "big.fbin"
+    rows = {5_600_000: 1.5, 5_999_999: -2.25, 11: 3.0}  # 5.6M × 96 × 4 B > 2^31
+    with path.open("wb") as f:
+        f.write(np.array([n, d], "<u4").tobytes())
+        f.truncate(8 + 4 * n * d)  # a hole: the filesystem stores only the rows written below
+        for r, v in rows.items():
+            f.seek(8 + 4 * r * d)
+            f.write(np.full(d, v, "<f4").tobytes())
+    src = FbinSource(path)
+    assert src.n_rows == n and 8 + 4 * 5_600_000 * d > 2**31
+    for r, v in rows.items():
+        np.testing.assert_array_equal(src.read(r, r + 1), np.full((1, d), v, np.float32))
+    np.testing.assert_array_equal(src.read(5_599_999, 5_600_001)[0], np.zeros(d, np.float32))
 
-    offset = 8 + 4 * 5_900_000 * Probe().dim
-    assert offset > 2**31 and isinstance(offset, int)
+
+def test_fingerprint_changes_when_a_file_changes(tmp_path):
+    rows = np.ones((50_000, 96), "<f4")
+    path = tmp_path / "x.fbin"
+    path.write_bytes(np.array([50_000, 96], "<u4").tobytes() + rows.tobytes())
+    before = FbinSource(path).fingerprint()
+    assert FbinSource(path).fingerprint() == before
+    with path.open("r+b") as f:  # one value in the middle, far from the sampled head and tail
+        f.seek(8 + 4 * 96 * 25_000)
+        f.write(np.float32(7.0).tobytes())
+    later = before["files"][0]["mtime_ns"] + 1_000_000_000  # a write within the clock tick keeps mtime
+    os.utime(path, ns=(later, later))
+    assert FbinSource(path).fingerprint() != before
 
 
 def test_fas_npz_round_trip(sources):

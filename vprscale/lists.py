@@ -31,7 +31,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from vprscale.passes import ChunkProgress
+from vprscale.progress import ChunkProgress
 
 PART_ROWS = 1 << 26
 PREFIX_BITS = 16

@@ -25,7 +25,7 @@ from vprscale.engine import Index
 from vprscale.errors import InputError
 from vprscale.index import load_index_meta
 from vprscale.online import OnlineMatcher
-from vprscale.passes import ChunkProgress
+from vprscale.progress import ChunkProgress
 
 READ_ROWS = 4096
 

@@ -12,35 +12,15 @@ the pass was interrupted or scheduled.
 from __future__ import annotations
 
 import pickle
-import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 import dask
 
+from vprscale.progress import ChunkProgress
+
 S = TypeVar("S")
-
-
-class ChunkProgress:
-    """Progress of a long pass on stderr: a live bar on a terminal, a line every ~5 % in a log."""
-
-    def __init__(self, desc: str, total: int, done: int = 0) -> None:
-        self.desc, self.total, self.done = desc, total, done
-        self.t0, self.start = time.perf_counter(), done
-        self.tty = sys.stderr.isatty()
-        self._next = done + max(1, total // 20)
-
-    def update(self, n: int) -> None:
-        self.done += n
-        if self.tty or self.done >= self._next or self.done == self.total:
-            rate = (self.done - self.start) / max(1e-9, time.perf_counter() - self.t0)
-            left = (self.total - self.done) / rate if rate > 0 else float("nan")
-            end = "\r" if self.tty and self.done < self.total else "\n"
-            print(f"  {self.desc}: {self.done:,}/{self.total:,} chunks, {left:,.0f} s left", end=end,
-                  file=sys.stderr, flush=True)
-            self._next = self.done + max(1, self.total // 20)
 
 
 def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Callable[[int, int], Any],

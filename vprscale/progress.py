@@ -9,26 +9,8 @@ from contextlib import contextmanager
 from typing import Any
 
 import dask
-from dask.callbacks import Callback
 from tqdm import tqdm
-
-
-class _TaskBar(Callback):
-    """A tqdm bar over the tasks of a computation on Dask's local (threaded) scheduler."""
-
-    def __init__(self, desc: str) -> None:
-        super().__init__()
-        self.desc = desc
-
-    def _start_state(self, dsk: Any, state: dict) -> None:
-        total = sum(len(state[k]) for k in ("ready", "waiting", "running")) + len(state["finished"])
-        self.bar = tqdm(total=total, desc=self.desc, unit="task", file=sys.stderr, leave=False, disable=None)
-
-    def _posttask(self, key: Any, result: Any, dsk: Any, state: dict, worker_id: Any) -> None:
-        self.bar.update()
-
-    def _finish(self, dsk: Any, state: dict, errored: bool) -> None:
-        self.bar.close()
+from tqdm.dask import TqdmCallback
 
 
 def _client() -> Any:
@@ -50,7 +32,7 @@ def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
     """
     client = _client()
     if client is None:
-        with _TaskBar(desc):
+        with TqdmCallback(desc=desc, unit="task", file=sys.stderr, leave=False, disable=None):
             return dask.compute(*collections)
     from distributed.diagnostics.progressbar import TextProgressBar
 
@@ -96,3 +78,32 @@ class Timings:
         self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
         if not self.quiet:
             print(f"✓ {name} ({self.stages[name]:.1f} s)", file=sys.stderr, flush=True)
+
+
+class ChunkProgress:
+    """Progress of a long pass on stderr: tqdm's bar on a terminal, a line every ~5 % in a log.
+
+    Scheduled runs write logs, where a bar's carriage returns are noise; a line with the
+    chunks done and the time left tells the same.
+    """
+
+    def __init__(self, desc: str, total: int, done: int = 0) -> None:
+        self.desc, self.total, self.done = desc, total, done
+        self.t0, self.start = time.perf_counter(), done
+        self.bar = (tqdm(total=total, initial=done, desc=desc, unit="chunk", file=sys.stderr, leave=False)
+                    if sys.stderr.isatty() else None)
+        self._next = done + max(1, total // 20)
+
+    def update(self, n: int) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+            if self.done >= self.total:
+                self.bar.close()
+            return
+        if self.done >= self._next or self.done == self.total:
+            rate = (self.done - self.start) / max(1e-9, time.perf_counter() - self.t0)
+            left = (self.total - self.done) / rate if rate > 0 else float("nan")
+            print(f"  {self.desc}: {self.done:,}/{self.total:,} chunks, {left:,.0f} s left", file=sys.stderr,
+                  flush=True)
+            self._next = self.done + max(1, self.total // 20)
