@@ -118,9 +118,9 @@ def test_single_best_is_least_error_with_ties_to_the_smallest_id():
 
 
 @pytest.mark.parametrize(("d", "k", "message"), [
-    (97, 2, "--d 97: must be between 1 and the descriptor width 96"),
+    (97, 2, "d = 97: must be an integer between 1 and the descriptor width 96"),
     (41, 3, "K\\^d = 3\\^41 addresses exceed 2\\^64"),
-    (10, 1, "--k 1: K must be at least 2"),
+    (10, 1, "k = 1: K must be an integer of at least 2"),
 ])
 def test_bad_parameters(d, k, message):
     with pytest.raises(InputError, match=message):

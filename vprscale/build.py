@@ -299,6 +299,10 @@ def build(req: BuildRequest) -> dict[str, Any]:
         return {"dry_run": True, **p}
     check_writable(out)
     with exclusive(final):
+        if PartialOutput(final, {}).recover() and not req.quiet:
+            print(f"{final}: finished publishing the build a killed run had completed", file=sys.stderr)
+        if final.exists() and not (final / "zarr.json").is_file():
+            raise InputError(f"--out {out}: {final} exists and is not a dataset store; not replaced")
         if (final / "zarr.json").exists() and not req.force:
             meta = zarr.open_group(final, mode="r").attrs.get(ATTR, {})
             if meta.get("complete"):
@@ -377,7 +381,6 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
                                     "n_fas_query": lay.n_fas_query, **extra}}
     (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},
                                                         indent=1, default=str))
-    shutil.rmtree(work)
     partial.publish()
     summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
     return summary

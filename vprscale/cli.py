@@ -72,7 +72,7 @@ def cmd_index(args: argparse.Namespace) -> int:
     from vprscale.storage import format_storage
 
     meta = build_index(args.store, d=args.d, k=args.k, out=args.out, scheduler=args.scheduler,
-                       workers=args.workers)
+                       workers=args.workers, force=args.force)
     print(f"indexed {meta['n_ref']:,} refs of {args.store} → {meta['index']}")
     print(f"  d = {meta['d']}, K = {meta['k']}, {meta['occupied']:,} occupied addresses "
           f"({meta['occupied'] / meta['k'] ** meta['d']:.4%} of K^d)")
@@ -223,6 +223,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("store", help="a complete <scale>.zarr dataset store")
     p.add_argument("--d", type=_positive_int, default=None, help="hash digits (default ⌈log2 N_ref⌉)")
     p.add_argument("--k", type=int, default=2, help="levels per component (default 2)")
+    p.add_argument("--force", action="store_true",
+                   help="re-index even if the index holds evaluations (they are kept in <index>.previous-eval/)")
     p.add_argument("--out", help="index directory (default: beside the store, <scale>-d<d>-k<K>.index)")
     p.set_defaults(func=cmd_index)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,7 +34,7 @@ from vprscale.kernels import in_list_distance, match_batch
 from vprscale.pca import ExactPCA, moments_of
 from vprscale.protocol import Centres, part_weights, query_centres, window_frames
 from vprscale.rawchunks import rows_of
-from vprscale.store import ATTR, check_writable, exclusive, open_complete_group
+from vprscale.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
 MODES = ("paper", "aligned")
@@ -124,6 +124,9 @@ def recall_curve(error: np.ndarray) -> np.ndarray:
 
 
 def _validate(req: EvalRequest) -> None:
+    for flag, values in (("--noise", req.noises), ("--L", req.lengths), ("--modes", req.modes)):
+        if not values:
+            raise InputError(f"{flag}: the list is empty; give at least one value")
     unknown = [n for n in req.noises if n not in NOISES]
     if unknown:
         raise InputError(f"--noise {','.join(unknown)}: unknown noise; choose from {', '.join(NOISES)}")
@@ -189,19 +192,30 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             indexes.append((path, idx))
         out = Path(req.out) if req.out else (index_paths[0] / "eval" if len(index_paths) == 1 else
                                              req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
-        check_writable(out)
+        if out.exists() and not out.is_dir():
+            raise InputError(f"--out {out}: is a file, not a directory for the evaluation")
+        if out.is_dir() and any(out.iterdir()) and not (out / "eval.json").is_file():
+            raise InputError(f"--out {out}: exists and holds something other than an evaluation; not replaced")
+        check_writable(out.parent)
         base = _baseline_map(group, layout) if req.baseline else None
-        with exclusive(out):
+        with ExitStack() as locks:
+            for path in index_paths:  # re-indexing waits for (is refused during) an evaluation of the index
+                locks.enter_context(exclusive(path))
+            locks.enter_context(exclusive(out))
+            partial = PartialOutput(out, {"eval": time.time_ns()})
+            partial.recover()
+            partial.open()
             rows, queries = _grid(req, qs, z, dim, indexes, base)
             provenance = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                           "store_identity": identity}
-            _write_parquet(out / "results.parquet", rows, provenance)
-            _write_parquet(out / "queries.parquet", queries, provenance)
+            _write_parquet(partial.path / "results.parquet", rows, provenance)
+            _write_parquet(partial.path / "queries.parquet", queries, provenance)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
                        "baseline_queries": _baseline_limit(req, qs), "layout": layout["kind"],
                        "indexes": [str(p) for p in index_paths], **provenance}
-            (out / "eval.json").write_text(json.dumps(summary, indent=1))
+            (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
+            partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
 
@@ -376,10 +390,7 @@ def _emit(rows: list, queries: list, key: dict, t, truth, parts, match, n_r, us:
 
 
 def _write_parquet(path: Path, rows: list[dict], provenance: dict) -> None:
-    table = pa.Table.from_pylist([{**r, **provenance} for r in rows])
-    tmp = path.with_name(f".{path.name}.partial")
-    pq.write_table(table, tmp, compression="zstd")
-    tmp.replace(path)
+    pq.write_table(pa.Table.from_pylist([{**r, **provenance} for r in rows]), path, compression="zstd")
 
 
 def _summary_table(rows: list[dict]) -> str:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -73,8 +74,14 @@ def ref_moments(group: zarr.Group) -> np.ndarray | None:
 
 
 def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | Path | None = None,
-                scheduler: str | None = None, workers: int = 2, quiet: bool = False) -> dict[str, Any]:
-    """Fit (or, for a compact store, load) CoarseHash, hash every reference, and write the index directory."""
+                scheduler: str | None = None, workers: int = 2, quiet: bool = False,
+                force: bool = False) -> dict[str, Any]:
+    """Fit (or, for a compact store, load) CoarseHash, hash every reference, and write the index directory.
+
+    An existing index is replaced only when the new one is whole; if evaluations sit in its
+    ``eval/`` folder, only with ``force``, and they are then kept beside the new index in
+    ``<index>.previous-eval/`` (they belong to the old one).
+    """
     store = Path(store)
     group = open_complete_group(store)
     layout = store_layout(group)
@@ -96,6 +103,12 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
     t0 = time.perf_counter()
     with exclusive(final), dask_client(scheduler, workers) as client:
         partial = PartialOutput(final, {"store": identity, "d": d_eff, "k": k})
+        partial.recover()
+        if final.exists() and not (final / "index.json").is_file():
+            raise InputError(f"--out {final}: exists and is not a vprscale index; not replaced")
+        if (final / "eval").is_dir() and any((final / "eval").iterdir()) and not force:
+            raise InputError(f"{final}: holds evaluations in eval/; re-indexing would orphan them "
+                             "(--force keeps them beside the new index, in <index>.previous-eval/)")
         partial.open()
         if layout["kind"] == "compact":
             chunk = group["ref_hash"].chunks[0]
@@ -137,6 +150,11 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
             "versions": {"vprscale": vprscale.__version__},
         }
         (partial.path / "index.json").write_text(json.dumps(meta, indent=1))
+        if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside
+            kept = final.with_name(f"{final.name}.previous-eval")
+            if kept.exists():
+                shutil.rmtree(kept)
+            (final / "eval").rename(kept)
         partial.publish()
     return {"index": str(final), **meta}
 

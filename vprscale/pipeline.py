@@ -258,7 +258,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
                 cmd += [f"--{key}", p.get(key, default)]
         return cmd + ([] if p.get("rescale", True) else ["--no-rescale"]) + cluster
     if stage.kind == "index":
-        cmd = ["index", outputs[p["store"]]["store"], "--k", str(p.get("k", 2))]
+        # --force: a re-run index stage replaces its old evaluations, which re-run downstream anyway
+        cmd = ["index", outputs[p["store"]]["store"], "--k", str(p.get("k", 2)), "--force"]
         return cmd + (["--d", str(p["d"])] if "d" in p else []) + cluster
     if stage.kind == "eval":
         cmd = ["eval", outputs[p["store"]]["store"]] + ([outputs[p["index"]]["index"]] if "index" in p else [])

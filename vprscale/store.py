@@ -43,13 +43,33 @@ def exclusive(path: Path):
 
 
 class PartialOutput:
-    """The hidden work copy of an output directory, with its done-markers."""
+    """The hidden work copy of an output directory, with its done-markers.
+
+    Publishing is a sequence of idempotent steps with one commit point: when the work is
+    whole, a seal file ``.<name>.sealed`` is written beside it (atomically); then the
+    work copy's bookkeeping (``.work``, ``.done``, ``.job.json``) is removed, an older
+    output is moved aside to ``.<name>.old``, the work copy is renamed to the final path,
+    and the old output and the seal are removed. A job killed anywhere in that sequence
+    leaves the seal, and the next run of the job (:meth:`recover`) finishes the sequence
+    instead of starting over; a job killed before the seal resumes from its markers.
+    """
 
     def __init__(self, final: Path, key: dict[str, Any]) -> None:
         self.final = final
         self.path = final.with_name(f".{final.name}.partial")
         self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
         self._markers = self.path / ".done"
+        self.sealed = final.with_name(f".{final.name}.sealed")
+        self.old = final.with_name(f".{final.name}.old")
+
+    def recover(self) -> bool:
+        """Finish a publish that a killed run sealed; True if there was one (the output is then published)."""
+        if not self.sealed.is_file():
+            if self.old.exists() and self.final.exists():
+                shutil.rmtree(self.old)  # an old output the last publish did not get to remove
+            return False
+        self._publish_steps()
+        return True
 
     def open(self) -> bool:
         """Create the work copy, or keep it if it belongs to the same job; True if resumed."""
@@ -71,17 +91,25 @@ class PartialOutput:
         tmp.replace(self._markers / unit)
 
     def publish(self) -> None:
-        """Move the finished work copy to the final path, replacing an older output last."""
-        shutil.rmtree(self._markers)
-        (self.path / ".job.json").unlink()
-        old = self.final.with_name(f".{self.final.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
-        if self.final.exists():
-            self.final.replace(old)
-        self.path.replace(self.final)
-        if old.exists():
-            shutil.rmtree(old)
+        """Seal the finished work copy, then move it to the final path, replacing an older output last."""
+        tmp = self.sealed.with_name(self.sealed.name + ".tmp")
+        tmp.write_text(json.dumps(self.key, sort_keys=True))
+        tmp.replace(self.sealed)
+        self._publish_steps()
+
+    def _publish_steps(self) -> None:
+        if self.path.exists():
+            for name in (".work", ".done"):
+                shutil.rmtree(self.path / name, ignore_errors=True)
+            (self.path / ".job.json").unlink(missing_ok=True)
+            if self.final.exists():
+                if self.old.exists():
+                    shutil.rmtree(self.old)
+                self.final.replace(self.old)
+            self.path.replace(self.final)
+        if self.old.exists():
+            shutil.rmtree(self.old)
+        self.sealed.unlink(missing_ok=True)
 
 
 def check_writable(out: Path) -> None:

@@ -1,0 +1,135 @@
+"""Kill -9 at every step of publishing (each unlink and rename after the seal), then run again:
+the command succeeds and its output has the bytes of an undisturbed run."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from .conftest import write_recipe
+
+STRACE = shutil.which("strace")
+pytestmark = pytest.mark.skipif(STRACE is None, reason="needs strace (installed by .ci/run)")
+CALLS = "unlinkat,unlink,rename,renameat,renameat2,rmdir"
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "vprscale.cli", *args]
+
+
+def _watch(output: Path) -> list[str]:
+    """strace path filters: the calls on these paths are the steps of publishing ``output``."""
+    partial = output.with_name(f".{output.name}.partial")
+    paths = [output, partial, partial / ".work", partial / ".done", partial / ".job.json",
+             output.with_name(f".{output.name}.old"), output.with_name(f".{output.name}.sealed"),
+             output.with_name(f".{output.name}.sealed.tmp")]
+    return [arg for p in paths for arg in ("-P", str(p))]
+
+
+def _publish_points(cmd: list[str], output: Path, log: Path) -> list[tuple[str, int]]:
+    """``(syscall, n)``: the n-th call of that syscall on the publish paths is a step of the publish."""
+    subprocess.run([STRACE, "-f", "-qq", *_watch(output), "-e", f"trace={CALLS}", "-o", str(log), *cmd],
+                   check=True, capture_output=True)
+    seen: dict[str, int] = {}
+    points, kinds = [], set()
+    for line in log.read_text().splitlines():
+        m = re.match(r"\d+\s+(\w+)\((.*)", line)
+        if not m or "resumed>" in line:
+            continue
+        seen[m.group(1)] = seen.get(m.group(1), 0) + 1
+        # One kill per kind of step: removing the 3rd marker of .done is the same step as the 1st.
+        kind = (m.group(1), re.sub(r'"[^"]*/([^/"]+)"', lambda q: q.group(1)[:6], m.group(2)))
+        if kind not in kinds:
+            kinds.add(kind)
+            points.append((m.group(1), seen[m.group(1)]))
+    assert len(points) >= 4, f"too few publish steps found: {points}"
+    return points
+
+
+def _killed(cmd: list[str], output: Path, name: str, n: int) -> subprocess.CompletedProcess:
+    return subprocess.run([STRACE, "-f", "-qq", *_watch(output), "-e", f"trace={name}", "-e",
+                           f"inject={name}:signal=KILL:when={n}", *cmd], capture_output=True)
+
+
+def _tree(path: Path) -> dict[str, bytes]:
+    skip = ("build.json", "eval.json", "index.json")  # run timings: they differ from run to run
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
+            if p.is_file() and p.name not in skip}
+
+
+def _kill_at_each_step(cmd: list[str], output: Path, reset, tmp_path: Path) -> None:
+    reset()
+    subprocess.run(cmd, check=True, capture_output=True)
+    want = _tree(output)
+    reset()
+    points = _publish_points(cmd, output, tmp_path / "trace.log")
+    reset()
+    for name, n in points:
+        reset()
+        killed = _killed(cmd, output, name, n)
+        assert killed.returncode != 0, f"not killed at {name} #{n}"
+        again = subprocess.run(cmd, capture_output=True, text=True)
+        assert again.returncode == 0, f"after a kill at {name} #{n}: {again.stderr[-500:]}"
+        assert _tree(output) == want, f"after a kill at {name} #{n}"
+        leftovers = [p.name for p in output.parent.iterdir() if p.name.startswith(f".{output.name}.")
+                     and not p.name.endswith(".lock")]
+        assert not leftovers, f"after a kill at {name} #{n}: {leftovers}"
+
+
+@pytest.fixture(scope="module")
+def small(sources, tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("faults")
+    recipe = write_recipe(root / "tiny.toml", deep1b_rows_read=40_000, deep1b_rows_kept=32_768,
+                          fas_ref_rows=2000, fas_query_rows=1000, query_stride=50)
+    return {"recipe": recipe, "root": root}
+
+
+def test_forced_rebuild_survives_a_kill_at_every_publish_step(small, sources, tmp_path):
+    """--force replaces a complete store (every step of a first publish, and moving the old store aside)."""
+    out = tmp_path / "out"
+    base = _cli("build", "--scale", str(small["recipe"]), "--deep1b", str(sources["fbin"]), "--fas",
+                str(sources["fas"]), "--out", str(out), "--workers", "1")
+    subprocess.run(base, check=True, capture_output=True)
+    saved = tmp_path / "saved"
+    shutil.copytree(out, saved)
+
+    def reset() -> None:
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(saved, out)
+
+    _kill_at_each_step([*base, "--force"], out / "tiny.zarr", reset, tmp_path)
+
+
+def test_index_and_eval_survive_a_kill_at_every_publish_step(small, sources, tmp_path):
+    out = tmp_path / "out"
+    subprocess.run(_cli("build", "--scale", str(small["recipe"]), "--deep1b", str(sources["fbin"]), "--fas",
+                        str(sources["fas"]), "--out", str(out)), check=True, capture_output=True)
+    store, index = out / "tiny.zarr", tmp_path / "i" / "tiny.index"
+    index.parent.mkdir()
+    _kill_at_each_step(_cli("index", str(store), "--d", "12", "--out", str(index)), index,
+                       lambda: shutil.rmtree(index, ignore_errors=True), tmp_path)
+    ev = tmp_path / "e" / "eval"
+    ev.parent.mkdir()
+    cmd = _cli("eval", str(store), str(index), "--L", "1,5", "--noise", "qm1", "--out", str(ev))
+    # An evaluation's timings differ from run to run; its matches must not.
+    subprocess.run(cmd, check=True, capture_output=True)
+    import pyarrow.parquet as pq
+
+    want = pq.read_table(ev / "queries.parquet").drop_columns(["store"]).to_pandas()
+    shutil.rmtree(ev)
+    points = _publish_points(cmd, ev, tmp_path / "trace.log")
+    for name, n in points:
+        shutil.rmtree(ev, ignore_errors=True)
+        killed = _killed(cmd, ev, name, n)
+        assert killed.returncode != 0
+        # Killed mid-publish: the three files are either all at the public path or none is.
+        present = [f for f in ("results.parquet", "queries.parquet", "eval.json") if (ev / f).exists()]
+        assert len(present) in (0, 3), present
+        assert subprocess.run(cmd, capture_output=True).returncode == 0
+        got = pq.read_table(ev / "queries.parquet").drop_columns(["store"]).to_pandas()
+        assert got.equals(want)
