@@ -126,13 +126,15 @@ def test_killed_compact_build_resumes_from_its_checkpoints_to_identical_bytes(tm
     assert _compact_bytes(tmp_path / "a" / "tiny.zarr") == _compact_bytes(tmp_path / "b" / "tiny.zarr")
 
 
-def test_distributed_compact_build_equals_local(compact_store, sources, tmp_path):
+def test_distributed_compact_build_equals_local(compact_store, sources, tmp_path, monkeypatch):
+    """On a cluster of worker processes, with a relative --out (the workers do not share our directory)."""
     from distributed import LocalCluster
 
     from vprscale.build import BuildRequest, build
 
     recipe = write_recipe(tmp_path / "tiny.toml")
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
-        build(BuildRequest(scale=str(recipe), out=tmp_path / "d", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+        monkeypatch.chdir(tmp_path)
+        build(BuildRequest(scale=str(recipe), out=Path("d"), deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
                            scheduler=cluster.scheduler_address, quiet=True, layout="compact"))
     assert _compact_bytes(compact_store) == _compact_bytes(tmp_path / "d" / "tiny.zarr")

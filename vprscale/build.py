@@ -40,13 +40,14 @@ from vprscale.progress import Timings, run_tasks
 from vprscale.protocol import MIN_FAS
 from vprscale.rawchunks import write_rows
 from vprscale.recipe import Recipe, load_recipe
-from vprscale.sources.base import RowSource
+from vprscale.sources.base import RowSource, check_finite
 from vprscale.sources.deep1b import open_deep1b
 from vprscale.sources.fas import Traverse, open_fas
 from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.store import ATTR, PartialOutput, check_writable, exclusive
 
 NOISE_LEVELS = {"query_qm1": 1.0, "query_qm2": 2.0}
+MAX_MAGNITUDE = 1e18  # homogenised values beyond this overflow float32 once squared or projected
 WRITE_BYTES_PER_S = 400e6  # the page cache's write-back on this kind of machine, measured
 PARALLEL_EFFICIENCY = 0.8  # two tasks share memory bandwidth and the chunk reads
 DEEP1B, FAS = 0, 1
@@ -156,7 +157,12 @@ class ChunkWriter:
         if a >= d_hi:
             return np.empty((0, self.recipe.dim), np.float32)
         h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
-        return apply_by_block(project_rows, h, a, self.mean, self.matrix)
+        rows = apply_by_block(project_rows, h, a, self.mean, self.matrix)
+        # Finite inputs can still overflow float32 once averaged and projected (values near 3e38).
+        check_finite(rows, a, f"{self.source.name} (rows {max(0, a - self.recipe.window // 2):,}–"
+                              f"{min(self.recipe.deep1b_rows_read, d_hi + self.recipe.window // 2) - 1:,} "
+                              "homogenised and projected overflow float32; dataset row)")
+        return rows
 
     def ref_rows(self, a: int, b: int) -> np.ndarray:
         """Reference rows ``[a, b)`` exactly as the full layout stores them."""
@@ -287,7 +293,9 @@ def build(req: BuildRequest) -> dict[str, Any]:
     """Run (or plan) a build; returns the summary that the CLI prints."""
     recipe = load_recipe(req.scale)
     deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
-    out = Path(req.out)
+    out = Path(req.out).absolute()  # workers of a distributed cluster do not share our working directory
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {req.out}: is a file, not a directory")
     final = out / f"{recipe.scale}{'' if req.rescale else '-norescale'}.zarr"
     p = plan(recipe, deep, traverse, out, req.workers, req.layout or recipe.layout, measure=req.dry_run)
     if req.dry_run:
@@ -321,13 +329,25 @@ class DeepMoments:
         self.source, self.recipe = source, recipe
 
     def __call__(self, a: int, b: int) -> np.ndarray:
-        return block_moments(window_mean(self.source, self.recipe.deep1b_rows_read, a, b, self.recipe.window), a)
+        h = window_mean(self.source, self.recipe.deep1b_rows_read, a, b, self.recipe.window)
+        big = np.flatnonzero(np.abs(h).max(axis=1) > MAX_MAGNITUDE)
+        if len(big):
+            i, half = a + int(big[0]), self.recipe.window // 2
+            raise InputError(f"{self.source.name}: rows {max(0, i - half):,}–{i + half - 1:,} average to values beyond "
+                             f"±{MAX_MAGNITUDE:.0e} (dataset row {i:,}); their squares overflow the float32 recipe")
+        return block_moments(h, a)
 
 
 def _add_blocks(acc: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     for m in blocks:  # block by block, in order: the same bits for any chunking
         acc += m
     return acc
+
+
+def _check_moments(moments: np.ndarray, source: RowSource) -> None:
+    if not np.isfinite(moments).all():
+        raise InputError(f"{source.name}: the homogenised rows' second moments overflow float64 "
+                         "(values too large for the recipe's PCA)")
 
 
 def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
@@ -354,6 +374,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
                 moments = reduce_pass(work, "Deep1B moments", chunk_bounds(lay.n_deep, recipe.chunk_rows),
                                       DeepMoments(deep, recipe), _add_blocks, np.zeros((d + 1, d + 1)),
                                       quiet=req.quiet)
+                _check_moments(moments, deep)
                 merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed, req.rescale).fit(moments,
                                                                                                        traverse)
             _save_transforms(group, merge, work)

@@ -37,9 +37,28 @@ def _positive_float(text: str) -> float:
 
 
 def _write_summary(args: argparse.Namespace, data: dict) -> None:
-    """``--summary FILE``: the command's summary as JSON (what pipelines read back)."""
+    """``--summary FILE``: the command's summary as JSON (what pipelines read back), written whole."""
     if getattr(args, "summary", None):
-        Path(args.summary).write_text(json.dumps(data, indent=1, default=str))
+        path = Path(args.summary)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(json.dumps(data, indent=1, default=str))
+        tmp.replace(path)
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Refuse unusable output paths before any work (a bad --summary must not fail after publishing)."""
+    summary = getattr(args, "summary", None)
+    if summary:
+        path = Path(summary)
+        if path.is_dir():
+            raise InputError(f"--summary {summary}: is a directory; give a file name")
+        if not path.parent.is_dir():
+            raise InputError(f"--summary {summary}: the folder {path.parent} does not exist")
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise InputError(f"--summary {summary}: the folder {path.parent} is not writable")
+    out = getattr(args, "out", None)
+    if out and args.command in ("synth", "report", "build", "eval") and Path(out).exists() and not Path(out).is_dir():
+        raise InputError(f"--out {out}: is a file, not a directory")
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
@@ -309,6 +328,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser().parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
+        _check_outputs(args)
         return func(args)
     except InputError as exc:
         print(f"vprscale {args.command}: error: {exc}", file=sys.stderr)

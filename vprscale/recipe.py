@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ _FIELDS: dict[str, type | tuple[type, ...]] = {
     "fas_query_rows": (int, str), "query_stride": int, "window": int, "dim": int, "seed": int,
     "chunk_rows": int,
 }
+MAX_CHUNK_ROWS = 1 << 21  # 768 MiB of 96-d float32 per array and task
 _OPTIONAL: dict[str, tuple[str, ...]] = {"layout": ("full", "compact")}
 
 
@@ -75,6 +77,16 @@ class Recipe:
             raise InputError(f"{origin}: chunk_rows must be a positive multiple of {BLOCK}")
         if r.query_stride <= 0:
             raise InputError(f"{origin}: query_stride must be positive")
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", r.scale) or ".." in r.scale:
+            raise InputError(f"{origin}: key 'scale' must be a plain name (letters, digits, _ . -), got {r.scale!r}: "
+                             "it names the store inside --out")
+        if not 0 <= r.seed < 2**63:
+            raise InputError(f"{origin}: key 'seed' must be in [0, 2^63), got {r.seed}")
+        if r.chunk_rows > MAX_CHUNK_ROWS:
+            raise InputError(f"{origin}: chunk_rows {r.chunk_rows:,} is more than {MAX_CHUNK_ROWS:,} "
+                             f"(a chunk of {r.chunk_rows * r.dim * 4 / 2**30:,.0f} GiB per array and task)")
+        if r.dim <= 0:
+            raise InputError(f"{origin}: dim must be positive")
         return r
 
 

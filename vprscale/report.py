@@ -40,7 +40,13 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
         f = p / "results.parquet" if p.is_dir() else p
         if not f.is_file():
             raise InputError(f"{p}: no results.parquet (run vprscale eval first)")
-        df = pd.read_parquet(f)
+        try:
+            df = pd.read_parquet(f)
+        except (OSError, ValueError) as exc:  # pyarrow's errors for a truncated or foreign file
+            raise InputError(f"{f}: not a readable Parquet file ({str(exc).splitlines()[0]})") from None
+        missing = {"scale", "noise", "method", "mode", "L", "d", "part", "radius", "recall"} - set(df.columns)
+        if missing:
+            raise InputError(f"{f}: not a vprscale results file (no column {', '.join(sorted(missing))})")
         frames.append(df)
         ej = f.parent / "eval.json"
         if ej.is_file():
@@ -217,7 +223,9 @@ def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] 
     """Write the figures and ``report.md`` into ``out``; returns their paths."""
     res, evals, indexes = load_results(results)
     for p in extra_indexes or []:
-        meta = json.loads((Path(p) / "index.json").read_text())
+        from vprscale.index import load_index_meta
+
+        meta = load_index_meta(p)
         if not any(i["path"] == str(p) for i in indexes):
             indexes.append({**meta, "path": str(p)})
     out.mkdir(parents=True, exist_ok=True)

@@ -120,7 +120,12 @@ def open_fas(path: str | os.PathLike) -> Traverse:
             return NpyMemberSource(target, offset, shape, fortran, f"{p}:{key}", {**fp, "member": key})
 
         ref, query = descriptors("arr_0"), descriptors("arr_1")
-        small = {k: np.load(zf.open(members[k])) for k in ("arr_2", "arr_3", "arr_4")}
+        small = {}
+        for k in ("arr_2", "arr_3", "arr_4"):
+            try:
+                small[k] = np.load(zf.open(members[k]), allow_pickle=False)
+            except ValueError as exc:  # a pickled (object) array, or not an .npy member at all
+                raise InputError(f"{p}: {k} is not a plain numeric array ({str(exc).splitlines()[0]})") from None
     if ref.dim != query.dim:
         raise InputError(f"{p}: arr_0 has {ref.dim} columns but arr_1 has {query.dim}")
     gt, ref_pos, query_pos = small["arr_2"], small["arr_3"], small["arr_4"]
