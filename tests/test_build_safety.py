@@ -120,3 +120,11 @@ def test_distributed_build_equals_local_build(tmp_path, sources):
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
         run_build(recipe, tmp_path / "dist", sources, scheduler=cluster.scheduler_address)
     assert _bytes(tmp_path / "local" / "tiny.zarr") == _bytes(tmp_path / "dist" / "tiny.zarr")
+    # Every file that defines the dataset, metadata included (the run's timings live in build.json).
+    files = [_files(tmp_path / where / "tiny.zarr") for where in ("local", "dist")]
+    assert files[0].keys() == files[1].keys() and files[0] == files[1]
+
+
+def _files(store: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(store)): p.read_bytes() for p in store.rglob("*")
+            if p.is_file() and p.name != "build.json"}

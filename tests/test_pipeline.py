@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
 import tomllib
 from pathlib import Path
 
@@ -113,3 +115,40 @@ def test_failed_stage_exits_non_zero_with_a_failed_summary(tmp_path, capsys):
     assert main(["run", str(path)]) == 2
     summaries = list((tmp_path / "out" / "runs").glob("*.json"))
     assert len(summaries) == 1 and json.loads(summaries[0].read_text())["status"] == "failed"
+
+
+def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, monkeypatch):
+    """The stage's fingerprint covers what it reads and the code, not just its parameters."""
+    import vprscale.pipeline as pl
+
+    from .conftest import write_recipe
+
+    recipe = write_recipe(tmp_path / "r.toml")
+    deep = tmp_path / "deep.fbin"
+    shutil.copy(sources["fbin"], deep)
+    path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") +
+                  f'[[stages]]\nname = "b"\nkind = "build"\nscale = "{recipe}"\ndeep1b = "{deep}"\n'
+                  f'fas = "{sources["fas"]}"\n')
+    ran = []
+
+    def fake_stage(pipe, stage, outputs, scheduler, console):  # the decision is under test, not the build
+        ran.append(stage.name)
+        return {"store": str(tmp_path)}
+
+    monkeypatch.setattr(pl, "_run_stage", fake_stage)
+
+    def status() -> str:
+        return run_pipeline(path)["stages"][0]["status"]
+
+    assert status() == "ran" and status() == "skipped"
+    recipe.write_text(recipe.read_text().replace("seed = 5", "seed = 6"))
+    assert status() == "ran" and status() == "skipped"
+    with deep.open("r+b") as f:  # a source file changes in place
+        f.seek(8 + 4 * 96 * 30_000)
+        f.write(b"\x00\x00\x80\x3f")
+    later = deep.stat().st_mtime_ns + 1_000_000_000
+    os.utime(deep, ns=(later, later))
+    assert status() == "ran" and status() == "skipped"
+    monkeypatch.setattr(pl, "code_fingerprint", lambda: "another-version-of-the-code")
+    assert status() == "ran" and status() == "skipped"
+    assert ran == ["b"] * 4
