@@ -183,14 +183,16 @@ class RandomizedPCA(TransformerMixin, BaseEstimator):
     ----------
     n_components : components kept.
     oversample : extra random directions (accuracy of the trailing kept components).
-    n_iter : power iterations (one streamed pass each).
+    n_iter : power iterations (one streamed pass each). Three put the leading 24 of 96
+        components of a slowly decaying 512-d spectrum within 2.5e-3 standard deviations of
+        an exact PCA (one iteration: 8e-2); each costs one pass over the FAS rows.
     seed : seed of the random test matrix.
 
     Fitted attributes: ``mean_``, ``components_``, ``explained_variance_`` (ddof 0),
     ``n_samples_``.
     """
 
-    def __init__(self, n_components: int, oversample: int = 32, n_iter: int = 1, seed: int = 0) -> None:
+    def __init__(self, n_components: int, oversample: int = 32, n_iter: int = 3, seed: int = 0) -> None:
         self.n_components, self.oversample, self.n_iter, self.seed = n_components, oversample, n_iter, seed
 
     def __sklearn_tags__(self):
