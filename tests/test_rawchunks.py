@@ -69,3 +69,42 @@ def test_an_oversized_chunk_file_is_an_error(tmp_path):
     f.write_bytes(f.read_bytes() + b"\0" * 4)
     with pytest.raises(OSError, match="0/0: chunk file holds 8404 bytes, expected 8400"):
         rows_of(a).compute()
+
+
+def _fallbacks(tmp_path):
+    """Arrays the raw path must not touch, each with its data."""
+    from zarr.codecs import BytesCodec
+    from zarr.storage import MemoryStore
+
+    x = np.random.default_rng(2).normal(size=(1000, 8)).astype(np.float32)
+    layouts = {
+        "zstd": dict(compressors=ZstdCodec()),
+        "sharded": dict(shards=(600, 8), compressors=None),
+        "column chunks": dict(chunks=(300, 4), compressors=None),
+        "big-endian": dict(serializer=BytesCodec(endian="big"), compressors=None),
+        "v2 chunk keys": dict(chunk_key_encoding={"name": "v2", "separator": "."}, compressors=None),
+        "memory store": dict(compressors=None),
+    }
+    for name, kw in layouts.items():
+        store = MemoryStore() if name == "memory store" else tmp_path / f"{name.replace(' ', '_')}.zarr"
+        chunks = kw.pop("chunks", (300, 8))
+        a = zarr.create_array(store, shape=x.shape, chunks=chunks, dtype="float32", fill_value=0.0, **kw)
+        a[:] = x
+        yield name, a, x
+
+
+def test_every_other_layout_falls_back_to_zarr(tmp_path):
+    from vprscale.rawchunks import write_rows
+
+    for name, a, x in _fallbacks(tmp_path):
+        assert raw_chunk_dir(a) is None, name
+        np.testing.assert_array_equal(rows_of(a).compute(), x, err_msg=name)
+        write_rows(a, 0, x[:300] * 2)
+        np.testing.assert_array_equal(a[:300], x[:300] * 2, err_msg=name)
+
+
+def test_an_unpadded_edge_chunk_is_read_as_it_is(tmp_path):
+    a, x = stored(tmp_path)
+    edge = raw_chunk_dir(a) / "3" / "0"
+    edge.write_bytes(x[900:].tobytes())  # 100 rows, not padded to 300 (as some writers store it)
+    np.testing.assert_array_equal(rows_of(a).compute(), x)

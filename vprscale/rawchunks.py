@@ -4,9 +4,12 @@ A dataset's descriptors are stored without compression (a pass over them is then
 by the page cache, not by a codec). For such an array zarr's read path still copies every
 chunk through its event loop at about 1 GiB/s; reading the chunk file into a numpy buffer
 runs at about 3 GiB/s, and every pass of an index fit or of hashing reads the whole
-reference set; writing a whole chunk's file is likewise twice as fast as zarr. Arrays
-stored any other way (compressed, sharded, not on a local disk), and writes of part of a
-chunk, go through zarr.
+reference set; writing a whole chunk's file is likewise twice as fast as zarr. Measured
+again against zarr's own store ``get``/``set`` with encoded chunk keys (the generic way
+round zarr's array layer): 3.7 against 1.1 GiB/s reading, 0.4 against 0.3 GiB/s writing,
+so the bypass stays. Arrays stored any other way (compressed, sharded, another chunk-key
+encoding or grid, big-endian, column chunks, not on a local disk), and writes of part of
+a chunk, go through zarr; an edge chunk stored unpadded by another writer is read as it is.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 import zarr
 from dask.base import tokenize
 from zarr.codecs import BytesCodec
+from zarr.core.chunk_grids import RegularChunkGrid
 from zarr.storage import LocalStore
 
 
@@ -29,6 +33,7 @@ def raw_chunk_dir(array: zarr.Array) -> Path | None:
     """The directory of the chunk files if ``array`` is 2-D, row-chunked and stored raw on disk."""
     meta = array.metadata
     if (meta.zarr_format != 3 or array.ndim != 2 or not isinstance(array.store, LocalStore)
+            or not isinstance(meta.chunk_grid, RegularChunkGrid)
             or meta.storage_transformers or len(meta.codecs) != 1 or not isinstance(meta.codecs[0], BytesCodec)
             or array.chunks[1] != array.shape[1]
             or meta.chunk_key_encoding.encode_chunk_key((1, 0)) != "c/1/0"):
@@ -48,7 +53,9 @@ def _read_chunk(directory: str, rows: int, n_rows: int, cols: int, dtype: str, f
     try:
         with open(path, "rb", buffering=0) as fh:
             size = os.fstat(fh.fileno()).st_size
-            if size != out.nbytes:
+            if size == n * cols * out.itemsize and n < rows:  # an edge chunk stored unpadded (other writers)
+                out = out[:n]
+            elif size != out.nbytes:
                 raise OSError(f"{path}: chunk file holds {size} bytes, expected {out.nbytes}")
             view, got = memoryview(out).cast("B"), 0
             while got < size:  # a regular file may still return a short read
