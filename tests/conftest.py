@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from vprscale.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
-from vprscale.sources.writers import write_fas_npz, write_fbin, write_fvecs
+from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
+from vprscale.dataset.sources.writers import write_fas_npz, write_fbin, write_fvecs
 
 SMALL_FAS = FasParams(dim=128, n_ref=3000, n_query=2000, segment_frames=(150, 500))
 DEEP_ROWS = 70_000
@@ -43,7 +43,7 @@ def recipe(tmp_path) -> Path:
 @pytest.fixture(scope="session")
 def tiny_store(tmp_path_factory, sources) -> Path:
     """The tiny recipe built once from the fbin and npz sources."""
-    from vprscale.build import BuildRequest, build
+    from vprscale.dataset.build import BuildRequest, build
 
     root = tmp_path_factory.mktemp("built")
     recipe = write_recipe(root / "tiny.toml")
@@ -55,7 +55,7 @@ def tiny_store(tmp_path_factory, sources) -> Path:
 @pytest.fixture(scope="session")
 def tiny_index(tiny_store, tmp_path_factory) -> Path:
     """A d = 12 CoarseHash index of the tiny store."""
-    from vprscale.index import build_index
+    from vprscale.method.index import build_index
 
     out = tmp_path_factory.mktemp("index") / "tiny.index"
     build_index(tiny_store, d=12, out=out, quiet=True)

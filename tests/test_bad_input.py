@@ -53,8 +53,8 @@ def test_bad_recipe_values(tmp_path, capsys, field, value, word):
 
 
 def test_values_that_overflow_after_homogenising_are_rejected(tmp_path, sources, capsys):
-    from vprscale.sources.synthetic import SyntheticDeep1B
-    from vprscale.sources.writers import write_fvecs
+    from vprscale.dataset.sources.synthetic import SyntheticDeep1B
+    from vprscale.dataset.sources.writers import write_fvecs
 
     f = deep = tmp_path / "deep.fvecs"
     write_fvecs(SyntheticDeep1B(20_000, seed=3), deep)

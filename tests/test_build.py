@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import zarr
 
-from vprscale.build import BuildRequest, build
-from vprscale.sources.deep1b import open_deep1b
-from vprscale.sources.fas import open_fas
+from vprscale.dataset.build import BuildRequest, build
+from vprscale.dataset.sources.deep1b import open_deep1b
+from vprscale.dataset.sources.fas import open_fas
 
 from .conftest import write_recipe
 

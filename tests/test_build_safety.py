@@ -13,7 +13,7 @@ import pytest
 import zarr
 
 from vprscale.cli import main
-from vprscale.store import exclusive
+from vprscale.dataset.store import exclusive
 
 from .conftest import write_recipe
 from .test_build import ARRAYS, run_build

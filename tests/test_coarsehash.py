@@ -8,10 +8,10 @@ import dask.array as da
 import numpy as np
 import pytest
 
-from vprscale.coarsehash import CoarseHasher, pack, quantize_projected, unpack
 from vprscale.errors import InputError
-from vprscale.kmeans1d import kmeans_1d, kmeans_1d_exact
-from vprscale.lists import inverted_lists
+from vprscale.method.coarsehash import CoarseHasher, pack, quantize_projected, unpack
+from vprscale.method.kmeans1d import kmeans_1d, kmeans_1d_exact
+from vprscale.method.lists import inverted_lists
 
 
 def factorial_design(sigmas, repeat=5):
@@ -129,7 +129,7 @@ def test_bad_parameters(d, k, message):
 
 def test_projection_bits_depend_only_on_the_row():
     """Rows projected four at a time, one at a time, or shifted within the input agree bit for bit."""
-    from vprscale.hashkernels import project_rows
+    from vprscale.method.hashkernels import project_rows
 
     rng = np.random.default_rng(3)
     x = rng.normal(size=(37, 96)).astype(np.float32)

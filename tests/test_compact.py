@@ -20,7 +20,7 @@ LISTS = ("ref_hash", "ids", "addresses", "offsets", "best")
 @pytest.fixture(scope="module")
 def compact_store(sources, tmp_path_factory) -> Path:
     """The tiny recipe (the one ``tiny_store`` is built from), in the compact layout."""
-    from vprscale.build import BuildRequest, build
+    from vprscale.dataset.build import BuildRequest, build
 
     root = tmp_path_factory.mktemp("compact")
     recipe = write_recipe(root / "tiny.toml")
@@ -31,7 +31,7 @@ def compact_store(sources, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def both_indexes(compact_store, tiny_store, tmp_path_factory) -> tuple[Path, Path]:
-    from vprscale.index import build_index
+    from vprscale.method.index import build_index
 
     root = tmp_path_factory.mktemp("indexes")
     compact = Path(build_index(compact_store, out=root / "compact.index", quiet=True)["index"])
@@ -80,7 +80,7 @@ def test_same_matches(both_indexes, compact_store, tiny_store, tmp_path):
 
 
 def test_compact_store_refuses_what_it_cannot_answer(compact_store, both_indexes, tmp_path):
-    from vprscale.index import build_index
+    from vprscale.method.index import build_index
 
     with pytest.raises(InputError, match="d = 16"):
         build_index(compact_store, d=12, out=tmp_path / "x.index", quiet=True)
@@ -120,7 +120,7 @@ def test_killed_compact_build_resumes_from_its_checkpoints_to_identical_bytes(tm
         assert not (tmp_path / "a" / "tiny.zarr").exists()
     out = subprocess.run(cmd, capture_output=True, text=True, check=True)
     assert "resumed" in out.stdout
-    from vprscale.build import BuildRequest, build
+    from vprscale.dataset.build import BuildRequest, build
 
     build(BuildRequest(scale=str(recipe), out=tmp_path / "b", fas=str(sources["fas"]), workers=2, quiet=True))
     assert _compact_bytes(tmp_path / "a" / "tiny.zarr") == _compact_bytes(tmp_path / "b" / "tiny.zarr")
@@ -130,7 +130,7 @@ def test_distributed_compact_build_equals_local(compact_store, sources, tmp_path
     """On a cluster of worker processes, with a relative --out (the workers do not share our directory)."""
     from distributed import LocalCluster
 
-    from vprscale.build import BuildRequest, build
+    from vprscale.dataset.build import BuildRequest, build
 
     recipe = write_recipe(tmp_path / "tiny.toml")
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vprscale.baseline import baseline_batch, nearest
-from vprscale.engine import Index
-from vprscale.evaluate import recall_curve
-from vprscale.kernels import match_batch
-from vprscale.online import OnlineMatcher
-from vprscale.protocol import MIN_FAS, part_weights, query_centres
+from vprscale.compared.baseline import baseline_batch, nearest
+from vprscale.evaluation.evaluate import recall_curve
+from vprscale.evaluation.protocol import MIN_FAS, part_weights, query_centres
+from vprscale.method.engine import Index
+from vprscale.method.kernels import match_batch
+from vprscale.method.online import OnlineMatcher
 
 CENTRES = np.tile([[-1.0, 1.0]], (4, 1))  # d = 4, K = 2, equal gaps: δ = 2·Hamming in real units
 
@@ -34,7 +34,7 @@ def test_single_best_and_in_list_bound():
     idx = Index.from_addresses(np.array([3, 3, 3, 5], np.uint64), CENTRES, errors=np.array([0.3, 0.1, 0.1, 0.0]))
     a = idx.nearest_occupied(np.array([3], np.uint64))
     assert idx.best[a][0] == 1  # least error, ties to the smaller id
-    from vprscale.kernels import in_list_distance
+    from vprscale.method.kernels import in_list_distance
 
     np.testing.assert_array_equal(in_list_distance(a, np.array([3]), idx.offsets, idx.ids), [1])
 
@@ -226,7 +226,7 @@ def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
     matches in one call on every thread, on one thread, and query by query."""
     import numba
 
-    from vprscale.kernels import QUERY_BLOCK
+    from vprscale.method.kernels import QUERY_BLOCK
 
     rng = np.random.default_rng(11)
     d, L = 10, 9
@@ -252,7 +252,7 @@ def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
 def test_blocks_split_by_proposals_give_the_same_matches():
     """Long lists (d = 3 over 40,000 places): 127 queries propose more pairs than one block
     holds, so the batch is split by proposals; each query's match and N_r are those it gets alone."""
-    from vprscale.kernels import PAIR_BUDGET
+    from vprscale.method.kernels import PAIR_BUDGET
 
     rng = np.random.default_rng(3)
     ref = rng.integers(0, 8, 40_000).astype(np.uint64)
@@ -268,7 +268,7 @@ def test_blocks_split_by_proposals_give_the_same_matches():
 
 
 def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
-    import vprscale.engine as engine
+    import vprscale.method.engine as engine
 
     rng = np.random.default_rng(8)
     ref = rng.integers(0, 64, 3_000).astype(np.uint64)
@@ -286,7 +286,7 @@ def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
 def test_pairs_sorted_by_window_score_as_in_query_order():
     """The window-ordered pair sort (used for maps larger than the caches) is a stable
     bucket sort of the pairs, and scoring them in that order gives the query-order answer."""
-    from vprscale.kernels import _pairs_by_window, _proposals, _propose, _query_words, _score_pairs
+    from vprscale.method.kernels import _pairs_by_window, _proposals, _propose, _query_words, _score_pairs
 
     rng = np.random.default_rng(4)
     d, L = 10, 9

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from vprscale.blocks import block_rng
-from vprscale.gaussian import LAYERS, R, V, _sfc64, block_standard_normal, ziggurat_tables
+from vprscale.dataset.blocks import block_rng
+from vprscale.dataset.gaussian import LAYERS, R, V, _sfc64, block_standard_normal, ziggurat_tables
 
 
 def test_bit_stream_is_numpys_sfc64():

@@ -10,7 +10,7 @@ import pytest
 import zarr
 
 from vprscale.cli import main
-from vprscale.coarsehash import pack, project, quantization_error, quantize_projected
+from vprscale.method.coarsehash import pack, project, quantization_error, quantize_projected
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,7 @@ def test_index_refuses_bad_input(tiny_store, tmp_path, capsys):
 
 @pytest.mark.parametrize("high", [2**20, 2**63])  # the packed (address, id) sort, and the stable-argsort fallback
 def test_inverted_lists_sort_by_address_then_id(high):
-    from vprscale.lists import inverted_lists
+    from vprscale.method.lists import inverted_lists
 
     rng = np.random.default_rng(4)
     h = rng.choice(rng.integers(0, high, 300, dtype=np.uint64), 5000)
@@ -116,7 +116,7 @@ def test_inverted_lists_sort_by_address_then_id(high):
 
 def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
     """Sorting partition by partition (bounded memory) gives the lists of one global sort."""
-    from vprscale.lists import inverted_lists, write_lists
+    from vprscale.method.lists import inverted_lists, write_lists
 
     rng = np.random.default_rng(1)
     n = 100_000

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dask.array as da
 import numpy as np
 
-from vprscale.pca import ExactPCA, RandomizedPCA, orthonormal, sign_flip
+from vprscale.method.pca import ExactPCA, RandomizedPCA, orthonormal, sign_flip
 
 
 def _data(n=6000, d=200, rank=12, seed=0):
@@ -55,11 +55,11 @@ def test_orthonormal_basis():
 def test_merge_projects_queries_in_the_pca_pass_as_a_separate_pass_would():
     """With every FAS reference kept, the queries are projected in the PCA's last pass and the
     noise model comes from projection differences; both agree with the separate query pass."""
-    from vprscale.merge import MergeTransform
-    from vprscale.sources.synthetic import FasParams, SyntheticFAS
+    from vprscale.dataset.merge import MergeTransform
+    from vprscale.dataset.sources.synthetic import FasParams, SyntheticFAS
 
     traverse = SyntheticFAS(3, FasParams(dim=128, n_ref=3000, n_query=2000)).traverse()
-    from vprscale.pca import moments_of
+    from vprscale.method.pca import moments_of
 
     deep = da.from_array(np.random.default_rng(0).normal(size=(2000, 96)).astype(np.float32), chunks=(500, 96))
     m = MergeTransform(96, traverse.ref.n_rows, 1500, seed=3).fit(moments_of(deep), traverse)

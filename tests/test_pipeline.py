@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from vprscale.cli import main
+from vprscale.dataset.store import exclusive
 from vprscale.errors import InputError
-from vprscale.pipeline import load_pipeline, run_pipeline
-from vprscale.store import exclusive
+from vprscale.jobs.pipeline import load_pipeline, run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -119,7 +119,7 @@ def test_failed_stage_exits_non_zero_with_a_failed_summary(tmp_path, capsys):
 
 def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, monkeypatch):
     """The stage's fingerprint covers what it reads and the code, not just its parameters."""
-    import vprscale.pipeline as pl
+    import vprscale.jobs.pipeline as pl
 
     from .conftest import write_recipe
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 
-from vprscale.report import write_report
+from vprscale.evaluation.report import write_report
 
 
 def _results(tmp_path):

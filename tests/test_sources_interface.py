@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vprscale.dataset.sources.deep1b import FbinSource, FvecsSource
+from vprscale.dataset.sources.fas import open_fas
+from vprscale.dataset.sources.synthetic import SyntheticDeep1B, SyntheticFAS
 from vprscale.errors import InputError
-from vprscale.sources.deep1b import FbinSource, FvecsSource
-from vprscale.sources.fas import open_fas
-from vprscale.sources.synthetic import SyntheticDeep1B, SyntheticFAS
 
 from .conftest import SMALL_FAS
 

@@ -11,7 +11,7 @@ import pytest
 
 from vprscale.cli import main
 from vprscale.errors import InputError
-from vprscale.sql import GRACE_S, run_sql
+from vprscale.evaluation.sql import GRACE_S, run_sql
 
 SECRET = "s3cr3t-not-for-sql"
 

@@ -16,8 +16,9 @@ os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
 
 __version__ = "0.2.0"
 
-_PUBLIC = {"CoarseHasher": "vprscale.coarsehash", "ExactPCA": "vprscale.pca", "RandomizedPCA": "vprscale.pca",
-           "Index": "vprscale.engine", "OnlineMatcher": "vprscale.online"}
+_PUBLIC = {"CoarseHasher": "vprscale.method.coarsehash", "ExactPCA": "vprscale.method.pca",
+           "RandomizedPCA": "vprscale.method.pca", "Index": "vprscale.method.engine",
+           "OnlineMatcher": "vprscale.method.online"}
 __all__ = [*_PUBLIC, "__version__"]
 
 

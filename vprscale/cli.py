@@ -62,7 +62,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from vprscale.synth import write_synthetic
+    from vprscale.dataset.synth import write_synthetic
 
     paths = write_synthetic(Path(args.out), args.deep1b_rows, args.fas_dim, args.seed,
                             rows_per_file=args.rows_per_file)
@@ -74,7 +74,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from vprscale.build import BuildRequest, build, format_summary
+    from vprscale.dataset.build import BuildRequest, build, format_summary
 
     summary = build(BuildRequest(scale=args.scale, out=Path(args.out), deep1b=args.deep1b, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
@@ -87,8 +87,8 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def cmd_index(args: argparse.Namespace) -> int:
-    from vprscale.index import build_index
-    from vprscale.storage import format_storage
+    from vprscale.evaluation.storage import format_storage
+    from vprscale.method.index import build_index
 
     meta = build_index(args.store, d=args.d, k=args.k, out=args.out, scheduler=args.scheduler,
                        workers=args.workers, force=args.force)
@@ -104,7 +104,7 @@ def cmd_index(args: argparse.Namespace) -> int:
 
 
 def cmd_sql(args: argparse.Namespace) -> int:
-    from vprscale.sql import run_sql, shell
+    from vprscale.evaluation.sql import run_sql, shell
 
     if args.query is None:
         return shell(args.index, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads)
@@ -114,7 +114,7 @@ def cmd_sql(args: argparse.Namespace) -> int:
 
 
 def cmd_occupancy(args: argparse.Namespace) -> int:
-    from vprscale.occupancy import format_occupancy, occupancy
+    from vprscale.evaluation.occupancy import format_occupancy, occupancy
 
     occ = occupancy(args.index, top=args.top)
     print(json.dumps(occ) if args.json else format_occupancy(occ))
@@ -122,7 +122,7 @@ def cmd_occupancy(args: argparse.Namespace) -> int:
 
 
 def cmd_localise(args: argparse.Namespace) -> int:
-    from vprscale.localise import localise
+    from vprscale.jobs.localise import localise
 
     summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out)
     if args.out is None:
@@ -142,7 +142,7 @@ def _csv(kind):
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from vprscale.evaluate import EvalRequest, evaluate
+    from vprscale.evaluation.evaluate import EvalRequest, evaluate
 
     summary = evaluate(EvalRequest(store=Path(args.store), index=Path(args.index) if args.index else None,
                                    noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
@@ -157,7 +157,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from vprscale.report import write_report
+    from vprscale.evaluation.report import write_report
 
     rep = write_report(args.results, Path(args.out), extra_indexes=args.index)
     print(f"wrote {rep['report']} and {len(rep['figures'])} figure files")
@@ -166,7 +166,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from vprscale.pipeline import run_pipeline
+    from vprscale.jobs.pipeline import run_pipeline
 
     summary = run_pipeline(args.pipeline, scheduler=args.scheduler, force=args.force)
     ran = [s["name"] for s in summary["stages"] if s["status"] == "ran"]
@@ -176,7 +176,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from vprscale import bench
+    from vprscale.jobs import bench
 
     if args.job == "build":
         print(bench.bench_build(args.target, args.out, args.deep1b, args.fas, args.workers))

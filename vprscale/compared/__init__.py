@@ -1,0 +1,1 @@
+"""The methods CoarseHash is compared with (docs/method.md: the baseline)."""

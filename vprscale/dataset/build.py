@@ -1,0 +1,457 @@
+"""``vprscale build``: stream the sources through docs/dataset.md into ``<out>/<scale>.zarr``.
+
+Two passes over Deep1B. Pass 1 accumulates the moments of the homogenised rows for the
+exact PCA, while the FAS PCAs and the noise model are fitted; the fitted transforms are
+saved in the store. Pass 2 writes every output chunk in one task: homogenise, project,
+rescale, draw the query noise, and write the same row range of ``ref``, ``query_qm1``,
+``query_qm2``, ``gt`` and the part labels. Each Zarr chunk is written whole by exactly one
+task, so tasks never race and a resumed build simply rewrites unfinished chunks.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import dask
+import numpy as np
+import zarr
+from threadpoolctl import threadpool_limits
+
+import vprscale
+from vprscale.dataset import compact
+from vprscale.dataset.blocks import BLOCK, apply_by_block, chunk_bounds
+from vprscale.dataset.homogenise import window_mean
+from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
+from vprscale.dataset.passes import reduce_pass
+from vprscale.dataset.rawchunks import write_rows
+from vprscale.dataset.recipe import Recipe, load_recipe
+from vprscale.dataset.sources.base import RowSource, check_finite
+from vprscale.dataset.sources.deep1b import open_deep1b
+from vprscale.dataset.sources.fas import Traverse, open_fas
+from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
+from vprscale.dataset.store import ATTR, PartialOutput, check_writable, exclusive
+from vprscale.errors import InputError
+from vprscale.evaluation.protocol import MIN_FAS
+from vprscale.jobs.cluster import cluster_peak_rss, dask_client
+from vprscale.jobs.progress import Timings, run_tasks
+from vprscale.method.coarsehash import hash_descriptors
+from vprscale.method.lists import address_dtype
+from vprscale.method.pca import block_moments
+
+NOISE_LEVELS = {"query_qm1": 1.0, "query_qm2": 2.0}
+MAX_MAGNITUDE = 1e18  # homogenised values beyond this overflow float32 once squared or projected
+WRITE_BYTES_PER_S = 400e6  # the page cache's write-back on this kind of machine, measured
+PARALLEL_EFFICIENCY = 0.8  # two tasks share memory bandwidth and the chunk reads
+DEEP1B, FAS = 0, 1
+
+
+def codecs(kind: str) -> dict[str, Any]:
+    """Compression of the stored arrays.
+
+    Descriptors are stored raw: PCA-projected float32 rows barely compress (bit-shuffled
+    lz4: 0.87 of the size, zstd: 0.88) and every index or evaluation pass reads them again
+    (a 10M pass: 3.2 s raw, 5.8 s with lz4). Integer arrays compress a hundredfold.
+    """
+    if kind == "descriptors":
+        return {"compressors": None}
+    return {"compressors": [zarr.codecs.BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")]}
+
+
+@dataclass
+class BuildRequest:
+    """What the user asked for (the CLI's arguments)."""
+
+    scale: str
+    out: Path
+    deep1b: str | None = None
+    fas: str | None = None
+    workers: int = 2
+    scheduler: str | None = None
+    dry_run: bool = False
+    force: bool = False
+    fas_dim: int = 4096
+    rescale: bool = True
+    quiet: bool = False
+    layout: str | None = None  # "full" or "compact"; default: the recipe's
+
+
+def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
+                 fas_dim: int) -> tuple[RowSource, Traverse]:
+    """The real files when given, else the synthetic generator; validated against the recipe."""
+    deep = open_deep1b(deep1b) if deep1b else SyntheticDeep1B(recipe.deep1b_rows_read, recipe.seed)
+    if deep.dim != recipe.dim:
+        raise InputError(f"{deep.name}: descriptors have {deep.dim} dimensions, the recipe needs {recipe.dim}")
+    if deep.n_rows < recipe.deep1b_rows_read:
+        raise InputError(f"--scale {recipe.scale}: needs {recipe.deep1b_rows_read:,} Deep1B rows but "
+                         f"{deep.name} holds {deep.n_rows:,}")
+    traverse = open_fas(fas) if fas else SyntheticFAS(recipe.seed, FasParams(dim=fas_dim)).traverse()
+    for which, src in (("ref", traverse.ref), ("query", traverse.query)):
+        want = recipe.fas_rows(which, src.n_rows)
+        if want > src.n_rows:
+            raise InputError(f"--scale {recipe.scale}: needs {want:,} FAS {which} rows but "
+                             f"{src.name} holds {src.n_rows:,}")
+    if traverse.ref.dim < recipe.dim:
+        raise InputError(f"{traverse.ref.name}: {traverse.ref.dim} dimensions, fewer than {recipe.dim}")
+    return deep, traverse
+
+
+@dataclass
+class Layout:
+    """Row counts of the dataset."""
+
+    n_deep: int
+    n_fas_ref: int
+    n_fas_query: int
+
+    @property
+    def n_ref(self) -> int:
+        return self.n_deep + self.n_fas_ref
+
+    @property
+    def n_query(self) -> int:
+        return self.n_deep + self.n_fas_query
+
+
+def dataset_gt(layout: Layout, fas_gt: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """Ground truth of query rows ``[start, stop)`` (docs/dataset.md, step 8); −1 means none."""
+    return gt_of(layout, fas_gt, np.arange(start, stop, dtype=np.int64))
+
+
+def gt_of(layout: Layout, fas_gt: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Ground truth of query rows ``u``; −1 means none."""
+    u = np.asarray(u, np.int64)
+    gt = u.copy()
+    fas = u >= layout.n_deep
+    j = fas_gt[u[fas] - layout.n_deep]
+    gt[fas] = np.where(j < layout.n_fas_ref, layout.n_deep + j, -1)
+    return gt
+
+
+@dataclass
+class ChunkWriter:
+    """Everything one pass-2 task needs: small matrices and the source reader, no data."""
+
+    store: str
+    source: RowSource
+    recipe: Recipe
+    layout: Layout
+    mean: np.ndarray
+    matrix: np.ndarray
+    noise_mean: np.ndarray
+    noise_std: np.ndarray
+    fas_gt: np.ndarray
+    fas_ref: np.ndarray  # the kept FAS rows, projected
+    fas_query: np.ndarray
+
+    def deep_rows(self, a: int, b: int) -> np.ndarray:
+        """Deep1B reference rows ``[a, min(b, n_deep))``: homogenised, projected, rescaled."""
+        d_hi = min(b, self.layout.n_deep)
+        if a >= d_hi:
+            return np.empty((0, self.recipe.dim), np.float32)
+        h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
+        rows = apply_by_block(project_rows, h, a, self.mean, self.matrix)
+        # Finite inputs can still overflow float32 once averaged and projected (values near 3e38).
+        check_finite(rows, a, f"{self.source.name} (rows {max(0, a - self.recipe.window // 2):,}–"
+                              f"{min(self.recipe.deep1b_rows_read, d_hi + self.recipe.window // 2) - 1:,} "
+                              "homogenised and projected overflow float32; dataset row)")
+        return rows
+
+    def ref_rows(self, a: int, b: int) -> np.ndarray:
+        """Reference rows ``[a, b)`` exactly as the full layout stores them."""
+        n_deep = self.layout.n_deep
+        fas = self.fas_ref[max(0, a - n_deep) : max(0, min(b, self.layout.n_ref) - n_deep)]
+        return np.concatenate([self.deep_rows(a, b), fas])
+
+    def query_rows(self, deep: np.ndarray, a: int, b: int) -> list[np.ndarray]:
+        """Query rows ``[a, b)`` of each noise level, given the Deep1B reference rows from ``a``."""
+        n_deep = self.layout.n_deep
+        fas = self.fas_query[max(0, a - n_deep) : max(0, min(b, self.layout.n_query) - n_deep)]
+        return [np.concatenate([q, fas]) for q in noisy_rows(deep, a, self.recipe.seed, self.noise_mean,
+                                                             self.noise_std, tuple(NOISE_LEVELS.values()))]
+
+    def __call__(self, a: int, b: int) -> None:
+        lay = self.layout
+        deep = self.deep_rows(a, b)
+        fas_ref = self.fas_ref[max(0, a - lay.n_deep) : max(0, min(b, lay.n_ref) - lay.n_deep)]
+        group = zarr.open_group(self.store, mode="r+")
+        if a < lay.n_ref:
+            write_rows(group["ref"], a, np.concatenate([deep, fas_ref]))
+            group["ref_part"][a : min(b, lay.n_ref)] = self._parts(a, min(b, lay.n_ref))
+        if a < lay.n_query:
+            q_hi = min(b, lay.n_query)
+            for name, q in zip(NOISE_LEVELS, self.query_rows(deep, a, b), strict=True):
+                write_rows(group[name], a, q)
+            group["gt"][a:q_hi] = dataset_gt(lay, self.fas_gt, a, q_hi)
+            group["query_part"][a:q_hi] = self._parts(a, q_hi)
+
+    def _parts(self, a: int, b: int) -> np.ndarray:
+        return (np.arange(a, b) >= self.layout.n_deep).astype(np.uint8)
+
+
+def _versions() -> dict[str, str]:
+    return {"vprscale": vprscale.__version__, "numpy": np.__version__, "dask": dask.__version__,
+            "zarr": zarr.__version__, "python": sys.version.split()[0]}
+
+
+def _per_row(fn, rows: int) -> float:
+    """Seconds per row of ``fn()`` over ``rows`` rows, best of two warm runs."""
+    fn()
+    best = math.inf
+    for _ in range(2):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best / rows
+
+
+def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers: int, layout: str,
+         measure: bool = True) -> dict[str, Any]:
+    """What a build reads, writes and needs, with a time estimate from measured per-row costs.
+
+    Each stage of the passes (homogenising, moments, projection, noise, hashing) is timed
+    on one block of rows on one thread, as a task runs it, and the passes are added up:
+    full = 2 homogenisations, moments, projection, noise and the writes of three float32
+    rows; compact = 3 homogenisations, moments, 2 projections, the histograms and the
+    hashing. The FAS part is a few randomized-PCA passes over 4096-d rows.
+    """
+    lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
+                 recipe.fas_rows("query", traverse.query.n_rows))
+    d = recipe.dim
+    d_hash = max(1, math.ceil(math.log2(lay.n_ref)))
+    if layout == "full":
+        write = 4 * d * (lay.n_ref + 2 * lay.n_query) + 9 * lay.n_query + lay.n_ref
+    else:
+        held = 120 * (lay.n_query // recipe.query_stride + 2 * MIN_FAS)  # windows of L ≤ 100, 1.2 safety
+        write = (address_dtype(d_hash, 2).itemsize + 8) * lay.n_ref + held * (8 * d + 9)
+    free = shutil.disk_usage(out if out.exists() else out.parent if out.parent.exists() else Path.cwd()).free
+    if not measure:
+        return {"bytes_written_max": write, "disk_free": free}
+    rows = min(BLOCK, recipe.deep1b_rows_kept)
+    with threadpool_limits(limits=1, user_api="blas"):
+        def homogenise() -> np.ndarray:
+            return window_mean(deep, recipe.deep1b_rows_read, 0, rows, recipe.window)
+
+        cost = {"homogenise": _per_row(homogenise, rows)}
+        h = homogenise()
+        cost["moments"] = _per_row(lambda: block_moments(h, 0), rows)
+        matrix = np.eye(d)
+        cost["project"] = _per_row(lambda: project_rows(h, np.zeros(d), matrix), rows)
+        cost["noise"] = _per_row(lambda: noisy_rows(h, 0, recipe.seed, np.zeros(d), np.ones(d), (1.0, 2.0)), rows)
+        comp = np.linalg.qr(np.random.default_rng(0).standard_normal((d, d)))[0][:d_hash]
+        centres = np.tile([-0.1, 0.1], (d_hash, 1))
+        cost["hash"] = _per_row(lambda: hash_descriptors(h, np.zeros(d), comp, centres), rows)
+        fas_sample = min(2048, traverse.ref.n_rows)
+        x = traverse.ref.read(0, fas_sample)
+        fas_per_row = _per_row(lambda: x.T @ (x @ np.ones((x.shape[1], 128), np.float32)), fas_sample)
+    c = cost
+    if layout == "full":
+        per_deep = 2 * c["homogenise"] + c["moments"] + c["project"] + c["noise"] + 12 * d / WRITE_BYTES_PER_S
+    else:
+        per_deep = 3 * c["homogenise"] + c["moments"] + 2 * c["project"] + 2 * c["hash"] + 12 / WRITE_BYTES_PER_S
+    fas_passes = 3 if lay.n_fas_ref == traverse.ref.n_rows else 6  # randomized PCA passes
+    parallel = max(1, min(workers, os.cpu_count() or 1)) * PARALLEL_EFFICIENCY
+    est = (per_deep * recipe.deep1b_rows_kept + fas_per_row * (traverse.ref.n_rows * fas_passes
+                                                                 + traverse.query.n_rows * 2)) / parallel
+    passes = 2 if layout == "full" else 3
+    read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * passes + 4 * traverse.ref.dim * (
+        traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3)
+    chunk_mem = recipe.chunk_rows * d * (8 + 8 + 4 * 6)
+    fas_mem = 4 * traverse.ref.dim * (8192 * 3 + 128 * 4) + 8 * traverse.ref.dim * 128 * 3
+    hist_mem = 8 * d_hash * (1 << 14) * 24 if layout == "compact" else 0  # per-chunk histograms of a group
+    return {"scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref, "query_rows": lay.n_query,
+            "deep1b_rows_read": recipe.deep1b_rows_read, "fas_ref_rows": lay.n_fas_ref,
+            "fas_query_rows": lay.n_fas_query, "bytes_read": read, "bytes_written_max": write,
+            "disk_free": free, "memory_estimate": workers * chunk_mem + fas_mem + hist_mem + 300 * 2**20,
+            "seconds_estimate": est, "per_row_s": cost, "deep1b": deep.name, "fas": traverse.ref.name}
+
+
+def _gib(x: float) -> str:
+    return f"{x / 2**30:.2f} GiB"
+
+
+def print_plan(p: dict[str, Any], out: Path) -> None:
+    print(f"build {p['scale']} ({p['layout']} layout) → {out}")
+    for kind in ("ref", "query"):
+        rows, fas = p[f"{kind}_rows"], p[f"fas_{kind}_rows"]
+        print(f"  {kind + ' rows':<11} {rows:>15,}   (Deep1B {rows - fas:,} + FAS {fas:,})")
+    print(f"  reads       {_gib(p['bytes_read']):>15}   from {p['deep1b']} and {p['fas']}")
+    print(f"  writes      {_gib(p['bytes_written_max']):>15}   at most (before compression)")
+    print(f"  disk free   {_gib(p['disk_free']):>15}")
+    print(f"  memory      {_gib(p['memory_estimate']):>15}   peak, estimated")
+    print(f"  time        {p['seconds_estimate']:>13.0f} s   estimated from measured throughput")
+
+
+def build(req: BuildRequest) -> dict[str, Any]:
+    """Run (or plan) a build; returns the summary that the CLI prints."""
+    recipe = load_recipe(req.scale)
+    deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
+    out = Path(req.out).absolute()  # workers of a distributed cluster do not share our working directory
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {req.out}: is a file, not a directory")
+    final = out / f"{recipe.scale}{'' if req.rescale else '-norescale'}.zarr"
+    p = plan(recipe, deep, traverse, out, req.workers, req.layout or recipe.layout, measure=req.dry_run)
+    if req.dry_run:
+        print_plan(p, final)
+    if p["bytes_written_max"] > p["disk_free"]:
+        raise InputError(f"--out {out}: the build writes up to {_gib(p['bytes_written_max'])} "
+                         f"but only {_gib(p['disk_free'])} is free")
+    if req.dry_run:
+        return {"dry_run": True, **p}
+    check_writable(out)
+    with exclusive(final):
+        if PartialOutput(final, {}).recover() and not req.quiet:
+            print(f"{final}: finished publishing the build a killed run had completed", file=sys.stderr)
+        if final.exists() and not (final / "zarr.json").is_file():
+            raise InputError(f"--out {out}: {final} exists and is not a dataset store; not replaced")
+        if (final / "zarr.json").exists() and not req.force:
+            meta = zarr.open_group(final, mode="r").attrs.get(ATTR, {})
+            if meta.get("complete"):
+                print(f"{final} is complete; use --force to rebuild it", file=sys.stderr)
+                return {"skipped": True, "store": str(final)}
+        return _build(recipe, deep, traverse, final, req)
+
+
+EVAL_LENGTHS = (1, 50, 100)  # the sequence lengths whose windows a compact store keeps
+
+
+class DeepMoments:
+    """Pass-1 task: per-block moments of the homogenised Deep1B rows of a chunk."""
+
+    def __init__(self, source: RowSource, recipe: Recipe) -> None:
+        self.source, self.recipe = source, recipe
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        h = window_mean(self.source, self.recipe.deep1b_rows_read, a, b, self.recipe.window)
+        big = np.flatnonzero(np.abs(h).max(axis=1) > MAX_MAGNITUDE)
+        if len(big):
+            i, half = a + int(big[0]), self.recipe.window // 2
+            raise InputError(f"{self.source.name}: rows {max(0, i - half):,}–{i + half - 1:,} average to values beyond "
+                             f"±{MAX_MAGNITUDE:.0e} (dataset row {i:,}); their squares overflow the float32 recipe")
+        return block_moments(h, a)
+
+
+def _add_blocks(acc: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    for m in blocks:  # block by block, in order: the same bits for any chunking
+        acc += m
+    return acc
+
+
+def _check_moments(moments: np.ndarray, source: RowSource) -> None:
+    if not np.isfinite(moments).all():
+        raise InputError(f"{source.name}: the homogenised rows' second moments overflow float64 "
+                         "(values too large for the recipe's PCA)")
+
+
+def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
+           req: BuildRequest) -> dict[str, Any]:
+    t_start = time.perf_counter()
+    timings = Timings(req.quiet)
+    lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
+                 recipe.fas_rows("query", traverse.query.n_rows))
+    layout = req.layout or recipe.layout
+    provenance = {"recipe": {**recipe.as_dict(), "layout": layout}, "rescale": req.rescale,
+                  "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
+    partial = PartialOutput(final, provenance)
+    resumed = partial.open()
+    if resumed and not req.quiet:
+        print(f"resuming the unfinished build in {partial.path}", file=sys.stderr)
+    store = str(partial.path)
+    work = partial.path / ".work"
+    work.mkdir(exist_ok=True)
+    d = recipe.dim
+    with dask_client(req.scheduler, req.workers) as client:
+        if not partial.done("fit"):
+            group = zarr.open_group(store, mode="a", zarr_format=3)
+            with timings.stage("fit transforms (Deep1B exact PCA, FAS PCA, noise model)"):
+                moments = reduce_pass(work, "Deep1B moments", chunk_bounds(lay.n_deep, recipe.chunk_rows),
+                                      DeepMoments(deep, recipe), _add_blocks, np.zeros((d + 1, d + 1)),
+                                      quiet=req.quiet)
+                _check_moments(moments, deep)
+                merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed, req.rescale).fit(moments,
+                                                                                                       traverse)
+            _save_transforms(group, merge, work)
+            partial.mark("fit")
+        group = zarr.open_group(store, mode="r+")
+        t = group["transforms"]
+        fas_ref, fas_query = np.load(work / "fas_ref.npy"), np.load(work / "fas_query.npy")
+        writer = ChunkWriter(store, deep, recipe, lay, t["deep1b_mean"][:],
+                             t["deep1b_components"][:].T * t["deep1b_scale"][:],
+                             t["noise_mean"][:], t["noise_std"][:], traverse.gt, fas_ref, fas_query)
+        if layout == "full":
+            _write_full(group, writer, partial, timings)
+            extra: dict[str, Any] = {}
+        else:
+            extra = compact.write_compact(group, writer, partial, timings, t["ref_moments"][:], EVAL_LENGTHS,
+                                          req.quiet)
+        peak = cluster_peak_rss(client)
+    elapsed = time.perf_counter() - t_start
+    summary = {"store": str(final), "scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref,
+               "query_rows": lay.n_query, "resumed": resumed, "stages_s": timings.stages,
+               "wall_s": elapsed, "peak_rss_bytes": peak}
+    group = zarr.open_group(store, mode="r+")
+    group.attrs[ATTR] = {**provenance, "complete": True, "versions": _versions(), "seed": recipe.seed,
+                         "layout": {"kind": layout, "n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
+                                    "n_fas_query": lay.n_fas_query, **extra}}
+    (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},
+                                                        indent=1, default=str))
+    partial.publish()
+    summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
+    return summary
+
+
+def _write_full(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, timings: Timings) -> None:
+    """Pass 2 of the full layout: every row of every array, one chunk per task."""
+    lay, recipe, d = writer.layout, writer.recipe, writer.recipe.dim
+    if not partial.done("arrays"):
+        for name, rows in (("ref", lay.n_ref), ("query_qm1", lay.n_query), ("query_qm2", lay.n_query)):
+            group.create_array(name, shape=(rows, d), chunks=(recipe.chunk_rows, d), dtype="f4",
+                               overwrite=True, **codecs("descriptors"))
+        group.create_array("gt", shape=(lay.n_query,), chunks=(recipe.chunk_rows,), dtype="i8",
+                           overwrite=True, **codecs("labels"))
+        for name, rows in (("ref_part", lay.n_ref), ("query_part", lay.n_query)):
+            group.create_array(name, shape=(rows,), chunks=(recipe.chunk_rows,), dtype="u1",
+                               overwrite=True, **codecs("labels"))
+        partial.mark("arrays")
+    tasks = [dask.delayed(_write_and_mark)(writer, a, b, partial, f"chunk-{c}")
+             for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.chunk_rows))
+             if not partial.done(f"chunk-{c}")]
+    with timings.stage(f"write {len(tasks)} chunks (homogenise, project, rescale, noise)"):
+        run_tasks(tasks, "write chunks")
+
+
+def _write_and_mark(writer: ChunkWriter, a: int, b: int, partial: PartialOutput, unit: str) -> None:
+    writer(a, b)
+    partial.mark(unit)
+
+
+def _save_transforms(group: zarr.Group, merge: MergeTransform, work: Path) -> None:
+    t = group.create_group("transforms", overwrite=True)
+    arrays = {"deep1b_mean": merge.deep_pca_.mean_, "deep1b_components": merge.deep_pca_.components_,
+              "deep1b_explained_variance": merge.deep_pca_.explained_variance_,
+              "deep1b_scale": merge.scale_, "fas_mean": merge.fas_pca_.mean_,
+              "fas_components": merge.fas_pca_.components_,
+              "noise_pca_mean": merge.noise_pca_.mean_, "noise_pca_components": merge.noise_pca_.components_,
+              "noise_mean": merge.noise_mean_, "noise_std": merge.noise_std_,
+              "deep1b_moments": merge.deep_moments_, "ref_moments": merge.ref_moments()}
+    for name, arr in arrays.items():
+        t.create_array(name, data=np.asarray(arr, dtype=np.float64))
+    np.save(work / "fas_ref.npy", merge.fas_ref_)
+    np.save(work / "fas_query.npy", merge.fas_query_)
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    lines = [f"built {s['store']} ({s['layout']} layout): {s['ref_rows']:,} ref rows, {s['query_rows']:,} query rows"
+             + (" (resumed)" if s.get("resumed") else "")]
+    for name, secs in s["stages_s"].items():
+        lines.append(f"  {secs:8.1f} s  {name}")
+    lines.append(f"  {s['wall_s']:8.1f} s  total")
+    lines.append(f"  peak memory {s['peak_rss_bytes'] / 2**30:.2f} GiB, {s['bytes_on_disk'] / 2**30:.2f} GiB on disk")
+    return "\n".join(lines)

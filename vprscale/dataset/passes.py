@@ -1,0 +1,50 @@
+"""Resumable streamed passes: chunk tasks run group by group, their results reduced in chunk order.
+
+A pass over a billion rows takes minutes; a killed job must not start it again. A pass is a
+list of chunk row ranges and a task per chunk; chunks run in groups on the active Dask
+scheduler (threads here, or a distributed cluster), and after each group the reduction so
+far is saved in the job's work folder with the number of chunks it covers. A re-run loads
+it and goes on from the next chunk. Results are folded strictly in chunk order, so a
+reduction that is order-sensitive (a float64 sum of moments) gives the same bits however
+the pass was interrupted or scheduled.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import dask
+
+from vprscale.jobs.progress import ChunkProgress
+
+S = TypeVar("S")
+
+
+def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Callable[[int, int], Any],
+                fold: Callable[[S, Any], S], state: S, group: int = 16, quiet: bool = False) -> S:
+    """Fold ``task(a, b)`` of every chunk into ``state``, in chunk order, resumably.
+
+    ``work`` holds the checkpoint ``<name>.pass``: the state after the first ``n`` chunks.
+    """
+    ckpt = work / f"{name}.pass"
+    done = 0
+    if ckpt.is_file():
+        with ckpt.open("rb") as f:
+            done, state = pickle.load(f)
+    progress = None if quiet else ChunkProgress(name, len(bounds), done)
+    run = dask.delayed(task, pure=True)  # the task object (small matrices, a reader) is hashed once
+    for g in range(done, len(bounds), group):
+        results = dask.compute(*[run(a, b) for a, b in bounds[g : g + group]])
+        for r in results:
+            state = fold(state, r)
+        done = min(len(bounds), g + group)
+        tmp = ckpt.with_suffix(".tmp")
+        with tmp.open("wb") as f:
+            pickle.dump((done, state), f, protocol=pickle.HIGHEST_PROTOCOL)
+        tmp.replace(ckpt)
+        if progress:
+            progress.update(len(results))
+    return state

@@ -1,0 +1,142 @@
+"""Reader of the FAS100K traverse pair (docs/dataset.md): one ``.npz`` holding NetVLAD descriptors.
+
+``arr_0`` reference descriptors, ``arr_1`` query descriptors, ``arr_2`` the ground-truth
+reference index of each query, ``arr_3`` / ``arr_4`` reference / query positions. The
+descriptor arrays (~780 MB) are memory-mapped straight out of the zip when stored
+uncompressed, as ``numpy.savez`` writes them; a compressed member is streamed once into a
+cache file and mapped from there.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vprscale.dataset.sources.base import RowSource
+from vprscale.dataset.sources.fingerprint import file_fingerprint
+from vprscale.errors import InputError
+
+
+@dataclass
+class Traverse:
+    """A reference and a query traverse with ground truth, from a file or the generator."""
+
+    ref: RowSource
+    query: RowSource
+    gt: np.ndarray
+    ref_pos: np.ndarray
+    query_pos: np.ndarray
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"ref": self.ref.fingerprint(), "query": self.query.fingerprint()}
+
+
+class NpyMemberSource(RowSource):
+    """A 2-D float32 ``.npy`` array at a byte offset of a file (a stored zip member)."""
+
+    def __init__(self, path: Path, offset: int, shape: tuple[int, int], fortran: bool,
+                 name: str, fingerprint: dict[str, Any]) -> None:
+        if fortran:
+            raise InputError(f"{name}: Fortran-ordered arrays are not supported")
+        self.path, self.offset = path, offset
+        self.n_rows, self.dim = shape
+        self.name = name
+        self._fp = fingerprint
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        mm = np.memmap(self.path, dtype="<f4", mode="r", offset=self.offset + 4 * start * self.dim,
+                       shape=(stop - start, self.dim))
+        out = np.array(mm, dtype=np.float32)
+        del mm
+        return out
+
+    def fingerprint(self) -> dict[str, Any]:
+        return self._fp
+
+
+def _member_layout(zf: zipfile.ZipFile, fh, info: zipfile.ZipInfo) -> tuple[int, tuple, bool, np.dtype]:
+    """Offset of the array data of a stored member, and its npy header."""
+    fh.seek(info.header_offset)
+    local = fh.read(30)
+    name_len, extra_len = struct.unpack("<HH", local[26:30])
+    start = info.header_offset + 30 + name_len + extra_len
+    fh.seek(start)
+    shape, fortran, dtype = _npy_header(fh)
+    return fh.tell(), shape, fortran, dtype
+
+
+def _npy_header(fh) -> tuple[tuple, bool, np.dtype]:
+    """Parse an ``.npy`` header at the file position; leaves the position at the data."""
+    major, _ = np.lib.format.read_magic(fh)
+    read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+    return read(fh)
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("VPRSCALE_CACHE", Path.home() / ".cache" / "vprscale"))
+
+
+def open_fas(path: str | os.PathLike) -> Traverse:
+    """Open and validate an FAS100K ``.npz`` (shapes, dtypes, ``0 ≤ gt < len(ref)``)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such file")
+    try:
+        zf = zipfile.ZipFile(p)
+    except zipfile.BadZipFile as exc:
+        raise InputError(f"{p}: not an .npz (zip) file: {exc}") from None
+    fp = file_fingerprint(p)
+    with zf, open(p, "rb") as fh:
+        members = {i.filename.removesuffix(".npy"): i for i in zf.infolist()}
+        for key in ("arr_0", "arr_1", "arr_2", "arr_3", "arr_4"):
+            if key not in members:
+                raise InputError(f"{p}: missing array {key}")
+
+        def descriptors(key: str) -> NpyMemberSource:
+            info = members[key]
+            if info.compress_type == zipfile.ZIP_STORED:
+                offset, shape, fortran, dtype = _member_layout(zf, fh, info)
+                target = p
+            else:
+                target = _cache_dir() / f"{fp['sha256_head_tail'][:16]}-{fp['bytes']}" / f"{key}.npy"
+                if not target.exists():
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = target.with_suffix(".tmp")
+                    with zf.open(info) as src, open(tmp, "wb") as dst:
+                        shutil.copyfileobj(src, dst, 1 << 24)
+                    tmp.replace(target)
+                with open(target, "rb") as cf:
+                    shape, fortran, dtype = _npy_header(cf)
+                    offset = cf.tell()
+            if len(shape) != 2 or np.dtype(dtype) != np.dtype("<f4"):
+                raise InputError(f"{p}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
+            return NpyMemberSource(target, offset, shape, fortran, f"{p}:{key}", {**fp, "member": key})
+
+        ref, query = descriptors("arr_0"), descriptors("arr_1")
+        small = {}
+        for k in ("arr_2", "arr_3", "arr_4"):
+            try:
+                small[k] = np.load(zf.open(members[k]), allow_pickle=False)
+            except ValueError as exc:  # a pickled (object) array, or not an .npy member at all
+                raise InputError(f"{p}: {k} is not a plain numeric array ({str(exc).splitlines()[0]})") from None
+    if ref.dim != query.dim:
+        raise InputError(f"{p}: arr_0 has {ref.dim} columns but arr_1 has {query.dim}")
+    gt, ref_pos, query_pos = small["arr_2"], small["arr_3"], small["arr_4"]
+    if gt.ndim != 1 or gt.shape[0] != query.n_rows or not np.issubdtype(gt.dtype, np.integer):
+        raise InputError(f"{p}: arr_2 must be {query.n_rows} integer ground-truth indices, "
+                         f"got shape {gt.shape} dtype {gt.dtype}")
+    bad = np.flatnonzero((gt < 0) | (gt >= ref.n_rows))
+    if bad.size:
+        raise InputError(f"{p}: arr_2 row {int(bad[0])}: ground truth {int(gt[bad[0]])} "
+                         f"outside [0, {ref.n_rows})")
+    for key, pos, n in (("arr_3", ref_pos, ref.n_rows), ("arr_4", query_pos, query.n_rows)):
+        if pos.ndim != 2 or pos.shape[0] != n:
+            raise InputError(f"{p}: {key} must hold {n} positions (n × 2 or n × 3), got shape {pos.shape}")
+    return Traverse(ref, query, gt.astype(np.int64), ref_pos, query_pos)

@@ -1,0 +1,1 @@
+"""Evaluation and reports: the protocol, the grid, the accounting, the report, SQL over an index (docs/protocol.md)."""

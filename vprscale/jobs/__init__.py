@@ -1,0 +1,1 @@
+"""Jobs: pipelines, the Dask cluster, progress, benchmarks and the online localisation command."""

@@ -1,0 +1,141 @@
+"""``vprscale bench``: benchmark runs that print their figures (never asserted in tests).
+
+Each job runs as a child process so that its wall time and peak memory are its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def run_child(argv: list[str]) -> dict[str, Any]:
+    """Run ``vprscale ARGV`` in a child process; its summary, wall time and peak RSS."""
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = Path(tmp) / "summary.json"
+        t0 = time.perf_counter()
+        pid = os.spawnv(os.P_NOWAIT, sys.executable,
+                        [sys.executable, "-m", "vprscale.cli", *argv, "--summary", str(summary)])
+        _, status, usage = os.wait4(pid, 0)
+        wall = time.perf_counter() - t0
+        if os.waitstatus_to_exitcode(status) != 0:
+            raise SystemExit(f"bench: vprscale {' '.join(argv)} failed")
+        data = json.loads(summary.read_text()) if summary.is_file() else {}
+    return {"wall_s": wall, "peak_rss_bytes": usage.ru_maxrss * 1024, "summary": data}
+
+
+def io_floor(inputs: list[Path], write_bytes: int, where: Path) -> dict[str, float]:
+    """Seconds to read the input files and to write as many bytes as the output holds."""
+    t0 = time.perf_counter()
+    read = 0
+    for f in inputs:
+        with open(f, "rb", buffering=0) as fh:
+            buf = bytearray(1 << 24)
+            while n := fh.readinto(buf):
+                read += n
+    t_read = time.perf_counter() - t0
+    block = np.random.default_rng(0).integers(0, 255, 1 << 24, dtype=np.uint8).tobytes()
+    target = where / ".io-floor.tmp"
+    t0 = time.perf_counter()
+    with open(target, "wb") as fh:
+        left = write_bytes
+        while left > 0:
+            fh.write(block[: min(left, len(block))])
+            left -= len(block)
+    t_write = time.perf_counter() - t0
+    target.unlink()
+    return {"read_s": t_read, "read_bytes": read, "write_s": t_write, "write_bytes": write_bytes}
+
+
+def bench_build(scale: str, out: str, deep1b: str | None, fas: str | None, workers: int) -> str:
+    """Time a fresh build: a store left by an earlier run is deleted first, because replacing
+    it (``--force`` deletes the old store once the new one is published) is not building."""
+    old = Path(out) / f"{scale}.zarr"
+    if old.exists():
+        shutil.rmtree(old)
+    argv = ["build", "--scale", scale, "--out", out, "--workers", str(workers)]
+    argv += (["--deep1b", deep1b] if deep1b else []) + (["--fas", fas] if fas else [])
+    r = run_child(argv)
+    s = r["summary"]
+    inputs = []
+    for p in filter(None, (deep1b, fas)):
+        p = Path(p)
+        inputs += sorted(f for f in p.iterdir() if f.is_file()) if p.is_dir() else [p]
+    floor = io_floor(inputs, s["bytes_on_disk"], Path(out))
+    floor_s = floor["read_s"] + floor["write_s"]
+    lines = [f"build {scale}: {r['wall_s']:.1f} s wall, peak RSS {r['peak_rss_bytes'] / 2**30:.2f} GiB, "
+             f"{s['ref_rows']:,} ref + {s['query_rows']:,} query rows, {s['bytes_on_disk'] / 2**30:.2f} GiB on disk"]
+    lines += [f"  stage {name}: {secs:.1f} s" for name, secs in s["stages_s"].items()]
+    lines.append(f"  I/O floor: read {floor['read_bytes'] / 2**30:.2f} GiB in {floor['read_s']:.1f} s + write "
+                 f"{floor['write_bytes'] / 2**30:.2f} GiB in {floor['write_s']:.1f} s = {floor_s:.1f} s; "
+                 f"build / floor = {r['wall_s'] / max(floor_s, 1e-9):.1f}×")
+    return "\n".join(lines)
+
+
+def bench_index(store: str, d: int | None, workers: int) -> str:
+    r = run_child(["index", store, "--workers", str(workers)] + (["--d", str(d)] if d else []))
+    s = r["summary"]
+    per_place = s["storage"]["P1"]["disk"] / s["n_ref"]
+    lines = [f"index {store} (d = {s['d']}): {r['wall_s']:.1f} s wall, peak RSS {r['peak_rss_bytes'] / 2**30:.2f} GiB, "
+             f"lists {per_place:.2f} bytes per place on disk"]
+    lines += [f"  stage {k}: {v:.1f} s" for k, v in s["timings_s"].items()]
+    lines.append(bench_lookup(s["index"]))
+    return "\n".join(lines)
+
+
+def bench_lookup(index: str, n: int = 50) -> str:
+    """Latency of one-address look-ups through the sandboxed DuckDB console."""
+    import pyarrow.parquet as pq
+
+    from vprscale.evaluation.sql import connect, query_table
+
+    addresses = pq.read_table(Path(index) / "buckets.parquet", columns=["hash"])["hash"].to_numpy()
+    picks = np.random.default_rng(0).choice(addresses, n)
+    t0 = time.perf_counter()
+    with connect(index) as con:
+        t1 = time.perf_counter()
+        query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(picks[0])}", 10.0)
+        cold = time.perf_counter() - t1
+        times = []
+        for h in picks[1:]:
+            t = time.perf_counter()
+            query_table(con, f"SELECT ref_id FROM lists WHERE hash = {int(h)}", 10.0)
+            times.append(time.perf_counter() - t)
+    return (f"  DuckDB look-up of one address: median {1e3 * np.median(times):.2f} ms, "
+            f"p95 {1e3 * np.percentile(times, 95):.2f} ms on an open console; first query {1e3 * cold:.1f} ms, "
+            f"sandboxed connection set-up {1e3 * (t1 - t0):.1f} ms")
+
+
+def _frame_part(us: float | None) -> str:
+    """`` (per-frame work x µs)`` where a method has per-frame work apart from its kernel."""
+    return "" if us is None or us != us else f" (per-frame work {us:.2f})"
+
+
+def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
+    with tempfile.TemporaryDirectory() as tmp:
+        r = run_child(["eval", store, index, "--out", tmp, "--workers", str(workers), *args])
+        import pandas as pd
+
+        res = pd.read_parquet(Path(tmp) / "results.parquet")
+    res = res[(res.part == "all") & (res.radius == 20)]
+    lines = [f"eval {store}: {r['wall_s']:.1f} s wall, peak RSS {r['peak_rss_bytes'] / 2**30:.2f} GiB"]
+    for _, row in res.iterrows():
+        lines.append(f"  {row.noise} {row.method:<10} {str(row['mode']):<8} L={row.L:<4} d={row.d:<3} "
+                     f"{row.us_per_query:10.2f} µs/query{_frame_part(row.us_per_frame)}  N_r {row.nr_mean:7.1f}  "
+                     f"R@20 {100 * row.recall:5.1f} %  ({row.n_queries} queries)")
+    for (noise, L), g in res.groupby(["noise", "L"]):
+        m = g[(g.method == "coarsehash") & (g["mode"].isna() | (g["mode"] == "paper"))]
+        b = g[g.method == "baseline"]
+        if len(m) and len(b):
+            lines.append(f"  {noise} L={L}: baseline / method time = "
+                         f"{b.us_per_query.iloc[0] / m.us_per_query.iloc[0]:.0f}×, operations = "
+                         f"{b.ops_per_query.iloc[0] / m.ops_per_query.iloc[0]:.0f}×")
+    return "\n".join(lines)

@@ -1,0 +1,104 @@
+"""``vprscale localise``: stream a traverse's frames through the online matcher.
+
+The method applied to a user's own traverse: query descriptors are read in order, a block
+of rows at a time, from a store array (``STORE.zarr/query_qm1``), an ``.npy`` file, an
+fvecs file or directory, or an ``.fbin``; each frame is pushed into an
+:class:`~vprscale.method.online.OnlineMatcher`; one row per frame (``frame``, the ``centre`` whose
+window it completes, ``match``, ``n_r``; empty until L frames) goes to a Parquet file,
+written beside its destination and renamed into place when whole.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import zarr
+
+from vprscale.errors import InputError
+from vprscale.jobs.progress import ChunkProgress
+from vprscale.method.engine import Index
+from vprscale.method.index import load_index_meta
+from vprscale.method.online import OnlineMatcher
+
+READ_ROWS = 4096
+
+
+def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
+    """``(rows, width, blocks of rows)`` of a query source."""
+    if (path / "zarr.json").is_file():
+        try:
+            arr = zarr.open_array(path, mode="r")
+        except Exception as exc:  # noqa: BLE001 - zarr's errors for a group or a damaged array vary
+            raise InputError(f"{path}: not a readable Zarr array ({exc})") from None
+        if arr.ndim != 2:
+            raise InputError(f"{path}: a {arr.ndim}-D array, not rows of descriptors")
+        return arr.shape[0], arr.shape[1], (arr[a : a + READ_ROWS] for a in range(0, arr.shape[0], READ_ROWS))
+    if path.suffix == ".npy":
+        try:
+            arr = np.load(path, mmap_mode="r")
+        except (ValueError, OSError) as exc:
+            raise InputError(f"{path}: not a readable .npy array ({exc})") from None
+        if arr.ndim != 2 or arr.dtype.kind != "f":
+            raise InputError(f"{path}: holds {arr.dtype} of shape {arr.shape}, not rows of float descriptors")
+        return arr.shape[0], arr.shape[1], (np.asarray(arr[a : a + READ_ROWS]) for a in range(0, len(arr), READ_ROWS))
+    from vprscale.dataset.sources.deep1b import open_deep1b
+
+    src = open_deep1b(path)
+    return src.n_rows, src.dim, (src.read(a, min(src.n_rows, a + READ_ROWS)) for a in range(0, src.n_rows, READ_ROWS))
+
+
+def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper", out: str | Path | None = None,
+             quiet: bool = False) -> dict[str, Any]:
+    """Localise every frame of ``queries``; returns a summary (and writes ``out`` when given)."""
+    meta = load_index_meta(index)
+    path = Path(queries)
+    if not path.exists():
+        raise InputError(f"{path}: no such query file or array")
+    rows, width, blocks = _blocks(path)
+    if width != meta["dim"]:
+        raise InputError(f"{path}: frames of {width} features; the index hashes frames of {meta['dim']}")
+    if out is not None:
+        out = Path(out)
+        if out.is_dir():
+            raise InputError(f"--out {out}: is a directory; give a file name")
+        if not out.parent.is_dir():
+            raise InputError(f"--out {out}: the folder {out.parent} does not exist")
+    try:
+        matcher = OnlineMatcher(Index.load(index), L, mode)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    lag = L - 1 - L // 2
+    match = np.full(rows, -1, np.int64)
+    n_r = np.zeros(rows, np.int64)
+    progress = None if quiet else ChunkProgress("localise", (rows + READ_ROWS - 1) // READ_ROWS)
+    t0 = time.perf_counter()
+    u = 0
+    for block in blocks:
+        for row in block:
+            m = matcher.push(row)
+            if m is not None:
+                match[u], n_r[u] = m, matcher.n_r
+            u += 1
+        if progress:
+            progress.update(1)
+    secs = time.perf_counter() - t0
+    frames = np.arange(rows)
+    done = match >= 0
+    table = pa.table({"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
+                      "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done)})
+    if out is not None:
+        tmp = out.with_name(f".{out.name}.partial")
+        pq.write_table(table, tmp)
+        tmp.replace(out)
+    if not quiet:
+        print(f"localised {rows:,} frames in {secs:.1f} s ({secs / max(1, rows) * 1e6:.1f} µs per frame)",
+              file=sys.stderr)
+    return {"frames": rows, "L": L, "mode": mode, "seconds": secs, "us_per_frame": secs / max(1, rows) * 1e6,
+            "out": str(out) if out else None, "state_bytes": matcher.state_bytes}

@@ -1,0 +1,244 @@
+"""The index container of the query engine (docs/method.md): a loaded (memory-mapped) index,
+query hashing, the per-frame work on query frames, and matching through the kernels of
+:mod:`vprscale.method.kernels`. The frame-by-frame matcher is :mod:`vprscale.method.online`.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from vprscale.method.coarsehash import hash_descriptors
+from vprscale.method.index import load_index_meta
+from vprscale.method.kernels import (
+    DELTA_MAX_UNITS,
+    _nearest_occupied,
+    _retrieve_lists,
+    bit_gaps,
+    bit_planes,
+    byte_tables,
+    match_batch,
+)
+
+COPIED_LISTS = 1 << 25  # ids (256 MB) up to which query frames get their own copy of their lists
+
+
+@dataclass
+class QueryFrames:
+    """The per-frame work on query frames, done once per frame as it arrives (docs/method.md).
+
+    A frame is hashed, given the nearest occupied address, and has that address's list
+    retrieved (the paper's O(1) list look-up per new frame); for K = 2 its address also
+    goes into bit planes like the references' (:func:`bit_planes`). Every window that
+    contains the frame then reads these, so a query's sequence match never goes back to
+    the index's lists: its L lists are adjacent here, in frame order. (Unless the frames'
+    lists hold more than ``COPIED_LISTS`` ids together, as a coarse index's do: then
+    ``ids`` is the index's own and the bounds point into it.)
+
+    Only the frames worked on are held, ascending; arrays are indexed by position among
+    them, and a window's frames, consecutive in the sequence, are consecutive here too.
+    """
+
+    frames: np.ndarray  # the frames held (ascending), positions 0 … n − 1
+    hashes: np.ndarray  # own address of every frame (uint64)
+    addr: np.ndarray  # index of the occupied address used
+    start: np.ndarray  # the list of the frame at position i is ids[start[i]:stop[i]]
+    stop: np.ndarray
+    ids: np.ndarray
+    planes: np.ndarray  # K = 2: bit b of positions 64·i … 64·i + 63 as word i·d + b
+
+    def positions(self, t: np.ndarray, L: int = 1) -> np.ndarray:
+        """Positions of frames ``t``, each with the whole window of ``L`` centred on it held."""
+        t = np.asarray(t, np.int64)
+        pos = np.searchsorted(self.frames, t)
+        first, last = pos - L // 2, pos - L // 2 + L - 1
+        ok = (first >= 0) & (last < len(self.frames))
+        ok[ok] &= (self.frames[first[ok]] == t[ok] - L // 2) & (self.frames[last[ok]] == t[ok] - L // 2 + L - 1)
+        if not ok.all():
+            raise ValueError(f"frame {t[~ok][0]}: its window of {L} is not among the query frames held")
+        return pos
+
+    def kernel_args(self) -> tuple:
+        """``(hashes, planes, start, stop, ids)``: the query frames' arguments of :func:`match_batch`."""
+        return self.hashes, self.planes, self.start, self.stop, self.ids
+
+
+@dataclass
+class Index:
+    """A CoarseHash index in memory."""
+
+    d: int
+    k: int
+    mean: np.ndarray
+    components: np.ndarray
+    centres: np.ndarray
+    addresses: np.ndarray  # sorted occupied addresses (uint64)
+    offsets: np.ndarray  # CSR: ids of address a are ids[offsets[a]:offsets[a+1]]
+    ids: np.ndarray  # int64 ref ids, grouped by address, ascending inside
+    best: np.ndarray  # single best ref id per address
+    ref_hash: np.ndarray  # the address of every reference (uint64)
+    meta: dict
+
+    @classmethod
+    def load(cls, path: str | Path) -> Index:
+        """Open an index directory; the lists and the map are memory-mapped, not read."""
+        path = Path(path)
+        meta = load_index_meta(path)
+        m = {k: np.load(path / "model" / f"{k}.npy") for k in ("mean", "components", "centres")}
+        arrays = {k: np.load(path / f"{k}.npy", mmap_mode="r")
+                  for k in ("addresses", "offsets", "ids", "best", "ref_hash")}
+        return cls(meta["d"], meta["k"], m["mean"], m["components"], m["centres"], arrays["addresses"],
+                   arrays["offsets"], arrays["ids"], arrays["best"], arrays["ref_hash"], meta)
+
+    @classmethod
+    def from_addresses(cls, ref_hash: np.ndarray, centres: np.ndarray, errors: np.ndarray | None = None,
+                       mean: np.ndarray | None = None, components: np.ndarray | None = None) -> Index:
+        """An index over given reference addresses (for hand-built cases and tests)."""
+        from vprscale.method.lists import inverted_lists
+
+        ref_hash = np.asarray(ref_hash, np.uint64)
+        d, k = centres.shape
+        lists = inverted_lists(ref_hash, np.zeros(len(ref_hash)) if errors is None else errors)
+        offsets = np.r_[lists["offsets"], len(ref_hash)].astype(np.int64)
+        return cls(d, k, np.zeros(d) if mean is None else mean, np.eye(d) if components is None else components,
+                   centres, lists["addresses"], offsets, lists["order"].astype(np.int64),
+                   lists["best"].astype(np.int64), ref_hash, {"n_ref": len(ref_hash), "d": d, "k": k})
+
+    @property
+    def n_ref(self) -> int:
+        return len(self.ref_hash)
+
+    def weights(self) -> np.ndarray:
+        """Fixed-point ``|c_ja − c_jb|`` as a (d, K, K) int64 table."""
+        diff = np.abs(self.centres[:, :, None] - self.centres[:, None, :])
+        span = (self.centres[:, -1] - self.centres[:, 0]).sum()
+        return np.rint(diff * (DELTA_MAX_UNITS / span)).astype(np.int64)
+
+    @cached_property
+    def planes(self) -> np.ndarray:
+        """For K = 2 the references' addresses as bit planes (:func:`bit_planes`); else empty.
+
+        ``d / 8`` bytes per place, built once per loaded index (0.1 s per 10M places).
+        """
+        return bit_planes(self.ref_hash, self.d) if self.k == 2 else np.zeros(0, np.uint64)
+
+    def kernel_args(self) -> tuple:
+        """``(ref_hash, planes, gaps, w, tables, d, k, δ_max)``: the index's arguments of :func:`match_batch`.
+
+        ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
+        """
+        w, tables, dmax = self.delta_tables()
+        return self.ref_hash, self.planes, bit_gaps(w), w, tables, self.d, self.k, dmax
+
+    def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
+        """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame."""
+        w = self.weights()
+        tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
+        return w, tables, np.int64(w[:, 0, -1].sum())
+
+    def hash_queries(self, x: np.ndarray) -> np.ndarray:
+        """Own addresses of query rows (docs/method.md)."""
+        x = np.asarray(x)
+        if x.ndim != 2 or x.shape[1] != self.components.shape[1]:
+            raise ValueError(f"query rows have shape {x.shape}; this index hashes rows of "
+                             f"{self.components.shape[1]} features")
+        return hash_descriptors(x, self.mean, self.components, self.centres)[1]
+
+    def match(self, frames: np.ndarray, L: int, mode: str = "paper",
+              centres: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Localise a traverse: ``(match, n_r)`` for each centre, by sequences of ``L`` frames.
+
+        ``frames`` are query descriptors in traverse order (rows); ``centres`` index them
+        (default: every centre whose whole window lies inside ``frames``). ``mode`` is
+        ``"paper"`` (candidates: the union of the window's lists) or ``"aligned"`` (each
+        list member proposes the centre it implies). L = 1 gives each frame's single best,
+        with its list's length as N_r.
+        """
+        if mode not in ("paper", "aligned"):
+            raise ValueError(f"mode = {mode!r}: choose 'paper' or 'aligned'")
+        if isinstance(L, bool) or not isinstance(L, int | np.integer) or L < 1:
+            raise ValueError(f"L = {L!r}: must be a positive integer")
+        h = self.hash_queries(frames)
+        if L > len(h):
+            raise ValueError(f"L = {L}: longer than the {len(h)} frames given")
+        half = L // 2
+        t = np.arange(half, len(h) - (L - 1 - half)) if centres is None else np.asarray(centres, np.int64)
+        if len(t) and (t.min() - half < 0 or t.max() - half + L > len(h)):
+            raise ValueError(f"centres: each window of {L} frames must lie inside the {len(h)} frames given")
+        qf = self.query_frames(h)
+        if L == 1:
+            a = qf.addr[t]
+            return self.best[a].astype(np.int64), (self.offsets[a + 1] - self.offsets[a]).astype(np.int64)
+        return match_batch(qf.positions(t, L), L, mode == "aligned", *qf.kernel_args(), *self.kernel_args())
+
+    def save(self, path: str | Path) -> Path:
+        """Write the index directory that :meth:`load` reads (published whole, by one rename)."""
+        from vprscale.method.lists import write_views
+
+        path = Path(path)
+        if path.exists() and not (path / "index.json").is_file():
+            raise ValueError(f"{path}: exists and is not an index directory; not replaced")
+        tmp = path.with_name(f".{path.name}.saving")
+        shutil.rmtree(tmp, ignore_errors=True)
+        (tmp / "model").mkdir(parents=True)
+        for name, arr in (("mean", self.mean), ("components", self.components), ("centres", self.centres)):
+            np.save(tmp / "model" / f"{name}.npy", arr)
+        arrays = {"addresses": self.addresses, "offsets": self.offsets, "ids": self.ids, "best": self.best,
+                  "ref_hash": self.ref_hash}
+        for name, arr in arrays.items():
+            np.save(tmp / f"{name}.npy", np.asarray(arr))
+        write_views(tmp, self.addresses, self.offsets, self.ids, self.best)
+        from vprscale.method.index import INDEX_FORMAT
+
+        meta = {**self.meta, "kind": "coarsehash-index", "complete": True, "format": INDEX_FORMAT, "d": self.d,
+                "k": self.k, "n_ref": self.n_ref, "occupied": int(len(self.addresses))}
+        (tmp / "index.json").write_text(json.dumps(meta, indent=1, default=str))
+        if path.exists():
+            old = path.with_name(f".{path.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            path.rename(old)
+            tmp.rename(path)
+            shutil.rmtree(old)
+        else:
+            tmp.rename(path)
+        return path
+
+    @cached_property
+    def _prefix(self) -> tuple[np.ndarray, int]:
+        """``(first, shift)``: the occupied addresses whose top bits are ``p`` are ``first[p] … first[p+1]``.
+
+        About 2^16 prefixes, so a search touches two table entries and one short run
+        instead of ~log2(occupied) scattered cache lines of the whole array.
+        """
+        bits = int(np.ceil(self.d * np.log2(self.k)))
+        shift = max(0, bits - 16)
+        prefixes = np.arange((1 << (bits - shift)) + 1, dtype=np.uint64)
+        first = np.searchsorted(self.addresses >> np.uint64(shift), prefixes)
+        return first.astype(np.int64), shift
+
+    def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None) -> QueryFrames:
+        """The per-frame work on query frames with own addresses ``h`` (docs/method.md).
+
+        ``frames`` (ascending; default ``0 … len(h) − 1``) number them in their sequence.
+        See :class:`QueryFrames`.
+        """
+        h = np.asarray(h, np.uint64)
+        frames = np.arange(len(h)) if frames is None else np.asarray(frames, np.int64)
+        a = self.nearest_occupied(h)
+        start, stop = self.offsets[a], self.offsets[a + 1]
+        if (stop - start).sum() <= COPIED_LISTS:
+            start, stop, ids = _retrieve_lists(self.offsets, self.ids, a)
+        else:  # long lists (a coarse index): read in place
+            ids = self.ids
+        planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
+        return QueryFrames(frames, h, a, start, stop, ids, planes)
+
+    def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
+        """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
+        first, shift = self._prefix
+        return _nearest_occupied(self.addresses, first, shift, np.asarray(h, np.uint64))

@@ -1,0 +1,432 @@
+"""The numba kernels of the query engine (docs/method.md): list retrieval, nearest occupied
+address, the symmetric code distance δ, bit planes and the batched sequence matcher.
+
+Sequence distances are computed in fixed point (int64; δ_max is ``DELTA_MAX_UNITS``), so that
+sums are exact and associative: the batch kernel, any batching and the online matcher agree
+bit for bit. :class:`~vprscale.method.engine.Index` hands these kernels their arrays.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from vprscale.method.intrinsics import funnel_shift_right, popcount, prefetch
+
+DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
+
+
+@numba.njit(cache=True, nogil=True)
+def _retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(start, stop, lists)``: the lists of addresses ``a`` copied one after another."""
+    start = np.empty(a.shape[0], np.int64)
+    stop = np.empty(a.shape[0], np.int64)
+    total = 0
+    for i in range(a.shape[0]):
+        total += offsets[a[i] + 1] - offsets[a[i]]
+    out = np.empty(total, np.int64)
+    m = 0
+    for i in range(a.shape[0]):
+        start[i] = m
+        for q in range(offsets[a[i]], offsets[a[i] + 1]):
+            out[m] = ids[q]
+            m += 1
+        stop[i] = m
+    return start, stop, out
+
+
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_occupied(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarray) -> np.ndarray:
+    out = np.empty(h.shape[0], np.int64)
+    for i in range(h.shape[0]):
+        x = h[i]
+        p = np.int64(x >> np.uint64(shift))
+        lo, hi = first[p], first[p + 1]  # the first address ≥ x is in [lo, hi], hi meaning "a later prefix"
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if a[mid] < x:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < a.shape[0] and a[lo] == x:
+            out[i] = lo
+        elif lo == 0:
+            out[i] = 0
+        elif lo == a.shape[0] or x - a[lo - 1] <= a[lo] - x:  # ties go to the smaller address
+            out[i] = lo - 1
+        else:
+            out[i] = lo
+    return out
+
+
+def bit_gaps(w: np.ndarray) -> np.ndarray:
+    """For K = 2: the cost of a differing bit ``b`` of two addresses (component ``d − 1 − b``'s gap)."""
+    return np.ascontiguousarray(w[::-1, 0, 1])
+
+
+def byte_tables(w: np.ndarray) -> np.ndarray:
+    """For K = 2: δ of each byte of ``h1 xor h2`` as (⌈d/8⌉, 256) int64 tables.
+
+    Bit ``b`` of an address is component ``d − 1 − b``; a differing bit costs that
+    component's centre gap. δ is then ⌈d/8⌉ table look-ups (the paper's d/p xor term).
+    """
+    d = w.shape[0]
+    gap = bit_gaps(w)
+    n_bytes = (d + 7) // 8
+    tables = np.zeros((n_bytes, 256), np.int64)
+    values = np.arange(256)
+    for i in range(n_bytes):
+        for bit in range(8):
+            b = 8 * i + bit
+            if b < d:
+                tables[i] += np.where(values >> bit & 1, gap[b], 0)
+    return tables
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def delta(h1: np.uint64, h2: np.uint64, w: np.ndarray, tables: np.ndarray, d: int, k: int) -> np.int64:
+    """Fixed-point symmetric distance between the codes of two addresses."""
+    s = np.int64(0)
+    if k == 2:
+        x = np.int64(h1 ^ h2)  # signed shifts: numba mixes uint64 with int64 through float64
+        for i in range(tables.shape[0]):
+            s += tables[i, (x >> (8 * i)) & 255]
+        return s
+    base = np.uint64(k)
+    for j in range(d - 1, -1, -1):
+        s += w[j, np.int64(h1 % base), np.int64(h2 % base)]
+        h1 //= base
+        h2 //= base
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_hash: np.ndarray,
+           w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64, bound: np.int64) -> np.int64:
+    """Score of centre ``c`` for the window at ``t``, abandoned once it reaches ``bound``.
+
+    Reference frames outside the map cost δ_max each; the in-range offsets form one
+    contiguous run, scanned without a branch per frame. δ ≥ 0, so a partial sum that has
+    reached ``bound`` can only end at or above it: returning early changes no decision.
+    """
+    n_ref = ref_hash.shape[0]
+    lo = max(0, half - c)  # first window offset whose reference frame is inside [0, n_ref)
+    hi = min(L, n_ref - c + half)
+    s = np.int64(lo + (L - hi)) * dmax
+    for i in range(lo, hi):
+        s += delta(ref_hash[c + i - half], q_hash[t + i - half], w, tables, d, k)
+        if s >= bound:
+            return s
+    return s
+
+
+PREFETCH = 8  # pairs whose reference window is fetched ahead of the one being scored
+QUERY_BLOCK = 1 << 14  # queries matched together at most (a pair holds its query in 20 bits)
+PAIR_BUDGET = 1 << 22  # proposals matched together at most: 32 MB per pair array
+SORT_BLOCKS = 16  # blocks of queries whose candidates are counted and scattered in parallel by the pair sort
+SCORE_CHUNKS = 16  # runs of sorted pairs scored in parallel, each keeping its own best per query
+BUCKET_BITS = 12  # pairs are sorted by their window's position, 4096 places (12 KB of planes) at a time
+MAX_BUCKETS = 1 << 16
+CACHED_PLANES = 1 << 23  # bytes of bit planes that stay in cache: smaller maps keep pairs in query order
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def bit_planes(h: np.ndarray, d: int) -> np.ndarray:
+    """For K = 2: bit ``b`` of the addresses of places ``64·i … 64·i + 63`` as word ``i·d + b``.
+
+    Flat (rows of ``d`` words), so that the short scoring kernel slices it directly: a
+    reshape on every call cost twice the arithmetic. Two zero rows pad the end so that any
+    window inside the map reads whole rows.
+    """
+    n = h.shape[0]
+    out = np.zeros((n // 64 + 2) * d, np.uint64)
+    for blk in numba.prange((n + 63) // 64):
+        row = out[blk * d:]
+        for p in range(64 * blk, min(n, 64 * blk + 64)):
+            _set_bit(row, h[p], p & 63, d)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _set_bit(row: np.ndarray, x: np.uint64, bit: int, d: int) -> None:
+    """Bit ``bit`` of word ``b`` of a plane row becomes bit ``b`` of address ``x``, for every plane."""
+    for b in range(d):
+        row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << np.uint64(bit)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _window_words(planes: np.ndarray, d: int, p: np.int64, e: int) -> np.uint64:
+    """Word ``e`` (flat over word, plane) of the window of places starting at ``p``: 64 frames of one plane."""
+    row = (p >> 6) * d
+    return funnel_shift_right(planes[row + d + e], planes[row + e], np.uint64(p & 63))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, masks: np.ndarray,
+                  gaps: np.ndarray) -> np.int64:
+    """K = 2 score of the window of references starting at ``p`` (all inside the map).
+
+    Per plane, a popcount of the xor of 64 reference bits with 64 query bits counts the
+    frames whose code differs in that component: ⌈L/64⌉·d words instead of L·⌈d/8⌉ table
+    look-ups. ``q_words``, ``masks`` and ``gaps`` are flat over (word, plane), so one
+    short loop runs over all of them and vectorises; the slices start at 0 so that numba adds
+    no negative-index checks (which cost half the time).
+
+    The sum is taken in float64, whose multiply-add is one instruction where an int64
+    multiply is three: every product and partial sum is an integer below L·δ_max < 2^53
+    (the caller checks), so it is exact in any order and the result equals the int64 sum.
+    """
+    lo = planes[(p >> 6) * d:]
+    hi = planes[(p >> 6) * d + d:]
+    sh = np.uint64(p & 63)
+    s = 0.0
+    for e in range(q_words.shape[0]):  # word e // d of plane e % d
+        s += gaps[e] * np.float64(popcount((funnel_shift_right(hi[e], lo[e], sh) ^ q_words[e]) & masks[e]))
+    return np.int64(s)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _prefetch_window(planes: np.ndarray, d: int, p: np.int64, L: int) -> None:
+    """Ask for the plane rows a window of ``L`` starting at ``p`` reads (one hint per 64-byte line)."""
+    if p < 0:
+        return
+    first = (p >> 6) * d
+    for e in range(first, min(first + ((L + 63) // 64 + 1) * d, planes.shape[0]), 8):
+        prefetch(planes, e)
+
+
+@numba.njit(cache=True, nogil=True)
+def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+                ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
+    """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
+
+    The proposals are first copied out of the lists, which lie next to each other
+    (:class:`QueryFrames`); then an open-addressing set in ``slots`` (``2**bits`` entries,
+    at least twice the proposals) removes repeats in O(1) each. (Sorting the proposals
+    cost more than scoring them.)
+    """
+    m = 0
+    for i in range(L):
+        shift = i - half if aligned else 0
+        for q in range(q_start[t + i - half], q_stop[t + i - half]):
+            cand[m] = ids[q] - shift
+            m += 1
+    size = slots.shape[0]
+    slots[:] = -1
+    hash_shift = np.uint64(64 - bits)
+    u = 0
+    for j in range(m):
+        c = cand[j]
+        if c < 0 or c >= n_ref:
+            continue
+        pos = np.int64((np.uint64(c) * np.uint64(0x9E3779B97F4A7C15)) >> hash_shift)
+        while slots[pos] != -1 and slots[pos] != c:
+            pos = (pos + 1) & (size - 1)
+        if slots[pos] == -1:
+            slots[pos] = c
+            cand[u] = c
+            u += 1
+    return u
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: np.ndarray) -> np.ndarray:
+    """Number of ids in the lists of each query's window (its candidates before repeats are dropped)."""
+    proposals = np.empty(centres_t.shape[0], np.int64)
+    for qi in numba.prange(centres_t.shape[0]):
+        total = 0
+        for i in range(L):
+            total += q_stop[centres_t[qi] + i - L // 2] - q_start[centres_t[qi] + i - L // 2]
+        proposals[qi] = total
+    return proposals
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+             ids: np.ndarray, n_ref: int, proposals: np.ndarray, shift: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(cand, first, n_r, counts)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``.
+
+    ``counts[block, bucket]`` counts each block of queries' candidates per bucket
+    (``centre >> shift``) for :func:`_pairs_by_window`, while they are still in cache.
+    """
+    n = centres_t.shape[0]
+    half = L // 2
+    first = np.zeros(n + 1, np.int64)
+    first[1:] = np.cumsum(proposals)
+    cand = np.empty(first[n], np.int64)
+    n_r = np.empty(n, np.int64)
+    counts = np.zeros((SORT_BLOCKS, (n_ref >> shift) + 1), np.int64)
+    for blk in numba.prange(SORT_BLOCKS):
+        slots = np.empty(0, np.int64)
+        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
+            bits = 4
+            while (1 << bits) < 2 * proposals[qi]:
+                bits += 1
+            if (1 << bits) > slots.shape[0]:
+                slots = np.empty(1 << bits, np.int64)
+            n_r[qi] = _candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
+                                  slots[: 1 << bits], bits)
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                counts[blk, cand[j] >> shift] += 1
+    return cand, first, n_r, counts
+
+
+@numba.njit(cache=True, nogil=True)
+def _bucket_shift(n_ref: int, map_bytes: int) -> int:
+    """Bits of a centre below its sort bucket: 4096-place buckets, or one bucket for a cached map.
+
+    Sorting pairs pays where windows would come from memory: a map of at most
+    ``CACHED_PLANES`` bytes of planes stays in the caches, and there query order was
+    faster (1M places, 2.5 MB: 15.7 µs per query against 18.8 sorted).
+    """
+    shift = BUCKET_BITS if map_bytes > CACHED_PLANES else 62
+    while (n_ref >> shift) >= MAX_BUCKETS:
+        shift += 1
+    return shift
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, counts: np.ndarray,
+                     shift: int) -> np.ndarray:
+    """Every (candidate, query) pair as ``centre << 20 | query``, ordered by ``centre >> shift``.
+
+    A counting sort (the counts from :func:`_propose`), its scatter split over the same
+    blocks of queries, stable: inside a bucket pairs keep query order. Scoring pairs in
+    this order reads the reference planes almost sequentially, once per batch, instead
+    of one scattered window per pair: at 10M places and a thousand queries of L = 100
+    the windows cover the map about three times over.
+    """
+    n = n_r.shape[0]
+    total = 0
+    for b in range(counts.shape[1]):
+        for blk in range(SORT_BLOCKS):
+            c = counts[blk, b]
+            counts[blk, b] = total
+            total += c
+    pairs = np.empty(total, np.int64)
+    for blk in numba.prange(SORT_BLOCKS):
+        cursor = counts[blk]
+        for qi in range(n * blk // SORT_BLOCKS, n * (blk + 1) // SORT_BLOCKS):
+            for j in range(first[qi], first[qi] + n_r[qi]):
+                b = cand[j] >> shift
+                pairs[cursor[b]] = (cand[j] << 20) | qi
+                cursor[b] += 1
+    return pairs
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int) -> np.ndarray:
+    """Every query window's bit planes, (query, word·plane), read out of the query frames' planes."""
+    out = np.empty((centres_t.shape[0], (L + 63) // 64 * d), np.uint64)
+    for qi in numba.prange(centres_t.shape[0]):
+        for e in range(out.shape[1]):
+            out[qi, e] = _window_words(q_planes, d, centres_t[qi] - L // 2, e)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
+def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
+                 ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
+                 d: int, k: int, dmax: np.int64, fast: bool) -> np.ndarray:
+    """The centre of each query's best pair, ties to the smaller centre.
+
+    Runs of the sorted pairs are scored in parallel, each run keeping its own best per
+    query; the runs' bests are then merged. The minimum does not depend on the order, so
+    the answer does not depend on the thread count.
+    """
+    n = centres_t.shape[0]
+    half = L // 2
+    n_ref = ref_hash.shape[0]
+    n_words = (L + 63) // 64
+    masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))  # flat over (word, plane), as q_words
+    if L % 64:
+        masks[-d:] = (np.uint64(1) << np.uint64(L % 64)) - np.uint64(1)
+    gaps = np.empty(n_words * d, np.float64)
+    for e in range(n_words * d):
+        gaps[e] = bit_gap[e % d]
+    m = pairs.shape[0]
+    run_s = np.full((SCORE_CHUNKS, n), np.int64(2**62))
+    run_c = np.full((SCORE_CHUNKS, n), np.int64(-1))
+    for run in numba.prange(SCORE_CHUNKS):
+        stop = m * (run + 1) // SCORE_CHUNKS
+        for j in range(m * run // SCORE_CHUNKS, stop):
+            c = pairs[j] >> 20
+            qi = pairs[j] & 0xFFFFF
+            if fast and j + PREFETCH < stop:
+                _prefetch_window(planes, d, (pairs[j + PREFETCH] >> 20) - half, L)
+            if fast and c >= half and c - half + L <= n_ref:
+                s = _score_planes(c - half, planes, d, q_words[qi], masks, gaps)
+            else:
+                s = _score(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax, run_s[run, qi] + 1)
+            if s < run_s[run, qi] or (s == run_s[run, qi] and c < run_c[run, qi]):
+                run_s[run, qi] = s
+                run_c[run, qi] = c
+    best_s = run_s[0].copy()
+    best = run_c[0].copy()
+    for qi in numba.prange(n):
+        for run in range(1, SCORE_CHUNKS):
+            s, c = run_s[run, qi], run_c[run, qi]
+            if s < best_s[qi] or (s == best_s[qi] and c < best[qi]):
+                best_s[qi], best[qi] = s, c
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
+def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_planes: np.ndarray,
+                q_start: np.ndarray, q_stop: np.ndarray, q_ids: np.ndarray, ref_hash: np.ndarray,
+                planes: np.ndarray, gaps: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+                dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """Sequence match of every query centre; returns ``(match, number of candidates)``.
+
+    The query-frame arrays are those of :class:`QueryFrames` (the own address of the frame
+    at position ``i``, its list ``q_ids[q_start[i]:q_stop[i]]``, the frames' bit planes),
+    and ``centres_t`` are positions there (:meth:`QueryFrames.positions`). Paper mode scores
+    every id of every window frame's list as a centre; aligned mode scores ``r − l`` for an
+    id ``r`` in the list of frame ``t + l``. Ties go to the smallest centre.
+
+    Queries are matched in blocks: each query's distinct candidates are collected (a small
+    hash set per query), all (candidate, query) pairs of the block are sorted by where
+    their reference window lies (:func:`_pairs_by_window`), and scored in that order, so
+    that the bit planes of the map stream through the caches instead of being fetched
+    window by window. For K = 2 a window inside the map is scored on bit planes
+    (:func:`_score_planes`); other windows, and K > 2, frame by frame (:func:`_score`).
+    """
+    n = centres_t.shape[0]
+    n_ref = ref_hash.shape[0]
+    # the bit-plane score sums in float64: exact while L·δ_max < 2^53
+    fast = k == 2 and planes.shape[0] > 0 and np.float64(L) * np.float64(dmax) < 2.0**53
+    match = np.empty(n, np.int64)
+    n_r = np.empty(n, np.int64)
+    shift = _bucket_shift(n_ref, planes.shape[0] * 8)
+    proposals = _proposals(centres_t, L, q_start, q_stop)
+    upto = np.cumsum(proposals)  # proposals of the queries up to each, inclusive
+    lo = 0
+    while lo < n:  # blocks of at most QUERY_BLOCK queries and PAIR_BUDGET proposals (at least one query)
+        hi = min(n, lo + QUERY_BLOCK,
+                 max(lo + 1, np.searchsorted(upto, upto[lo] - proposals[lo] + PAIR_BUDGET, "right")))
+        t = centres_t[lo:hi]
+        cand, first, block_n_r, counts = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi],
+                                                  shift)
+        pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
+        q_words = _query_words(t, L, q_planes, d) if fast else np.zeros((t.shape[0], 0), np.uint64)
+        match[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax, fast)
+        n_r[lo:hi] = block_n_r
+        lo = hi
+    return match, n_r
+
+
+@numba.njit(cache=True, nogil=True)
+def in_list_distance(addr: np.ndarray, gt: np.ndarray, offsets: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """For single frames: the smallest ``|id − gt|`` over the address's whole list."""
+    out = np.empty(addr.shape[0], np.int64)
+    for i in range(addr.shape[0]):
+        best = np.int64(2**62)
+        for p in range(offsets[addr[i]], offsets[addr[i] + 1]):
+            dist = abs(ids[p] - gt[i])
+            if dist < best:
+                best = dist
+        out[i] = best
+    return out

@@ -1,0 +1,149 @@
+"""Frame-by-frame sequence matching (docs/method.md): the method applied to a live traverse.
+
+After frame u (u ≥ L − 1) the matcher reports the match of the centre
+``t = u − (L − 1 − ⌊L/2⌋)``, exactly as the batch kernel would: the same candidates (the
+batch's own candidate collector), the same window scores (its bit-plane and frame-by-frame
+scorers) and the same ties. One compiled step per frame does the per-frame work (nearest
+occupied address, list retrieval) and the match, so a frame costs about what one batched
+query costs, without the batch's sort.
+
+State is O(L + N_r): a ring of the last L frames' addresses and list lengths, their lists
+in one sliding buffer, and scratch space for the candidates; nothing grows with the length
+of the stream.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from vprscale.method.engine import Index
+from vprscale.method.kernels import _candidates, _nearest_occupied, _score, _score_planes, _set_bit
+
+
+class OnlineMatcher:
+    """Localise query frames one at a time against an :class:`~vprscale.method.engine.Index`.
+
+    Parameters
+    ----------
+    index : the index to match against.
+    L : sequence length (frames per window).
+    mode : ``"paper"`` or ``"aligned"`` (see docs/method.md).
+
+    ``push(descriptor)`` returns the match of the window the frame completes (None for the
+    first L − 1 frames); ``n_r`` is then that window's number of candidates. With L = 1 the
+    match is the single best of the frame's address, as in the batch evaluation.
+    """
+
+    def __init__(self, index: Index, L: int, mode: str = "paper") -> None:
+        if mode not in ("paper", "aligned"):
+            raise ValueError(f"mode = {mode!r}: choose 'paper' or 'aligned'")
+        if isinstance(L, bool) or not isinstance(L, int | np.integer) or L < 1:
+            raise ValueError(f"L = {L!r}: must be a positive integer")
+        self.index, self.L, self.mode = index, int(L), mode
+        self.n_r: int | None = None
+        ref_hash, planes, bit_gap, w, tables, d, k, dmax = index.kernel_args()
+        first, shift = index._prefix
+        longest = int(np.max(np.diff(np.asarray(index.offsets, np.int64)))) if len(index.offsets) > 1 else 1
+        capacity = 2 * self.L * max(1, longest)
+        n_words = (self.L + 63) // 64
+        masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))
+        if self.L % 64:
+            masks[-d:] = (np.uint64(1) << np.uint64(self.L % 64)) - np.uint64(1)
+        self._state = np.zeros(4, np.int64)  # frames seen, buffer start, buffer end, ring slot of the oldest
+        self._ring_h = np.zeros(self.L, np.uint64)
+        self._ring_n = np.zeros(self.L, np.int64)
+        self._buf = np.empty(capacity, np.int64)
+        self._scratch = np.empty(capacity, np.int64)
+        slots = 16
+        while slots < 2 * capacity:
+            slots *= 2
+        self._slots = np.empty(slots, np.int64)
+        self._args = (np.asarray(index.addresses), first, shift, np.asarray(index.offsets), index.ids, ref_hash, planes,
+                      np.repeat(bit_gap[None, :], n_words, axis=0).ravel().astype(np.float64), masks, w, tables,
+                      d, k, dmax)
+        self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
+
+    def push(self, descriptor: np.ndarray) -> int | None:
+        """Add one query frame; the match of the window it completes (None until L frames)."""
+        h = self.index.hash_queries(np.asarray(descriptor, np.float32).reshape(1, -1))
+        return self.push_address(int(h[0]))
+
+    def push_address(self, h: int) -> int | None:
+        """Add one query frame given its own address (already hashed)."""
+        if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
+            a = int(self.index.nearest_occupied(np.array([h], np.uint64))[0])
+            self.n_r = int(self.index.offsets[a + 1] - self.index.offsets[a])
+            return int(self.index.best[a])
+        match, n_r = _step(np.uint64(h), self._state, self._ring_h, self._ring_n, self._buf, self._scratch,
+                           self._slots, self.L, self.mode == "aligned", self._fast, *self._args)
+        if match < 0:
+            return None
+        self.n_r = int(n_r)
+        return int(match)
+
+    @property
+    def state_bytes(self) -> int:
+        """Bytes held between frames: fixed at construction, whatever the length of the stream."""
+        return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots))
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
+          cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, addresses: np.ndarray,
+          first: np.ndarray, shift: int, offsets: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray,
+          planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
+          k: int, dmax: np.int64) -> tuple[np.int64, np.int64]:
+    """One frame: its list into the window, then the window's match (−1 until L frames)."""
+    one = np.empty(1, np.uint64)
+    one[0] = h
+    a = _nearest_occupied(addresses, first, shift, one)[0]
+    slot = st[3]
+    if st[0] >= L:  # the oldest frame leaves the window
+        st[1] += ring_n[slot]
+    n = offsets[a + 1] - offsets[a]
+    if st[2] + n > buf.shape[0]:  # slide the window's lists back to the start of the buffer
+        live = st[2] - st[1]
+        for i in range(live):
+            buf[i] = buf[st[1] + i]
+        st[1], st[2] = 0, live
+    for q in range(n):
+        buf[st[2] + q] = ids[offsets[a] + q]
+    ring_h[slot], ring_n[slot] = h, n
+    st[2] += n
+    st[3] = (slot + 1) % L
+    st[0] += 1
+    if st[0] < L:
+        return np.int64(-1), np.int64(0)
+    # The window, oldest frame first: its addresses, list bounds and bit planes.
+    half = L // 2
+    q_hash = np.empty(L, np.uint64)
+    q_start = np.empty(L, np.int64)
+    q_stop = np.empty(L, np.int64)
+    q_planes = np.zeros(((L + 63) // 64 + 2) * d, np.uint64)
+    pos = st[1]
+    for i in range(L):
+        j = (st[3] + i) % L
+        q_hash[i] = ring_h[j]
+        q_start[i] = pos
+        pos += ring_n[j]
+        q_stop[i] = pos
+        if fast:
+            _set_bit(q_planes[(i >> 6) * d:], ring_h[j], i & 63, d)
+    total = st[2] - st[1]
+    bits = 4
+    while (1 << bits) < 2 * total:
+        bits += 1
+    q_words = q_planes[: masks.shape[0]]  # the window starts at frame 0: its words are the plane rows as they are
+    n_ref = ref_hash.shape[0]
+    n_r = _candidates(np.int64(half), L, half, aligned, q_start, q_stop, buf, n_ref, cand, slots[: 1 << bits], bits)
+    best, best_s = np.int64(-1), np.int64(2**62)
+    for m in range(n_r):
+        c = cand[m]
+        if fast and c >= half and c - half + L <= n_ref:
+            s = _score_planes(c - half, planes, d, q_words, masks, gaps)
+        else:
+            s = _score(c, np.int64(half), L, half, ref_hash, q_hash, w, tables, d, k, dmax, best_s + 1)
+        if s < best_s or (s == best_s and c < best):
+            best_s, best = s, c
+    return best, np.int64(n_r)
