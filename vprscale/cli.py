@@ -184,6 +184,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(bench.bench_index(args.target, args.d, args.workers))
     elif args.job == "lookup":
         print(bench.bench_lookup(args.target))
+    elif args.job == "online":
+        if not args.index:
+            raise InputError("bench online: give --index")
+        print(bench.bench_online(args.target, args.index, args.L))
     else:
         if not args.index:
             raise InputError("bench eval: give --index")
@@ -278,13 +282,14 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")
-    p.add_argument("job", choices=["build", "index", "lookup", "eval"])
-    p.add_argument("target", help="build: a scale; index/eval: a store; lookup: an index")
+    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online"])
+    p.add_argument("target", help="build: a scale; index/eval: a store; lookup: an index; online: a store")
     p.add_argument("--out", default="data/bench", help="build: output directory")
     p.add_argument("--deep1b")
     p.add_argument("--fas")
     p.add_argument("--d", type=_positive_int)
-    p.add_argument("--index", help="eval: the index to evaluate")
+    p.add_argument("--index", help="eval, online: the index to evaluate")
+    p.add_argument("--L", type=_positive_int, default=100, help="online: sequence length (default 100)")
     p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1)
     p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')
     p.set_defaults(func=cmd_bench)

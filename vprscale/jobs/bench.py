@@ -139,3 +139,43 @@ def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
                          f"{b.us_per_query.iloc[0] / m.us_per_query.iloc[0]:.0f}×, operations = "
                          f"{b.ops_per_query.iloc[0] / m.ops_per_query.iloc[0]:.0f}×")
     return "\n".join(lines)
+
+
+def bench_online(store: str, index: str, L: int, frames: int = 3000) -> str:
+    """Online matching against the batch kernel on the same frames, interleaved in one process.
+
+    The per-frame cost of :class:`~vprscale.method.online.OnlineMatcher` (hashing included) and
+    the batch's per query per core (its per-frame work included), over a traverse of
+    ``frames`` consecutive query frames from the middle of the store; the matches are checked
+    equal. Interleaving the two in one process keeps the machine's drift out of the ratio.
+    """
+    import numba
+    import zarr
+
+    from vprscale.method.engine import Index
+    from vprscale.method.online import OnlineMatcher
+
+    idx = Index.load(index)
+    q = zarr.open_group(store, mode="r")["query_qm1"]
+    start = max(0, q.shape[0] // 2 - frames // 2)
+    x = q[start : start + frames]
+    _ = idx.planes
+    warm = OnlineMatcher(idx, L)
+    for row in x[: L + 10]:
+        warm.push(row)
+    idx.match(x[: L + 10], L)
+    lines = []
+    for rep in range(3):
+        online = OnlineMatcher(idx, L)
+        t0 = time.perf_counter()
+        got = [online.push(row) for row in x]
+        t_online = (time.perf_counter() - t0) / len(x)
+        t0 = time.perf_counter()
+        match, n_r = idx.match(x, L)
+        t_batch = (time.perf_counter() - t0) * numba.get_num_threads() / len(match)
+        if not np.array_equal(np.array(got[L - 1 :], dtype=np.int64), match):
+            raise SystemExit("bench online: the online matches differ from the batch")
+        lines.append(f"  run {rep + 1}: online {t_online * 1e6:.1f} µs per frame, batch {t_batch * 1e6:.1f} µs per "
+                     f"query per core; online / batch {t_online / t_batch:.2f}; N_r mean {n_r.mean():.0f}; "
+                     f"state {online.state_bytes / 1e3:.0f} kB")
+    return f"online matching, {idx.n_ref:,} places, L = {L}, {len(x):,} frames\n" + "\n".join(lines)
