@@ -125,7 +125,8 @@ def write_compact(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput
             centres = [query_centres(gt_at, lay.n_query, lay.n_deep, z, L).t for L in lengths]
             frames = window_frames(centres, list(lengths))
             blocks = np.unique(frames // BLOCK)
-            parts = [dask.delayed(_queries_of_block)(writer, int(b) * BLOCK,
+            shared = dask.delayed(writer, pure=True)  # hashed once, not once per block
+            parts = [dask.delayed(_queries_of_block)(shared, int(b) * BLOCK,
                                                      frames[(frames >= b * BLOCK) & (frames < (b + 1) * BLOCK)])
                      for b in blocks]
             rows = compute(*parts, desc="query windows")
