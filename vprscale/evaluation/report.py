@@ -325,7 +325,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance) -> str
                      _num(built.get("wall_s"), ".1f"), _num(built.get("peak_rss_bytes", math.nan) / gib, ".2f"),
                      _num(i["wall_s"], ".1f"), _num(i["peak_rss_bytes"] / gib, ".2f"), _num(ev.get("wall_s"), ".1f"),
                      _num(ev.get("peak_rss_bytes", math.nan) / gib, ".2f"),
-                     _num(_disk(i["store"]["path"]) / gib, ".2f"), _num(_disk(i["path"]) / gib, ".2f")])
+                     _num(_disk(i["store"].get("path", "")) / gib, ".2f"), _num(_disk(i.get("path", "")) / gib, ".2f")])
     md += ["## Time (s), peak memory (GiB) and disk (GiB) per stage", "",
            _md_table(["scale", "d", "build s", "build GiB", "index s", "index GiB", "eval s", "eval GiB",
                       "store on disk", "index on disk"], rows), ""]
@@ -336,7 +336,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance) -> str
 def _disk(path: str | Path) -> float:
     """Bytes under a directory (NaN where it is not on this machine)."""
     p = Path(path)
-    if not p.is_dir():
+    if not path or not p.is_dir():
         return math.nan
     return float(sum(f.stat().st_size for f in p.rglob("*") if f.is_file()))
 
