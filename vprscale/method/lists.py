@@ -12,7 +12,8 @@ Outputs, all in the index directory:
 
 - ``ref_hash.npy``: every reference's address (P1, the map of the sequence matcher);
 - ``ids.npy``: reference ids grouped by address, ascending inside an address;
-- ``addresses.npy``, ``offsets.npy`` (CSR, one more than the addresses), ``best.npy``;
+- ``addresses.npy``, ``offsets.npy`` (CSR, one more than the addresses; as wide as the ids),
+  ``best.npy``;
 - ``lists.parquet`` (``hash``, ``ref_id``) and ``buckets.parquet`` (``hash``, ``size``,
   ``best_id``, ``offset``) for SQL.
 
@@ -202,7 +203,7 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
     ref_hash.flush()
     cuts = _prefix_cuts(prefix_counts, part_rows)
     files = {name: _Appender(out / f"{name}.npy", t) for name, t in
-             (("ids", id_t), ("addresses", addr_t), ("offsets", np.int64), ("best", id_t))}
+             (("ids", id_t), ("addresses", addr_t), ("offsets", id_t), ("best", id_t))}
     lists_pq = pq.ParquetWriter(out / "lists.parquet",
                                 pa.schema([("hash", pa.uint64()), ("ref_id", pa.from_numpy_dtype(id_t))]),
                                 compression="zstd", use_dictionary=False,
