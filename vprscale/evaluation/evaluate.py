@@ -220,7 +220,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
                        "baseline_queries": _baseline_limit(req, qs), "layout": layout["kind"],
-                       "indexes": [str(p) for p in index_paths], **provenance}
+                       "indexes": [str(Path(p).resolve()) for p in index_paths], **provenance}
             (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
             partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,

@@ -49,8 +49,8 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
             raise InputError(f"{f}: not a vprscale results file (no column {', '.join(sorted(missing))})")
         frames.append(df)
         ej = f.parent / "eval.json"
-        if ej.is_file():
-            evals.append(json.loads(ej.read_text()))
+        if ej.is_file():  # tied to the indexes its results name (absolute paths)
+            evals.append({**json.loads(ej.read_text()), "_indexes": [str(x) for x in df["index"].dropna().unique()]})
         for idx in df["index"].dropna().unique():
             meta_file = Path(idx) / "index.json"
             if meta_file.is_file():
@@ -319,7 +319,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance) -> str
     rows = []
     for i in sorted(indexes, key=lambda i: (i["n_ref"], i["d"])):
         built = i["store"].get("built", {})
-        ev = next((e for e in evals if i["path"] in e.get("indexes", [])), {})
+        ev = next((e for e in evals if i["path"] in e["_indexes"]), {})
         gib = 2**30
         rows.append([i["store"]["scale"] + ("" if i["store"].get("rescale", True) else " (no rescale)"), i["d"],
                      _num(built.get("wall_s"), ".1f"), _num(built.get("peak_rss_bytes", math.nan) / gib, ".2f"),
@@ -345,7 +345,7 @@ def _stratification_note(res: pd.DataFrame, scales: list[str]) -> list[str]:
     """Which scales sampled the FAS part with a stride of its own, and what "all" then means."""
     if "fas_stride" not in res.columns:
         return []
-    strided = res[res.fas_stride.notna() & (res.part == "fas") & (res.radius == 0)]
+    strided = res[res.fas_stride.notna() & (res.part == "fas") & (res.radius == 0) & (res.method == "coarsehash")]
     if strided.empty:
         return []
     said = []
