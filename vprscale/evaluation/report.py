@@ -352,7 +352,7 @@ def _stratification_note(res: pd.DataFrame, scales: list[str]) -> list[str]:
     for scale in scales:
         g = strided[strided.scale == scale]
         if not g.empty:
-            said.append(f"{scale} (every {int(g.fas_stride.iloc[0]):,}th FAS frame, "
+            said.append(f"{scale} (a FAS stride of {int(g.fas_stride.iloc[0]):,} frames, "
                         f"{int(g.n_queries.min()):,}–{int(g.n_queries.max()):,} FAS queries)")
     base = res[(res.method == "baseline") & (res.part == "all") & (res.radius == 0)]
     note = ["Stratified centres: at " + ", ".join(said) + " the common stride leaves fewer than 200 FAS "
