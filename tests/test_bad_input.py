@@ -135,3 +135,17 @@ def test_reindexing_keeps_evaluations(tiny_store, tmp_path, capsys):
     kept = tmp_path / "x.index.previous-eval"
     assert (kept / "results.parquet").is_file() and not (index / "eval").exists()
     assert json.loads((index / "index.json").read_text())["complete"]
+
+
+def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys):
+    """An evaluation holds its index's lock: re-indexing meanwhile is refused, not run under it."""
+    from vprscale.dataset.store import exclusive
+
+    index = tmp_path / "y.index"
+    assert main(["index", str(tiny_store), "--d", "8", "--out", str(index)]) == 0
+    before = (index / "ids.npy").read_bytes()
+    capsys.readouterr()
+    with exclusive(index):  # what `vprscale eval STORE y.index` holds while it runs
+        _fails(capsys, ["index", str(tiny_store), "--d", "9", "--out", str(index), "--force"], "another vprscale job")
+        _fails(capsys, ["eval", str(tiny_store), str(index), "--L", "1", "--no-baseline"], "another vprscale job")
+    assert (index / "ids.npy").read_bytes() == before
