@@ -355,3 +355,17 @@ def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_inde
     assert pq.read_metadata(tmp_path / "s.parquet").num_rows == 52_000
     np.save(tmp_path / "bad.npy", x[:, :7])
     assert main(["localise", str(tiny_index), str(tmp_path / "bad.npy")]) == 2
+
+
+@pytest.mark.parametrize(("d", "n"), [(26, 1000), (30, 200_000)])
+def test_nearest_occupied_through_the_prefix_table_equals_brute_force(d, n):
+    rng = np.random.default_rng(d)
+    occupied = np.unique(rng.integers(0, 2**d, n, dtype=np.uint64))
+    idx = Index.from_addresses(occupied, np.tile([[-1.0, 1.0]], (d, 1)))
+    h = np.r_[rng.integers(0, 2**d, 3000, dtype=np.uint64), occupied[:50], occupied[-5:] + np.uint64(1)]
+    got = idx.addresses[idx.nearest_occupied(h)]
+    below = occupied[np.clip(np.searchsorted(occupied, h, "right") - 1, 0, None)]
+    above = occupied[np.clip(np.searchsorted(occupied, h), None, len(occupied) - 1)]
+    dist_below = np.where(below <= h, h - below, np.uint64(2**63))
+    dist_above = np.where(above >= h, above - h, np.uint64(2**63))
+    np.testing.assert_array_equal(got, np.where(dist_below <= dist_above, below, above))  # ties: the smaller

