@@ -128,7 +128,8 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
     for part_rows in (1 << 30, 5000):
         out = tmp_path / str(part_rows)
         out.mkdir()
-        r = write_lists(out, lambda a, b: (h[a:b], err[a:b]), bounds, n, 18, 2, quiet=True, part_rows=part_rows)
+        r = write_lists(out, lambda a, b: h[a:b], lambda a, b: err[a:b], bounds, n, 18, 2, quiet=True,
+                        part_rows=part_rows)
         assert r["partitions"] == (1 if part_rows > n else 21) and not (out / ".partitions").exists()
         got[part_rows] = {k: np.load(out / f"{k}.npy") for k in ("ids", "addresses", "offsets", "best", "ref_hash")}
     want = inverted_lists(h, err)

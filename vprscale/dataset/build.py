@@ -164,26 +164,29 @@ class ChunkWriter:
                               "homogenised and projected overflow float32; dataset row)")
         return rows
 
-    def ref_rows(self, a: int, b: int) -> np.ndarray:
-        """Reference rows ``[a, b)`` exactly as the full layout stores them."""
+    def _fas(self, rows: np.ndarray, a: int, b: int, n_total: int) -> np.ndarray:
+        """The FAS rows (of ``rows``, which follow the Deep1B part) inside dataset rows ``[a, b)``."""
         n_deep = self.layout.n_deep
-        fas = self.fas_ref[max(0, a - n_deep) : max(0, min(b, self.layout.n_ref) - n_deep)]
-        return np.concatenate([self.deep_rows(a, b), fas])
+        return rows[max(0, a - n_deep) : max(0, min(b, n_total) - n_deep)]
+
+    def ref_rows(self, a: int, b: int, deep: np.ndarray | None = None) -> np.ndarray:
+        """Reference rows ``[a, b)`` exactly as the full layout stores them (``deep``: their Deep1B
+        part, when already computed)."""
+        deep = self.deep_rows(a, b) if deep is None else deep
+        return np.concatenate([deep, self._fas(self.fas_ref, a, b, self.layout.n_ref)])
 
     def query_rows(self, deep: np.ndarray, a: int, b: int) -> list[np.ndarray]:
         """Query rows ``[a, b)`` of each noise level, given the Deep1B reference rows from ``a``."""
-        n_deep = self.layout.n_deep
-        fas = self.fas_query[max(0, a - n_deep) : max(0, min(b, self.layout.n_query) - n_deep)]
+        fas = self._fas(self.fas_query, a, b, self.layout.n_query)
         return [np.concatenate([q, fas]) for q in noisy_rows(deep, a, self.recipe.seed, self.noise_mean,
                                                              self.noise_std, tuple(NOISE_LEVELS.values()))]
 
     def __call__(self, a: int, b: int) -> None:
         lay = self.layout
         deep = self.deep_rows(a, b)
-        fas_ref = self.fas_ref[max(0, a - lay.n_deep) : max(0, min(b, lay.n_ref) - lay.n_deep)]
         group = zarr.open_group(self.store, mode="r+")
         if a < lay.n_ref:
-            write_rows(group["ref"], a, np.concatenate([deep, fas_ref]))
+            write_rows(group["ref"], a, self.ref_rows(a, b, deep))
             group["ref_part"][a : min(b, lay.n_ref)] = self._parts(a, min(b, lay.n_ref))
         if a < lay.n_query:
             q_hi = min(b, lay.n_query)

@@ -112,9 +112,13 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         partial.open()
         if layout["kind"] == "compact":
             chunk = group["ref_hash"].chunks[0]
+            stored_h, stored_err = group["ref_hash"], group["ref_err"]
 
-            def read(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-                return group["ref_hash"][a:b], group["ref_err"][a:b]
+            def addresses(a: int, b: int) -> np.ndarray:
+                return stored_h[a:b]
+
+            def errors(a: int, b: int) -> np.ndarray:
+                return stored_err[a:b]
         else:
             ref = rows_of(group["ref"])
             with timings.stage(f"fit CoarseHash (d = {d_eff}, K = {k}) on {n_ref:,} refs"):
@@ -127,10 +131,14 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
             err = np.concatenate([r[1] for r in results])
             chunk = max(1, len(h))
 
-            def read(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-                return h[a:b], err[a:b]
+            def addresses(a: int, b: int) -> np.ndarray:
+                return h[a:b]
+
+            def errors(a: int, b: int) -> np.ndarray:
+                return err[a:b]
         with timings.stage("sort and write the inverted lists"):
-            lists = write_lists(partial.path, read, chunk_bounds(n_ref, chunk), n_ref, d_eff, k, quiet=quiet)
+            lists = write_lists(partial.path, addresses, errors, chunk_bounds(n_ref, chunk), n_ref, d_eff, k,
+                                quiet=quiet)
             _write_model(partial.path, hasher, lists["level_counts"], n_ref)
         peak = cluster_peak_rss(client)
         disk = {"P1": file_bytes(partial.path / "ref_hash.npy"),

@@ -38,7 +38,7 @@ PART_ROWS = 1 << 26
 PREFIX_BITS = 16
 ROW_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
 
-Reader = Callable[[int, int], tuple[np.ndarray, np.ndarray]]  # rows [a, b) → (addresses, errors)
+Reader = Callable[[int, int], np.ndarray]  # rows [a, b) of one per-reference array
 
 
 def address_dtype(d: int, k: int) -> np.dtype:
@@ -78,18 +78,49 @@ def inverted_lists(h: np.ndarray, err: np.ndarray) -> dict[str, np.ndarray]:
     return {"order": order, "hash": hs, "addresses": hs[starts], "sizes": sizes, "offsets": starts, "best": best}
 
 
+class _Views:
+    """``lists.parquet`` (``hash``, ``ref_id``) and ``buckets.parquet`` (``hash``, ``size``,
+    ``best_id``, ``offset``), the SQL views of the lists, written a partition at a time."""
+
+    def __init__(self, out: Path, id_t: np.dtype) -> None:
+        self.lists = pq.ParquetWriter(out / "lists.parquet",
+                                      pa.schema([("hash", pa.uint64()), ("ref_id", pa.from_numpy_dtype(id_t))]),
+                                      compression="zstd", use_dictionary=False,
+                                      column_encoding={"hash": "DELTA_BINARY_PACKED",
+                                                       "ref_id": "DELTA_BINARY_PACKED"})
+        self.buckets = pq.ParquetWriter(out / "buckets.parquet",
+                                        pa.schema([("hash", pa.uint64()), ("size", pa.uint32()),
+                                                   ("best_id", pa.from_numpy_dtype(id_t)), ("offset", pa.uint64())]),
+                                        compression="zstd", use_dictionary=False,
+                                        column_encoding={"hash": "DELTA_BINARY_PACKED", "size": "PLAIN",
+                                                         "best_id": "PLAIN", "offset": "DELTA_BINARY_PACKED"})
+        self.id_t = id_t
+
+    def write(self, addresses: np.ndarray, sizes: np.ndarray, offsets: np.ndarray, ids: np.ndarray,
+              best: np.ndarray) -> None:
+        """One run of occupied addresses with their list sizes and (global) offsets, ids and single bests."""
+        hashes = np.repeat(np.asarray(addresses, np.uint64), sizes)
+        for r in range(0, len(ids), 1 << 24):  # bounded Arrow buffers
+            self.lists.write_table(pa.table({"hash": pa.array(hashes[r : r + (1 << 24)], pa.uint64()),
+                                             "ref_id": pa.array(np.asarray(ids[r : r + (1 << 24)], self.id_t))}),
+                                   row_group_size=ROW_GROUP)
+        self.buckets.write_table(pa.table({"hash": pa.array(np.asarray(addresses, np.uint64), pa.uint64()),
+                                           "size": pa.array(np.asarray(sizes, np.uint32)),
+                                           "best_id": pa.array(np.asarray(best, self.id_t)),
+                                           "offset": pa.array(np.asarray(offsets, np.uint64))}),
+                                 row_group_size=ROW_GROUP)
+
+    def close(self) -> None:
+        self.lists.close()
+        self.buckets.close()
+
+
 def write_views(out: Path, addresses: np.ndarray, offsets: np.ndarray, ids: np.ndarray, best: np.ndarray) -> None:
-    """``lists.parquet`` and ``buckets.parquet`` (the SQL views) of lists held in memory."""
-    sizes = np.diff(np.asarray(offsets, np.int64))
-    id_t = pa.from_numpy_dtype(np.asarray(ids).dtype)
-    pq.write_table(pa.table({"hash": pa.array(np.repeat(np.asarray(addresses, np.uint64), sizes), pa.uint64()),
-                             "ref_id": pa.array(np.asarray(ids), id_t)}), out / "lists.parquet",
-                   row_group_size=ROW_GROUP, compression="zstd")
-    pq.write_table(pa.table({"hash": pa.array(np.asarray(addresses, np.uint64), pa.uint64()),
-                             "size": pa.array(sizes.astype(np.uint32)),
-                             "best_id": pa.array(np.asarray(best), pa.from_numpy_dtype(np.asarray(best).dtype)),
-                             "offset": pa.array(np.asarray(offsets[:-1], np.uint64))}),
-                   out / "buckets.parquet", row_group_size=ROW_GROUP, compression="zstd")
+    """The SQL views of lists held in memory (CSR ``offsets``, one more than the addresses)."""
+    views = _Views(out, np.asarray(ids).dtype)
+    offsets = np.asarray(offsets, np.int64)
+    views.write(addresses, np.diff(offsets), offsets[:-1], ids, best)
+    views.close()
 
 
 class _Appender:
@@ -126,7 +157,7 @@ def _prefix_cuts(counts: np.ndarray, limit: int) -> list[tuple[int, int]]:
     return cuts
 
 
-def _scatter(work: Path, read: Reader, bounds: list[tuple[int, int]], ref_hash: np.ndarray,
+def _scatter(work: Path, errors: Reader, bounds: list[tuple[int, int]], ref_hash: np.ndarray,
              cuts: list[tuple[int, int]], shift: np.uint64, id_t: np.dtype, quiet: bool) -> list:
     """Loaders of each partition's ``(addresses, errors, ids)``, ids ascending.
 
@@ -137,7 +168,7 @@ def _scatter(work: Path, read: Reader, bounds: list[tuple[int, int]], ref_hash: 
     """
     if len(cuts) == 1:
         def whole() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            err = np.concatenate([np.asarray(read(a, b)[1], np.float32) for a, b in bounds])
+            err = np.concatenate([np.asarray(errors(a, b), np.float32) for a, b in bounds])
             return np.asarray(ref_hash), err, np.arange(len(ref_hash), dtype=id_t)
         return [whole]
     work.mkdir(exist_ok=True)
@@ -147,7 +178,7 @@ def _scatter(work: Path, read: Reader, bounds: list[tuple[int, int]], ref_hash: 
     progress = None if quiet else ChunkProgress("scatter partitions", len(bounds))
     for a, b in bounds:
         h = np.asarray(ref_hash[a:b])
-        err = np.asarray(read(a, b)[1], np.float32)
+        err = np.asarray(errors(a, b), np.float32)
         which = np.searchsorted(edges, (h >> h.dtype.type(shift)).astype(np.int64), side="right")
         order = np.argsort(which, kind="stable")  # ids stay ascending inside each partition
         starts = np.searchsorted(which[order], np.arange(len(cuts) + 1))
@@ -174,13 +205,13 @@ def _scatter(work: Path, read: Reader, bounds: list[tuple[int, int]], ref_hash: 
     return [loader(i) for i in range(len(cuts))]
 
 
-def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: int, d: int, k: int,
-                quiet: bool = False, part_rows: int = PART_ROWS) -> dict:
-    """Sort the references of ``read`` into inverted lists in ``out``; returns counts and sizes.
+def write_lists(out: Path, addresses: Reader, errors: Reader, bounds: list[tuple[int, int]], n_ref: int, d: int,
+                k: int, quiet: bool = False, part_rows: int = PART_ROWS) -> dict:
+    """Sort references into inverted lists in ``out``; returns counts and sizes.
 
-    ``read(a, b)`` gives the addresses and quantisation errors of references ``[a, b)``
-    (``bounds`` are its chunks). Returns ``level_counts`` (d × K references per code level),
-    ``occupied`` and ``partitions``.
+    ``addresses(a, b)`` and ``errors(a, b)`` give the addresses and quantisation errors of
+    references ``[a, b)`` (``bounds`` are their chunks); each is read once. Returns
+    ``level_counts`` (d × K references per code level), ``occupied`` and ``partitions``.
     """
     bits = max(1, math.ceil(d * math.log2(k)))
     addr_t = address_dtype(d, k)
@@ -191,7 +222,7 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
     level_counts = np.zeros((d, k), np.int64)
     progress = None if quiet else ChunkProgress("scan addresses", len(bounds))
     for a, b in bounds:
-        h = np.asarray(read(a, b)[0], np.uint64)
+        h = np.asarray(addresses(a, b), np.uint64)
         ref_hash[a:b] = h
         prefix_counts += np.bincount((h >> shift).astype(np.int64), minlength=len(prefix_counts))
         rest = h.copy()
@@ -204,17 +235,8 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
     cuts = _prefix_cuts(prefix_counts, part_rows)
     files = {name: _Appender(out / f"{name}.npy", t) for name, t in
              (("ids", id_t), ("addresses", addr_t), ("offsets", id_t), ("best", id_t))}
-    lists_pq = pq.ParquetWriter(out / "lists.parquet",
-                                pa.schema([("hash", pa.uint64()), ("ref_id", pa.from_numpy_dtype(id_t))]),
-                                compression="zstd", use_dictionary=False,
-                                column_encoding={"hash": "DELTA_BINARY_PACKED", "ref_id": "DELTA_BINARY_PACKED"})
-    buckets_pq = pq.ParquetWriter(out / "buckets.parquet",
-                                  pa.schema([("hash", pa.uint64()), ("size", pa.uint32()),
-                                             ("best_id", pa.from_numpy_dtype(id_t)), ("offset", pa.uint64())]),
-                                  compression="zstd", use_dictionary=False,
-                                  column_encoding={"hash": "DELTA_BINARY_PACKED", "size": "PLAIN",
-                                                   "best_id": "PLAIN", "offset": "DELTA_BINARY_PACKED"})
-    parts = _scatter(out / ".partitions", read, bounds, ref_hash, cuts, shift, id_t, quiet)
+    views = _Views(out, id_t)
+    parts = _scatter(out / ".partitions", errors, bounds, ref_hash, cuts, shift, id_t, quiet)
     progress = None if quiet or len(cuts) == 1 else ChunkProgress("sort partitions", len(cuts))
     offset = 0
     for part in parts:
@@ -228,15 +250,7 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
         files["addresses"].append(lists["addresses"])
         files["offsets"].append(lists["offsets"] + offset)
         files["best"].append(best)
-        for r in range(0, len(order), 1 << 24):  # bounded Arrow buffers
-            lists_pq.write_table(pa.table({"hash": pa.array(lists["hash"][r : r + (1 << 24)], pa.uint64()),
-                                           "ref_id": pa.array(order[r : r + (1 << 24)])}),
-                                 row_group_size=ROW_GROUP)
-        buckets_pq.write_table(pa.table({"hash": pa.array(lists["addresses"], pa.uint64()),
-                                         "size": pa.array(lists["sizes"], pa.uint32()),
-                                         "best_id": pa.array(best),
-                                         "offset": pa.array((lists["offsets"] + offset).astype(np.uint64))}),
-                               row_group_size=ROW_GROUP)
+        views.write(lists["addresses"], lists["sizes"], lists["offsets"] + offset, order, best)
         offset += len(order)
         del lists, order, best
         if progress:
@@ -245,6 +259,5 @@ def write_lists(out: Path, read: Reader, bounds: list[tuple[int, int]], n_ref: i
     files["offsets"].append(np.array([offset]))
     for f in files.values():
         f.close()
-    lists_pq.close()
-    buckets_pq.close()
+    views.close()
     return {"level_counts": level_counts, "occupied": files["addresses"].n, "partitions": len(cuts)}
