@@ -368,19 +368,16 @@ def _emit(rows: list, queries: list, key: dict, t, truth, parts, match, n_r, us:
     its share of the query rows; without, it is the share of all queries localised.
     """
     error = np.abs(np.asarray(match, np.int64) - truth)
-    curves = {}
-    for name, code in PARTS.items():
-        sel = np.ones(len(t), bool) if code is None else parts == code
-        curve = recall_curve(error[sel])
-        in_curve = recall_curve(in_list[sel]) if in_list is not None else None
-        curves[name] = (curve, in_curve)
-        if name == "all" and weights is not None:
-            by_part = [(weights[p], recall_curve(error[parts == PARTS[p]]),
-                        recall_curve(in_list[parts == PARTS[p]]) if in_list is not None else None)
-                       for p in ("deep1b", "fas") if (parts == PARTS[p]).any()]
-            total = sum(wt for wt, _, _ in by_part)
-            curve = sum(wt * c for wt, c, _ in by_part) / total
-            in_curve = sum(wt * c for wt, _, c in by_part) / total if in_list is not None else None
+    select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
+    curves = {name: (recall_curve(error[sel]), recall_curve(in_list[sel]) if in_list is not None else None)
+              for name, sel in select.items()}
+    held = [p for p in ("deep1b", "fas") if select[p].any()]
+    if weights is not None and held:  # the overall curve from the parts' curves, each weighted by its row share
+        total = sum(weights[p] for p in held)
+        curves["all"] = tuple(None if curves[held[0]][i] is None else
+                              sum(weights[p] * curves[p][i] for p in held) / total for i in (0, 1))
+    for name, sel in select.items():
+        curve, in_curve = curves[name]
         nr = n_r[sel]
         stats = {"n_queries": int(sel.sum()),
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
