@@ -327,6 +327,20 @@ def _query_words(centres_t: np.ndarray, L: int, q_planes: np.ndarray, d: int) ->
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def window_masks(L: int, d: int, bit_gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(masks, gaps)`` of a window of ``L`` frames, flat over (word, plane) as its query words:
+    the frames each 64-bit word holds, and the cost of a differing bit of each plane."""
+    n_words = (L + 63) // 64
+    masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))
+    if L % 64:
+        masks[-d:] = (np.uint64(1) << np.uint64(L % 64)) - np.uint64(1)
+    gaps = np.empty(n_words * d, np.float64)
+    for e in range(n_words * d):
+        gaps[e] = bit_gap[e % d]
+    return masks, gaps
+
+
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
 def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
                  ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
@@ -340,13 +354,7 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
     n = centres_t.shape[0]
     half = L // 2
     n_ref = ref_hash.shape[0]
-    n_words = (L + 63) // 64
-    masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))  # flat over (word, plane), as q_words
-    if L % 64:
-        masks[-d:] = (np.uint64(1) << np.uint64(L % 64)) - np.uint64(1)
-    gaps = np.empty(n_words * d, np.float64)
-    for e in range(n_words * d):
-        gaps[e] = bit_gap[e % d]
+    masks, gaps = window_masks(L, d, bit_gap)
     m = pairs.shape[0]
     run_s = np.full((SCORE_CHUNKS, n), np.int64(2**62))
     run_c = np.full((SCORE_CHUNKS, n), np.int64(-1))

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 
 from vprscale.method.engine import Index
-from vprscale.method.kernels import _candidates, _nearest_occupied, _score, _score_planes, _set_bit
+from vprscale.method.kernels import _candidates, _nearest_occupied, _score, _score_planes, _set_bit, window_masks
 
 
 class OnlineMatcher:
@@ -46,10 +46,7 @@ class OnlineMatcher:
         first, shift = index._prefix
         longest = int(np.max(np.diff(np.asarray(index.offsets, np.int64)))) if len(index.offsets) > 1 else 1
         capacity = 2 * self.L * max(1, longest)
-        n_words = (self.L + 63) // 64
-        masks = np.full(n_words * d, np.uint64(0xFFFFFFFFFFFFFFFF))
-        if self.L % 64:
-            masks[-d:] = (np.uint64(1) << np.uint64(self.L % 64)) - np.uint64(1)
+        masks, gaps = window_masks(self.L, d, bit_gap)
         self._state = np.zeros(4, np.int64)  # frames seen, buffer start, buffer end, ring slot of the oldest
         self._ring_h = np.zeros(self.L, np.uint64)
         self._ring_n = np.zeros(self.L, np.int64)
@@ -60,8 +57,7 @@ class OnlineMatcher:
             slots *= 2
         self._slots = np.empty(slots, np.int64)
         self._args = (np.asarray(index.addresses), first, shift, np.asarray(index.offsets), index.ids, ref_hash, planes,
-                      np.repeat(bit_gap[None, :], n_words, axis=0).ravel().astype(np.float64), masks, w, tables,
-                      d, k, dmax)
+                      gaps, masks, w, tables, d, k, dmax)
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
 
     def push(self, descriptor: np.ndarray) -> int | None:
