@@ -286,7 +286,7 @@ def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
 def test_pairs_sorted_by_window_score_as_in_query_order():
     """The window-ordered pair sort (used for maps larger than the caches) is a stable
     bucket sort of the pairs, and scoring them in that order gives the query-order answer."""
-    from vprscale.method.kernels import _pairs_by_window, _proposals, _propose, _query_words, _score_pairs
+    from vprscale.method.kernels import _pairs_by_window, _query_words, _score_pairs, count_proposals, propose
 
     rng = np.random.default_rng(4)
     d, L = 10, 9
@@ -297,10 +297,10 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     t = np.arange(L // 2, 2_000 - L // 2, 5)
     hashes, q_planes, start, stop, ids = qf.kernel_args()
     ref_hash, planes, gaps, w, tables, d, k, dmax = idx.kernel_args()
-    proposals = _proposals(t, L, start, stop)
-    in_order, by_window = (_pairs_by_window(*_propose(t, L, False, start, stop, ids, len(ref), proposals, shift), shift)
+    proposals = count_proposals(t, L, start, stop)
+    in_order, by_window = (_pairs_by_window(*propose(t, L, False, start, stop, ids, len(ref), proposals, shift), shift)
                            for shift in (62, 12))
-    cand, first, n_r, _ = _propose(t, L, False, start, stop, ids, len(ref), proposals, 62)
+    cand, first, n_r, _ = propose(t, L, False, start, stop, ids, len(ref), proposals, 62)
     expected = np.concatenate([(cand[first[i]:first[i] + n_r[i]] << 20) | i for i in range(len(t))])
     np.testing.assert_array_equal(in_order, expected)
     np.testing.assert_array_equal(by_window, expected[np.argsort(expected >> 32, kind="stable")])

@@ -147,7 +147,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     summary = evaluate(EvalRequest(store=Path(args.store), index=Path(args.index) if args.index else None,
                                    noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
                                    z=args.z, baseline_queries=args.baseline_queries,
-                                   d_sweep=args.d, out=Path(args.out) if args.out else None,
+                                   d_sweep=args.d, compare=args.compare, faiss_k=args.faiss_k,
+                                   faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
+                                   out=Path(args.out) if args.out else None,
                                    workers=args.workers, scheduler=args.scheduler))
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
@@ -265,6 +267,17 @@ def parser() -> argparse.ArgumentParser:
                    help="localise an evenly spaced sample of this many centres per baseline run (default: all "
                         "below 10^8 query rows, 64 beyond: each baseline query scans every place)")
     p.add_argument("--d", type=_csv(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
+    p.add_argument("--compare", metavar="FACTORY", action="append", default=[],
+                   help="also evaluate a FAISS index_factory string as method faiss:FACTORY, e.g. PQ3, OPQ3,PQ3, "
+                        "ITQ24,LSH, IVF4096,PQ3 (repeat for several; docs/protocol.md)")
+    p.add_argument("--faiss-k", type=_positive_int, default=None,
+                   help="references each query frame retrieves from a FAISS index (default: CoarseHash's mean "
+                        "list size on INDEX, the same candidate budget)")
+    p.add_argument("--faiss-nprobe", type=_positive_int, default=16,
+                   help="inverted lists an IVF index visits per frame (default 16)")
+    p.add_argument("--compare-queries", type=_positive_int, default=None,
+                   help="centres per compared run (default: all while the run's frames visit at most 2^35 "
+                        "codes; beyond, an evenly spaced sample that fits)")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
     p.set_defaults(func=cmd_eval)
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import faiss
 import numba
 import numpy as np
 import pyarrow as pa
@@ -23,28 +24,27 @@ import pyarrow.parquet as pq
 import zarr
 from tqdm import tqdm
 
-from vprscale.compared.baseline import baseline_batch
-from vprscale.dataset.compact import baseline_map
+from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
 from vprscale.dataset.rawchunks import rows_of
 from vprscale.dataset.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
 from vprscale.errors import InputError
-from vprscale.evaluation.accounting import baseline_ops, method_ops
+from vprscale.evaluation.algorithms import Algorithm, Run
+from vprscale.evaluation.algorithms.baseline import Baseline, BaselineMap, load_baseline_map
+from vprscale.evaluation.algorithms.coarsehash import SEQUENCE_MODES, CoarseHash
+from vprscale.evaluation.algorithms.faisscodes import FaissMethod, fit_codes
 from vprscale.evaluation.protocol import Centres, part_weights, query_centres, window_frames
 from vprscale.jobs.cluster import cluster_peak_rss, dask_client
-from vprscale.method.engine import Index, QueryFrames
+from vprscale.method.engine import Index
 from vprscale.method.index import (
     build_index,
     default_index_dir,
     load_index_meta,
-    ref_moments,
     store_identity,
     store_layout,
 )
-from vprscale.method.kernels import in_list_distance, match_batch
-from vprscale.method.pca import ExactPCA, moments_of
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
-MODES = ("paper", "aligned")
+MODES = SEQUENCE_MODES
 RADII = np.arange(21)
 # Batched kernels run on numba's threads (``--workers`` of them): measured wall time × threads /
 # queries is the time per query per core.
@@ -65,6 +65,10 @@ class EvalRequest:
     z: int | None = None
     baseline_queries: int | None = None  # queries per baseline run; None: all below 10^8 query rows, else a sample
     d_sweep: list[int] | None = None
+    compare: list[str] = field(default_factory=list)  # FAISS index_factory strings
+    faiss_k: int | None = None  # top-k per frame (None: CoarseHash's mean list size)
+    faiss_nprobe: int = DEFAULT_NPROBE
+    compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
     out: Path | None = None
     workers: int = 2
     scheduler: str | None = None
@@ -144,6 +148,14 @@ def _validate(req: EvalRequest) -> None:
         raise InputError("--L: sequence lengths must be at least 1")
     if req.z is not None and req.z < 1:
         raise InputError(f"--z {req.z}: must be at least 1")
+    for flag, value in (("--faiss-k", req.faiss_k), ("--faiss-nprobe", req.faiss_nprobe),
+                        ("--compare-queries", req.compare_queries)):
+        if value is not None and value < 1:
+            raise InputError(f"{flag} {value}: must be at least 1")
+    if req.compare and req.d_sweep:
+        raise InputError("--compare: compares with one index at a time, not with a --d sweep")
+    if len(set(req.compare)) != len(req.compare):
+        raise InputError(f"--compare: {next(f for f in req.compare if req.compare.count(f) > 1)} given twice")
 
 
 def _indexed_from(path: Path, identity: str) -> bool:
@@ -183,9 +195,13 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
     dim = int(meta["recipe"]["dim"])
-    threads = numba.get_num_threads()
+    if req.compare and layout["kind"] == "compact":
+        raise InputError(f"--compare: {req.store} is a compact store and keeps no reference descriptors to "
+                         "encode; build it with --layout full")
+    threads = numba.get_num_threads(), faiss.omp_get_max_threads()
     numba.set_num_threads(max(1, min(req.workers, numba.config.NUMBA_NUM_THREADS)))
-    with dask_client(req.scheduler, req.workers) as client, _restore_threads(threads):
+    faiss.omp_set_num_threads(max(1, req.workers))
+    with dask_client(req.scheduler, req.workers) as client, _restore_threads(*threads):
         index_paths = _indexes(req, identity)
         indexes = []
         for path in index_paths:
@@ -204,7 +220,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         if out.is_dir() and any(out.iterdir()) and not (out / "eval.json").is_file():
             raise InputError(f"--out {out}: exists and holds something other than an evaluation; not replaced")
         check_writable(out.parent)
-        base = _baseline_map(group, layout) if req.baseline else None
+        compared = _compared(req, indexes, dim)
+        base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
             for path in index_paths:  # re-indexing waits for (is refused during) an evaluation of the index
                 locks.enter_context(exclusive(path))
@@ -212,7 +229,10 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             partial = PartialOutput(out, {"eval": time.time_ns()})
             partial.recover()
             partial.open()
-            rows, queries = _grid(req, qs, z, dim, indexes, base)
+            t_fit = time.perf_counter()
+            fit_codes(compared, rows_of(group["ref"]), req.quiet) if compared else None
+            fit_s = time.perf_counter() - t_fit
+            rows, queries = _grid(req, qs, z, dim, indexes, base, compared)
             provenance = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                           "store_identity": identity}
             _write_parquet(partial.path / "results.parquet", rows, provenance)
@@ -220,7 +240,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
                        "baseline_queries": _baseline_limit(req, qs), "layout": layout["kind"],
-                       "indexes": [str(Path(p).resolve()) for p in index_paths], **provenance}
+                       "indexes": [str(Path(p).resolve()) for p in index_paths],
+                       "compare": {c.name: {"params": c.params, "bytes_per_place": c.bytes_per_place}
+                                   for c in compared}, "compare_fit_s": fit_s if compared else None, **provenance}
             (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
             partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
@@ -228,39 +250,25 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
 
 
 @contextmanager
-def _restore_threads(n: int):
+def _restore_threads(numba_threads: int, faiss_threads: int):
     try:
         yield
     finally:
-        numba.set_num_threads(n)
+        numba.set_num_threads(numba_threads)
+        faiss.omp_set_num_threads(faiss_threads)
 
 
-@dataclass
-class BaselineMap:
-    """The d = 1 baseline's map (every reference's first principal component) and its projection."""
+def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[FaissCodes]:
+    """The FAISS methods asked for (factory strings checked now, before anything is read).
 
-    x: np.ndarray  # float32, one per reference
-    mean: np.ndarray
-    component: np.ndarray  # (1, D)
-
-    def project(self, rows: np.ndarray) -> np.ndarray:
-        return baseline_map(rows, self.mean, self.component).astype(np.float64)
-
-
-def _baseline_map(group: zarr.Group, layout: dict[str, Any]) -> BaselineMap:
-    """The baseline's map: kept by a compact build, else projected chunk by chunk from ``ref``.
-
-    Its PCA (d = 1) is the first component of the references' PCA, fitted on the moments
-    the build derived, so both layouts give the baseline the same map.
+    Each frame retrieves ``k`` references: by default CoarseHash's mean list size on the
+    index, so that both methods propose as many candidates per frame.
     """
-    if layout["kind"] == "compact":
-        model = group["transforms/coarsehash"]
-        return BaselineMap(group["base_x1"][:], model["mean"][:], model["components"][:1])
-    ref = rows_of(group["ref"])
-    moments = ref_moments(group)
-    pca = ExactPCA(1).fit_moments(moments if moments is not None else moments_of(ref))
-    x = ref.map_blocks(baseline_map, pca.mean_, pca.components_, drop_axis=1, dtype=np.float32).compute()
-    return BaselineMap(x, pca.mean_, pca.components_)
+    if not req.compare:
+        return []
+    idx = indexes[0][1]
+    k = req.faiss_k or max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))
+    return [FaissCodes(factory, dim, k, req.faiss_nprobe) for factory in req.compare]
 
 
 def _baseline_limit(req: EvalRequest, qs: QuerySet) -> int | None:
@@ -277,96 +285,61 @@ def _subsample(n: int, limit: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
 
 
-def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None
-          ) -> tuple[list[dict], list[dict]]:
+def _algorithms(req: EvalRequest, qs: QuerySet, path: Path, idx: Index, dim: int, base: BaselineMap | None,
+                compared: list[FaissCodes], centres: dict[int, Centres]) -> list[Algorithm]:
+    """The methods evaluated on one index: CoarseHash, then the baseline and the compared methods."""
+    coarse = CoarseHash(idx, path, dim)
+    algos: list[Algorithm] = [coarse]
+    if base is not None:
+        algos.append(Baseline(base, coarse, dim, _baseline_limit(req, qs)))
+    n_centres = max(len(c.t) for c in centres.values())
+    algos += [FaissMethod(codes, n_centres, max(req.lengths), req.compare_queries) for codes in compared]
+    return algos
+
+
+def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
+          compared: list[FaissCodes]) -> tuple[list[dict], list[dict]]:
     rows: list[dict] = []
     queries: list[dict] = []
     centres = {L: qs.centres(z, L) for L in req.lengths}
     frames = window_frames([centres[L].t for L in req.lengths], req.lengths)
     weights = part_weights(qs.n_query, qs.n_deep)
-    limit = _baseline_limit(req, qs)
+    methods = [(path, _algorithms(req, qs, path, idx, dim, base, compared, centres)) for path, idx in indexes]
     combos = len(req.noises) * len(indexes) * len(req.lengths)
     bar = tqdm(total=combos, desc="evaluate", unit="combo", file=sys.stderr, disable=None, leave=False)
     for noise in req.noises:
         x_q = qs.rows(noise, frames)
-        y_base = base.project(x_q) if base is not None else None
-        for path, idx in indexes:
-            idx.query_frames(idx.hash_queries(x_q[:1]))  # load the compiled kernels outside the timing
-            t0 = time.perf_counter()  # the per-frame work: hash, nearest occupied, list retrieval, planes
-            h = idx.hash_queries(x_q)
-            qf = idx.query_frames(h, frames)
-            hash_us = (time.perf_counter() - t0) / max(1, len(frames)) * 1e6
-            occupied = idx.addresses[qf.addr] == h  # by position among the frames
-            args = idx.kernel_args()
+        for path, algos in methods:
+            samples = {}
+            for alg in algos:  # the per-frame work of each method, on the frames of the centres it localises
+                samples[alg] = {L: _subsample(len(centres[L].t), alg.query_limit) for L in req.lengths}
+                held = window_frames([centres[L].t[samples[alg][L]] for L in req.lengths], req.lengths)
+                alg.prepare(noise, held, x_q[np.searchsorted(frames, held)])
             for L in req.lengths:
                 c = centres[L]
-                t, pos = c.t, qf.positions(c.t, L)
-                truth, parts = qs.gt_at(t), qs.part_at(t)
-                key = {"noise": noise, "d": idx.d, "K": idx.k, "L": L, "index": str(Path(path).resolve()),
-                       "fas_stride": c.fas_stride}
                 w = weights if c.fas_stride is not None else None
-                fallback = float(1 - occupied[pos].mean()) if len(t) else 0.0
-                results = _method_runs(req, idx, pos, L, qf, truth, args)
-                paper_nr = None
-                for mode, (match, n_r, secs, in_list) in results.items():
-                    if mode == "paper" and L > 1:
-                        paper_nr = n_r
-                    if L > 1 and mode not in req.modes:
-                        continue
-                    ops = method_ops(dim, idx.d, idx.k, L, float(n_r.mean()) if len(n_r) else 0.0,
-                                     len(idx.addresses), fallback)
-                    us = secs * numba.get_num_threads() / max(1, len(t)) * 1e6 + hash_us
-                    _emit(rows, queries, {**key, "method": "coarsehash", "mode": None if L == 1 else mode},
-                          t, truth, parts, match, n_r, (us, hash_us), ops["total"], in_list, w)
-                if base is not None:
-                    nr = 1 if L == 1 else max(1, int(round(float(paper_nr.mean())))) if len(t) else 1
-                    sub = _subsample(len(t), limit)
-                    x_range = float(np.ptp(base.x))
-                    baseline_batch(pos[:1], L, nr, base.x, y_base, x_range)  # compile outside the timing
-                    t0 = time.perf_counter()
-                    match, n_r = baseline_batch(pos[sub], L, nr, base.x, y_base, x_range)
-                    secs = time.perf_counter() - t0
-                    ops = baseline_ops(dim, len(base.x), L, nr)
-                    us = secs * numba.get_num_threads() / max(1, len(sub)) * 1e6
-                    _emit(rows, queries, {**key, "d": 1, "K": None, "method": "baseline", "mode": None},
-                          t[sub], truth[sub], parts[sub], match, n_r, (us, None), ops["total"], None, w)
+                for alg in algos:
+                    sub = samples[alg][L]
+                    t = c.t[sub]
+                    truth, parts = qs.gt_at(t), qs.part_at(t)
+                    key = {"noise": noise, "L": L, "index": str(Path(path).resolve()), "fas_stride": c.fas_stride,
+                           "method": alg.name, **alg.columns(), "bytes_per_place": alg.bytes_per_place}
+                    for mode in alg.modes(L, req.modes):
+                        run = alg.localise(t, L, mode, truth)
+                        _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, run, w)
                 bar.update()
     bar.close()
     return rows, queries
 
 
-def _method_runs(req: EvalRequest, idx: Index, pos: np.ndarray, L: int, qf: QueryFrames, truth: np.ndarray,
-                 args: tuple) -> dict:
-    """``{mode: (match, n_r, seconds, in-list distance or None)}`` for one index and L.
-
-    ``pos`` are the query centres' positions in ``qf``, ``truth`` their true matches.
-    """
-    if L == 1:
-        t0 = time.perf_counter()
-        a = qf.addr[pos]
-        match = idx.best[a]
-        secs = time.perf_counter() - t0
-        n_r = idx.offsets[a + 1] - idx.offsets[a]
-        return {"single": (match, n_r, secs, in_list_distance(a, truth, idx.offsets, idx.ids))}
-    modes = set(req.modes) | ({"paper"} if req.baseline else set())
-    out = {}
-    for mode in MODES:
-        if mode not in modes:
-            continue
-        match_batch(pos[:1], L, mode == "aligned", *qf.kernel_args(), *args)  # compile outside the timing
-        t0 = time.perf_counter()
-        match, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args)
-        out[mode] = (match, n_r, time.perf_counter() - t0, None)
-    return out
-
-
-def _emit(rows: list, queries: list, key: dict, t, truth, parts, match, n_r, us: tuple[float, float | None],
-          ops: float, in_list, weights: dict[str, float] | None) -> None:
-    """Rows of ``results`` and ``queries`` for one run; ``us`` is (µs per query, of which per-frame work).
+def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray, parts: np.ndarray, run: Run,
+          weights: dict[str, float] | None) -> None:
+    """Rows of ``results`` and ``queries`` for one run of one method.
 
     With ``weights`` (a stratified sample) the overall recall weights each part's recall by
     its share of the query rows; without, it is the share of all queries localised.
     """
+    match, n_r, in_list = run.match, run.n_r, run.in_list
     error = np.abs(np.asarray(match, np.int64) - truth)
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
     curves = {name: (recall_curve(error[sel]), recall_curve(in_list[sel]) if in_list is not None else None)
@@ -383,7 +356,8 @@ def _emit(rows: list, queries: list, key: dict, t, truth, parts, match, n_r, us:
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
                  "nr_median": float(np.median(nr)) if len(nr) else np.nan,
                  "nr_p95": float(np.percentile(nr, 95)) if len(nr) else np.nan,
-                 "us_per_query": us[0], "us_per_frame": us[1], "ops_per_query": ops}
+                 "us_per_query": run.us_per_query, "us_per_frame": run.us_per_frame,
+                 "ops_per_query": run.ops_per_query}
         for r in RADII:
             rows.append({**key, "part": name, "radius": int(r), "recall": float(curve[r]),
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
@@ -398,14 +372,16 @@ def _write_parquet(path: Path, rows: list[dict], provenance: dict) -> None:
 
 
 def _summary_table(rows: list[dict]) -> str:
-    lines = [f"{'noise':<5} {'method':<10} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
-             f"{'R@0':>6} {'R@5':>6} {'R@20':>6} {'N_r':>7} {'µs/q':>9} {'ops/q':>11}"]
+    lines = [f"{'noise':<5} {'method':<20} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
+             f"{'R@0':>6} {'R@5':>6} {'R@20':>6} {'N_r':>7} {'B/place':>8} {'µs/q':>10} {'ops/q':>11}"]
     by_key: dict[tuple, dict[int, dict]] = {}
     for r in rows:
-        by_key.setdefault((r["noise"], r["method"], r["mode"] or "-", r["d"], r["L"], r["part"]), {})[r["radius"]] = r
+        key = (r["noise"], r["method"], r["mode"] or "-", "-" if r["d"] is None else r["d"], r["L"], r["part"])
+        by_key.setdefault(key, {})[r["radius"]] = r
     for (noise, method, mode, d, L, part), radii in by_key.items():
         r0 = radii[0]
-        lines.append(f"{noise:<5} {method:<10} {mode:<8} {d:>3} {L:>4} {part:<7} {r0['n_queries']:>6} "
+        lines.append(f"{noise:<5} {method:<20} {mode:<8} {d:>3} {L:>4} {part:<7} {r0['n_queries']:>6} "
                      f"{radii[0]['recall']:>6.3f} {radii[5]['recall']:>6.3f} {radii[20]['recall']:>6.3f} "
-                     f"{r0['nr_mean']:>7.1f} {r0['us_per_query']:>9.2f} {r0['ops_per_query']:>11.0f}")
+                     f"{r0['nr_mean']:>7.1f} {r0['bytes_per_place']:>8.2f} {r0['us_per_query']:>10.2f} "
+                     f"{r0['ops_per_query']:>11.0f}")
     return "\n".join(lines)

@@ -41,7 +41,8 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "index": {"store": ("stage", True), "d": ("int", False), "k": ("int", False)},
     "eval": {"store": ("stage", True), "index": ("stage", False), "d_sweep": ("list[int]", False),
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
-             "baseline": ("bool", False), "z": ("int", False)},
+             "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
+             "faiss_k": ("int", False), "compare_queries": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
 PRODUCERS = {"source": {"synth"}, "store": {"build"}, "index": {"index"}, "results": {"eval"},
@@ -269,6 +270,10 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
                 "--baseline" if p.get("baseline", True) else "--no-baseline"]
         cmd += (["--z", str(p["z"])] if "z" in p else []) + (["--d", ",".join(map(str, p["d_sweep"]))]
                                                              if "d_sweep" in p else [])
+        for factory in p.get("compare", []):
+            cmd += ["--compare", factory]
+        for key in ("faiss_k", "compare_queries"):
+            cmd += ["--" + key.replace("_", "-"), str(p[key])] if key in p else []
         return cmd + cluster
     cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"]]
     for i in p.get("indexes", []):

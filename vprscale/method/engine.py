@@ -28,6 +28,19 @@ from vprscale.method.kernels import (
 COPIED_LISTS = 1 << 25  # ids (256 MB) up to which query frames get their own copy of their lists
 
 
+def window_positions(frames: np.ndarray, t: np.ndarray, L: int) -> np.ndarray:
+    """Positions of frames ``t`` among the held ``frames`` (ascending), each with the whole
+    window of ``L`` centred on it held, so that a window's frames are consecutive positions."""
+    t = np.asarray(t, np.int64)
+    pos = np.searchsorted(frames, t)
+    first, last = pos - L // 2, pos - L // 2 + L - 1
+    ok = (first >= 0) & (last < len(frames))
+    ok[ok] &= (frames[first[ok]] == t[ok] - L // 2) & (frames[last[ok]] == t[ok] - L // 2 + L - 1)
+    if not ok.all():
+        raise ValueError(f"frame {t[~ok][0]}: its window of {L} is not among the query frames held")
+    return pos
+
+
 @dataclass
 class QueryFrames:
     """The per-frame work on query frames, done once per frame as it arrives (docs/method.md).
@@ -54,14 +67,7 @@ class QueryFrames:
 
     def positions(self, t: np.ndarray, L: int = 1) -> np.ndarray:
         """Positions of frames ``t``, each with the whole window of ``L`` centred on it held."""
-        t = np.asarray(t, np.int64)
-        pos = np.searchsorted(self.frames, t)
-        first, last = pos - L // 2, pos - L // 2 + L - 1
-        ok = (first >= 0) & (last < len(self.frames))
-        ok[ok] &= (self.frames[first[ok]] == t[ok] - L // 2) & (self.frames[last[ok]] == t[ok] - L // 2 + L - 1)
-        if not ok.all():
-            raise ValueError(f"frame {t[~ok][0]}: its window of {L} is not among the query frames held")
-        return pos
+        return window_positions(self.frames, t, L)
 
     def kernel_args(self) -> tuple:
         """``(hashes, planes, start, stop, ids)``: the query frames' arguments of :func:`match_batch`."""

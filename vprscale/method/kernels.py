@@ -232,7 +232,7 @@ def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: np.ndarray) -> np.ndarray:
+def count_proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: np.ndarray) -> np.ndarray:
     """Number of ids in the lists of each query's window (its candidates before repeats are dropped)."""
     proposals = np.empty(centres_t.shape[0], np.int64)
     for qi in numba.prange(centres_t.shape[0]):
@@ -244,7 +244,7 @@ def _proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: np.nd
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+def propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
              ids: np.ndarray, n_ref: int, proposals: np.ndarray, shift: int
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(cand, first, n_r, counts)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``.
@@ -293,7 +293,7 @@ def _pairs_by_window(cand: np.ndarray, first: np.ndarray, n_r: np.ndarray, count
                      shift: int) -> np.ndarray:
     """Every (candidate, query) pair as ``centre << 20 | query``, ordered by ``centre >> shift``.
 
-    A counting sort (the counts from :func:`_propose`), its scatter split over the same
+    A counting sort (the counts from :func:`propose`), its scatter split over the same
     blocks of queries, stable: inside a bucket pairs keep query order. Scoring pairs in
     this order reads the reference planes almost sequentially, once per batch, instead
     of one scattered window per pair: at 10M places and a thousand queries of L = 100
@@ -409,14 +409,14 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     match = np.empty(n, np.int64)
     n_r = np.empty(n, np.int64)
     shift = _bucket_shift(n_ref, planes.shape[0] * 8)
-    proposals = _proposals(centres_t, L, q_start, q_stop)
+    proposals = count_proposals(centres_t, L, q_start, q_stop)
     upto = np.cumsum(proposals)  # proposals of the queries up to each, inclusive
     lo = 0
     while lo < n:  # blocks of at most QUERY_BLOCK queries and PAIR_BUDGET proposals (at least one query)
         hi = min(n, lo + QUERY_BLOCK,
                  max(lo + 1, np.searchsorted(upto, upto[lo] - proposals[lo] + PAIR_BUDGET, "right")))
         t = centres_t[lo:hi]
-        cand, first, block_n_r, counts = _propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi],
+        cand, first, block_n_r, counts = propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi],
                                                   shift)
         pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
         q_words = _query_words(t, L, q_planes, d) if fast else np.zeros((t.shape[0], 0), np.uint64)

@@ -1,0 +1,187 @@
+"""FAISS compact codes as a compared method (docs/protocol.md, "Compact codes").
+
+Any FAISS ``index_factory`` string (``PQ3``, ``OPQ3,PQ3``, ``ITQ24,LSH``, ``IVF4096,PQ3``, …)
+becomes a method that a user would otherwise reach for to keep millions of places in a few
+bytes each. It is trained on an evenly spaced sample of the references and holds every
+reference's code; a query frame retrieves its top-k references with FAISS's own search,
+and sequences are scored over the codes by :mod:`vprscale.compared.codescore`.
+
+The references are encoded once, chunk by chunk, by the index's own ``sa_encode`` and
+handed to it with ``add_sa_codes`` (what ``add`` does, without encoding twice); the same
+codes, in reference order, are what the window scores read.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Iterator
+
+import faiss
+import numpy as np
+
+from vprscale.compared.codescore import score_windows
+from vprscale.errors import InputError
+from vprscale.method.kernels import count_proposals, propose
+
+TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
+DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
+ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
+_POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
+
+
+def training_rows(n_ref: int) -> np.ndarray:
+    """The references a FAISS index is trained on: ``TRAIN_ROWS`` evenly spaced (all when fewer)."""
+    if n_ref <= TRAIN_ROWS:
+        return np.arange(n_ref)
+    return np.unique(np.linspace(0, n_ref - 1, TRAIN_ROWS).round().astype(np.int64))
+
+
+def _faiss_reason(err: Exception) -> str:
+    """FAISS's own message, without the C++ location that precedes it."""
+    text = " ".join(str(err).split())
+    return re.sub(r"^Error in .*? at \S+:\d+: ", "", text)[:200]
+
+
+class FaissCodes:
+    """One FAISS ``index_factory`` index over the references, with sequence matching on its codes.
+
+    ``k`` is the number of references each query frame retrieves (its list), ``nprobe`` the
+    inverted lists an IVF index visits per frame.
+    """
+
+    def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE) -> None:
+        try:
+            index = faiss.index_factory(dim, factory)
+            index.sa_code_size()
+        except (RuntimeError, TypeError) as err:
+            raise InputError(f"--compare {factory}: not a FAISS index_factory string with standalone codes for "
+                             f"{dim}-d rows ({_faiss_reason(err)})") from None
+        if index.metric_type != faiss.METRIC_L2:
+            raise InputError(f"--compare {factory}: the index does not search by L2 distance")
+        self.factory, self.dim, self.k, self.nprobe = factory, dim, k, nprobe
+        self.index = index
+        self.chain = ([faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
+                      if isinstance(index, faiss.IndexPreTransform) else [])
+        self.inner = faiss.downcast_index(index.index) if self.chain else index
+        self.ivf = faiss.try_extract_index_ivf(self.inner)
+        if self.ivf is not None:
+            self.ivf.nprobe = nprobe
+        pq = getattr(self.inner, "pq", None)
+        self.form = ("hamming" if isinstance(self.inner, faiss.IndexLSH) else
+                     "pq" if isinstance(self.inner, faiss.IndexPQ) and pq.nbits <= 8 else "vectors")
+        self.codes = np.zeros((0, self.inner.sa_code_size()), np.uint8)
+        self.vectors = np.zeros((0, 0), np.float32)
+
+    @property
+    def name(self) -> str:
+        return f"faiss:{self.factory}"
+
+    @property
+    def params(self) -> str:
+        return f"k={self.k}" + (f" nprobe={self.nprobe}" if self.ivf is not None else "")
+
+    @property
+    def n_ref(self) -> int:
+        return len(self.codes)
+
+    @property
+    def bytes_per_place(self) -> float:
+        """What the method stores per place to answer a query.
+
+        A flat index: its code (whose position is the id). An IVF index: its list entry
+        (code and 64-bit id), and for sequences each place's code again in id order, where
+        the window scores find it.
+        """
+        if self.ivf is None:
+            return float(self.inner.sa_code_size())
+        return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size())
+
+    def scan_per_frame(self) -> float:
+        """Places (codes) a frame's search visits: all of them, or the probed lists' share."""
+        if self.ivf is None:
+            return float(self.n_ref)
+        return self.n_ref * min(1.0, self.nprobe / self.ivf.nlist) + self.ivf.nlist
+
+    def frame_ops(self) -> float:
+        """Unitary operations of a frame's search (transform, distance tables or coarse step, scan)."""
+        transform = sum(2.0 * t.d_in * t.d_out for t in self.chain)
+        width = self.codes.shape[1]
+        tables = 3.0 * 256 * self.dim if self.form != "hamming" else 256.0 * width
+        coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
+        return transform + tables + coarse + width * self.scan_per_frame()
+
+    def pair_ops(self) -> float:
+        """Operations of one (candidate, frame) term of a window score."""
+        return float(self.codes.shape[1]) if self.form != "vectors" else 3.0 * self.vectors.shape[1]
+
+    def _transform(self, x: np.ndarray) -> np.ndarray:
+        for t in self.chain:
+            x = t.apply(x)
+        return np.ascontiguousarray(x, np.float32)
+
+    def train(self, sample: np.ndarray) -> None:
+        self.index.train(np.ascontiguousarray(sample, np.float32))
+
+    def fit_blocks(self, n_ref: int, blocks: Iterator[np.ndarray], progress: Callable[[int], None]) -> None:
+        """Encode and add the references, read block by block in order (after :meth:`train`)."""
+        width = self.inner.pq.M if self.form == "pq" else self.inner.sa_code_size()
+        self.codes = np.empty((n_ref, width), np.uint8)
+        lo = 0
+        for x in blocks:
+            codes = self.inner.sa_encode(self._transform(x))
+            self.inner.add_sa_codes(codes)
+            self.codes[lo : lo + len(codes)] = codes if self.form != "pq" else self._pq_indices(codes)
+            lo += len(codes)
+            progress(len(codes))
+        self.index.ntotal = self.inner.ntotal
+        if self.form == "vectors":  # decoded once, in the space the inner index searches
+            self.vectors = np.concatenate([self.inner.sa_decode(self.codes[i : i + 1 << 16])
+                                           for i in range(0, n_ref, 1 << 16)] or [np.zeros((0, 0), np.float32)])
+
+    def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
+        """A product quantiser's packed codes as one centroid index per sub-quantiser (FAISS
+        packs ``nbits`` per index, least significant bit first)."""
+        pq = self.inner.pq
+        if pq.nbits == 8:
+            return codes
+        bits = np.unpackbits(codes, axis=1, bitorder="little")[:, : pq.M * pq.nbits].reshape(len(codes), pq.M, pq.nbits)
+        return (bits.astype(np.uint16) << np.arange(pq.nbits, dtype=np.uint16)).sum(axis=2).astype(np.uint8)
+
+    def search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
+        return self.index.search(np.ascontiguousarray(rows, np.float32), self.k)
+
+    def frame_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(tables, vectors)``: what the window scores need of each query frame (the other empty)."""
+        y = self._transform(np.asarray(rows, np.float32))
+        no_tables, no_vectors = np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32)
+        if self.form == "hamming":
+            q = self.inner.sa_encode(y)
+            return _POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], no_vectors
+        if self.form == "pq":
+            pq = self.inner.pq
+            cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
+            ys = y.reshape(len(y), pq.M, pq.dsub)
+            tables = ((ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents)
+                      + (cents**2).sum(-1)[None, :, :])
+            return np.maximum(tables, 0).astype(np.float32), no_vectors
+        return no_tables, y
+
+    def match(self, positions: np.ndarray, L: int, aligned: bool, ids: np.ndarray, tables: np.ndarray,
+              q_vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sequence match of the windows centred at query-frame ``positions``: ``(match, n_r)``.
+
+        ``ids`` are the frames' top-k lists (rows, −1 for none). Candidates are the union of
+        the window's lists (paper) or the centres their members imply (aligned), as for
+        CoarseHash (:func:`vprscale.method.kernels.match_batch`).
+        """
+        counts = (ids >= 0).sum(axis=1)
+        stop = np.cumsum(counts)
+        start = stop - counts
+        flat = ids[ids >= 0].astype(np.int64)  # a row's found ids come first, in rank order
+        positions = np.asarray(positions, np.int64)
+        proposals = count_proposals(positions, L, start, stop)
+        cand, first, n_r, _ = propose(positions, L, aligned, start, stop, flat, self.n_ref, proposals, 62)
+        codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
+        return score_windows(positions, L, cand, first, n_r, self.n_ref, tables, codes, q_vectors,
+                             self.vectors), n_r
