@@ -10,6 +10,7 @@ import dask.array as da
 import faiss
 import numba
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from vprscale.compared.faisscodes import FaissCodes, training_rows
@@ -22,13 +23,19 @@ MIN_SAMPLE = 16  # centres per run at least
 
 def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> None:
     """Train every method on the same evenly spaced references, then encode all of them in one
-    streamed pass over ``ref`` (two reads of the references, whatever the number of methods)."""
+    streamed pass over ``ref`` (two reads of the references, whatever the number of methods).
+
+    Training runs on one BLAS thread, as all of vprscale's work does: FAISS's OPQ and ITQ
+    training give other rotations on other thread counts, and the codes must not depend on
+    ``--workers``.
+    """
     if not methods:
         return
     n_ref = ref.shape[0]
     sample = ref[training_rows(n_ref)].compute()
-    for m in methods:
-        m.train(sample)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for m in methods:
+            m.train(sample)
     del sample
     bar = tqdm(total=n_ref * len(methods), desc="encode references", unit="code", unit_scale=True,
                file=sys.stderr, disable=True if quiet else None, leave=False)

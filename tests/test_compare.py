@@ -1,0 +1,159 @@
+"""``vprscale eval --compare``: FAISS compact codes evaluated beside CoarseHash (docs/protocol.md).
+
+One shared evaluation of the tiny store with a FAISS method of each scoring form (product
+quantiser tables, 8-bit and bit-packed; Hamming tables of binary codes; decoded vectors of
+an IVF index), checked against FAISS itself and against a brute-force window score.
+"""
+
+from __future__ import annotations
+
+import json
+
+import faiss
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import zarr
+from threadpoolctl import threadpool_limits
+
+from vprscale.cli import main
+from vprscale.compared.faisscodes import ID_BYTES, training_rows
+
+FACTORIES = ["PQ4", "OPQ4,PQ4x6", "ITQ16,LSH", "IVF32,PQ4"]
+L_SEQ = 9
+
+
+@pytest.fixture(scope="module")
+def compared(tiny_store, tiny_index, tmp_path_factory):
+    out = tmp_path_factory.mktemp("compare")
+    argv = ["eval", str(tiny_store), str(tiny_index), "--L", f"1,{L_SEQ}", "--z", "97", "--noise", "qm1",
+            "--out", str(out), "--workers", "2"]
+    for factory in FACTORIES:
+        argv += ["--compare", factory]
+    assert main(argv) == 0
+    return {"results": pq.read_table(out / "results.parquet").to_pandas(),
+            "queries": pq.read_table(out / "queries.parquet").to_pandas(),
+            "meta": json.loads((out / "eval.json").read_text())}
+
+
+@pytest.fixture(scope="module")
+def direct(tiny_store, compared):
+    """Each factory built with FAISS directly: trained on the same rows (with one BLAS thread, as
+    vprscale trains: OPQ and ITQ training change with the BLAS thread count), ``add`` of every reference."""
+    group = zarr.open_group(tiny_store, mode="r")
+    ref = group["ref"][:]
+    indexes = {}
+    for factory in FACTORIES:
+        index = faiss.index_factory(ref.shape[1], factory)
+        with threadpool_limits(limits=1, user_api="blas"):
+            index.train(ref[training_rows(len(ref))])
+        index.add(ref)
+        if "IVF" in factory:
+            faiss.extract_index_ivf(index).nprobe = 16
+        indexes[factory] = index
+    return ref, group["query_qm1"], indexes
+
+
+def _k(compared, factory: str) -> int:
+    return int(compared["meta"]["compare"][f"faiss:{factory}"]["params"].split()[0].removeprefix("k="))
+
+
+@pytest.mark.parametrize("factory", FACTORIES)
+def test_single_frame_agrees_with_a_direct_faiss_search(compared, direct, factory):
+    """L = 1 is FAISS's own top-1, and the in-list bound is over FAISS's own top-k."""
+    _, query, indexes = direct
+    q = compared["queries"]
+    rows = q[(q.method == f"faiss:{factory}") & (q.L == 1)].sort_values("t")
+    assert len(rows) > 100
+    _, ids = indexes[factory].search(query.get_orthogonal_selection((rows.t.to_numpy(), slice(None))),
+                                     _k(compared, factory))
+    np.testing.assert_array_equal(rows["match"].to_numpy(), ids[:, 0])
+    found = np.where(ids >= 0, np.abs(ids - rows["gt"].to_numpy()[:, None]), np.iinfo(np.int64).max)
+    np.testing.assert_array_equal(rows.in_list.to_numpy(), found.min(axis=1))
+    np.testing.assert_array_equal(rows.n_r.to_numpy(), (ids >= 0).sum(axis=1))
+
+
+def _distances(index, factory: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Distance of each query row to each reference row's decoded code (float64, brute force)."""
+    if "LSH" in factory:  # binary codes: the Hamming distance of the codes
+        qc, rc = np.unpackbits(index.sa_encode(y), axis=1), np.unpackbits(index.sa_encode(x), axis=1)
+        return (qc[:, None, :] != rc[None, :, :]).sum(axis=2).astype(np.float64)
+    decoded = index.sa_decode(index.sa_encode(x)).astype(np.float64)
+    return ((y.astype(np.float64)[:, None, :] - decoded[None, :, :]) ** 2).sum(axis=2)
+
+
+@pytest.mark.parametrize("mode", ["paper", "aligned"])
+@pytest.mark.parametrize("factory", FACTORIES)
+def test_sequence_match_is_the_brute_force_window_argmin(compared, direct, factory, mode):
+    """Every match minimises the window score over the candidates, recomputed from FAISS's
+    own top-k lists and decoded codes; and the candidates counted are those lists' union."""
+    ref, query, indexes = direct
+    index, k, half = indexes[factory], _k(compared, factory), L_SEQ // 2
+    q = compared["queries"]
+    rows = q[(q.method == f"faiss:{factory}") & (q.L == L_SEQ) & (q["mode"] == mode)].sort_values("t")
+    rows = rows.iloc[:: max(1, len(rows) // 40)]
+    agree = 0
+    for t, match, n_r in zip(rows.t, rows["match"], rows.n_r, strict=True):
+        y = query[t - half : t - half + L_SEQ]
+        _, lists = index.search(y, k)
+        cand = {int(r) - ((i - half) if mode == "aligned" else 0) for i in range(L_SEQ) for r in lists[i] if r >= 0}
+        cand = np.array(sorted(c for c in cand if 0 <= c < len(ref)))
+        assert n_r == len(cand)
+        terms = np.full((len(cand), L_SEQ), np.nan)
+        for i in range(L_SEQ):
+            r = cand + i - half
+            inside = (r >= 0) & (r < len(ref))
+            terms[inside, i] = _distances(index, factory, y[i : i + 1], ref[r[inside]])[0]
+        scores = np.where(np.isnan(terms), np.nanmax(terms), terms).sum(axis=1)
+        assert match in cand
+        best = scores.min()
+        assert scores[cand == match][0] <= best + 1e-4 * max(1.0, abs(best))
+        agree += int(match == cand[np.argmin(scores)])
+    assert agree >= 0.9 * len(rows)
+
+
+def test_every_method_states_its_bytes_per_place(compared, tiny_index):
+    res = compared["results"]
+    per_method = res.groupby("method")["bytes_per_place"].unique()
+    assert set(per_method.index) == {"coarsehash", "baseline", *(f"faiss:{f}" for f in FACTORIES)}
+    assert all(len(v) == 1 and v[0] > 0 for v in per_method)
+    assert per_method["faiss:PQ4"][0] == 4 and per_method["faiss:ITQ16,LSH"][0] == 2
+    assert per_method["faiss:OPQ4,PQ4x6"][0] == 3  # 24 bits
+    assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5  # list entry, and the code in id order
+    assert per_method["baseline"][0] == 4
+    ids = np.load(tiny_index / "ids.npy", mmap_mode="r")
+    lists = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("ids", "addresses", "offsets", "best"))
+    assert per_method["coarsehash"][0] == pytest.approx(12 / 8 + lists / len(ids))
+
+
+def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch):
+    """A run whose frames would visit more codes than the budget localises an evenly spaced
+    sample of the centres (the same ones for every flat method); IVF visits few and does all."""
+    import vprscale.evaluation.algorithms.faisscodes as fc
+
+    monkeypatch.setattr(fc, "SCAN_BUDGET", 52_500 * 5 * 40)
+    out = tmp_path / "e"
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "5", "--z", "97", "--noise", "qm1",
+                 "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare", "IVF32,PQ4",
+                 "--faiss-nprobe", "1", "--out", str(out)]) == 0
+    res = pq.read_table(out / "results.parquet").to_pandas()
+    n = res[res.part == "all"].groupby("method")["n_queries"].first()
+    assert n["faiss:PQ4"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--compare", "PQ5"], "--compare PQ5: not a FAISS index_factory string"),
+    (["--compare", "Banana"], "--compare Banana: not a FAISS index_factory string"),
+    (["--compare", "PQ4", "--compare", "PQ4"], "--compare: PQ4 given twice"),
+    (["--compare", "PQ4", "--d", "8,10"], "--compare: compares with one index at a time"),
+])
+def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_path, capsys, argv, message):
+    out = tmp_path / "e"
+    index = [] if "--d" in argv else [str(tiny_index)]
+    assert main(["eval", str(tiny_store), *index, "--L", "1", "--out", str(out), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+
