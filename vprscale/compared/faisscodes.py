@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import faiss
 import numpy as np
@@ -36,6 +37,16 @@ def training_rows(n_ref: int) -> np.ndarray:
     return np.unique(np.linspace(0, n_ref - 1, TRAIN_ROWS).round().astype(np.int64))
 
 
+@contextmanager
+def _omp_threads(n: int) -> Iterator[None]:
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(n)
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(before)
+
+
 def _faiss_reason(err: Exception) -> str:
     """FAISS's own message, without the C++ location that precedes it."""
     text = " ".join(str(err).split())
@@ -46,10 +57,12 @@ class FaissCodes:
     """One FAISS ``index_factory`` index over the references, with sequence matching on its codes.
 
     ``k`` is the number of references each query frame retrieves (its list), ``nprobe`` the
-    inverted lists an IVF index visits per frame.
+    inverted lists an IVF index visits per frame, ``threads`` the OpenMP threads of FAISS's
+    searches and encoding (set for each call: the BLAS FAISS links is threaded by OpenMP, so
+    the one-BLAS-thread limit every vprscale job runs under would leave FAISS one thread).
     """
 
-    def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE) -> None:
+    def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE, threads: int = 1) -> None:
         try:
             index = faiss.index_factory(dim, factory)
             index.sa_code_size()
@@ -58,7 +71,7 @@ class FaissCodes:
                              f"{dim}-d rows ({_faiss_reason(err)})") from None
         if index.metric_type != faiss.METRIC_L2:
             raise InputError(f"--compare {factory}: the index does not search by L2 distance")
-        self.factory, self.dim, self.k, self.nprobe = factory, dim, k, nprobe
+        self.factory, self.dim, self.k, self.nprobe, self.threads = factory, dim, k, nprobe, threads
         self.index = index
         self.chain = ([faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
                       if isinstance(index, faiss.IndexPreTransform) else [])
@@ -128,8 +141,9 @@ class FaissCodes:
         self.codes = np.empty((n_ref, width), np.uint8)
         lo = 0
         for x in blocks:
-            codes = self.inner.sa_encode(self._transform(x))
-            self.inner.add_sa_codes(codes)
+            with _omp_threads(self.threads):
+                codes = self.inner.sa_encode(self._transform(x))
+                self.inner.add_sa_codes(codes)
             self.codes[lo : lo + len(codes)] = codes if self.form != "pq" else self._pq_indices(codes)
             lo += len(codes)
             progress(len(codes))
@@ -149,7 +163,8 @@ class FaissCodes:
 
     def search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
-        return self.index.search(np.ascontiguousarray(rows, np.float32), self.k)
+        with _omp_threads(self.threads):
+            return self.index.search(np.ascontiguousarray(rows, np.float32), self.k)
 
     def frame_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(tables, vectors)``: what the window scores need of each query frame (the other empty)."""

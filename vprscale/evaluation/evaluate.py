@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import faiss
 import numba
 import numpy as np
 import pyarrow as pa
@@ -198,10 +197,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     if req.compare and layout["kind"] == "compact":
         raise InputError(f"--compare: {req.store} is a compact store and keeps no reference descriptors to "
                          "encode; build it with --layout full")
-    threads = numba.get_num_threads(), faiss.omp_get_max_threads()
+    threads = numba.get_num_threads()
     numba.set_num_threads(max(1, min(req.workers, numba.config.NUMBA_NUM_THREADS)))
-    faiss.omp_set_num_threads(max(1, req.workers))
-    with dask_client(req.scheduler, req.workers) as client, _restore_threads(*threads):
+    with dask_client(req.scheduler, req.workers) as client, _restore_threads(threads):
         index_paths = _indexes(req, identity)
         indexes = []
         for path in index_paths:
@@ -250,12 +248,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
 
 
 @contextmanager
-def _restore_threads(numba_threads: int, faiss_threads: int):
+def _restore_threads(n: int):
     try:
         yield
     finally:
-        numba.set_num_threads(numba_threads)
-        faiss.omp_set_num_threads(faiss_threads)
+        numba.set_num_threads(n)
 
 
 def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[FaissCodes]:
@@ -268,7 +265,7 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
         return []
     idx = indexes[0][1]
     k = req.faiss_k or max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))
-    return [FaissCodes(factory, dim, k, req.faiss_nprobe) for factory in req.compare]
+    return [FaissCodes(factory, dim, k, req.faiss_nprobe, req.workers) for factory in req.compare]
 
 
 def _baseline_limit(req: EvalRequest, qs: QuerySet) -> int | None:

@@ -7,7 +7,6 @@ import time
 from typing import Any
 
 import dask.array as da
-import faiss
 import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -72,7 +71,7 @@ class FaissMethod(Algorithm):
         return [None] if L == 1 else [m for m in SEQUENCE_MODES if m in requested]
 
     def frame_threads(self) -> int:
-        return faiss.omp_get_max_threads()
+        return self.codes.threads
 
     def _warm(self, rows: np.ndarray) -> None:
         self.codes.search(rows)
