@@ -30,10 +30,12 @@ def compared(tiny_store, tiny_index, tmp_path_factory):
             "--out", str(out), "--workers", "2"]
     for factory in FACTORIES:
         argv += ["--compare", factory]
-    assert main(argv) == 0
+    with pytest.MonkeyPatch.context() as mp:  # several blocks of decoded codes, as at scale
+        mp.setattr("vprscale.compared.faisscodes.DECODE_ROWS", 10_000)
+        assert main(argv) == 0
     return {"results": pq.read_table(out / "results.parquet").to_pandas(),
             "queries": pq.read_table(out / "queries.parquet").to_pandas(),
-            "meta": json.loads((out / "eval.json").read_text())}
+            "meta": json.loads((out / "eval.json").read_text()), "out": out}
 
 
 @pytest.fixture(scope="module")
@@ -157,3 +159,38 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
 
 
 
+
+
+def test_same_matches_whatever_the_workers(tiny_store, tiny_index, compared, tmp_path):
+    """Training runs on one BLAS thread and searches are per query, so one worker gives the
+    matches two gave (OPQ and ITQ training would otherwise change with the thread count)."""
+    out = tmp_path / "one"
+    argv = ["eval", str(tiny_store), str(tiny_index), "--L", f"1,{L_SEQ}", "--z", "97", "--noise", "qm1",
+            "--out", str(out), "--workers", "1"]
+    for factory in FACTORIES:
+        argv += ["--compare", factory]
+    assert main(argv) == 0
+    one = pq.read_table(out / "queries.parquet").to_pandas()
+    two = compared["queries"]
+    for frame in (one, two):
+        frame.sort_values(["method", "L", "mode", "t"], inplace=True, na_position="first")
+    faiss_rows = two.method.str.startswith("faiss:").to_numpy()
+    assert faiss_rows.sum() > 1000
+    for col in ("t", "match", "n_r", "in_list"):
+        np.testing.assert_array_equal(one[col].to_numpy(), two[col].to_numpy())
+
+
+def test_report_draws_and_tells_the_comparison(compared, tmp_path):
+    """The report's comparison: its figure, one sentence per noise and L, and a table row per
+    method, mode and L, with the recall, bytes and times of the results."""
+    assert main(["report", str(compared["out"]), "--out", str(tmp_path / "r")]) == 0
+    text = (tmp_path / "r" / "report.md").read_text()
+    section = text.split("## CoarseHash against FAISS compact codes")[1].split("\n## ")[0]
+    assert (tmp_path / "r" / "fig_compare.png").stat().st_size > 10_000
+    words = [line for line in section.splitlines() if line.startswith("- tiny, QM1, L = ")]
+    assert len(words) == 2
+    res = compared["results"]
+    row = res[(res.method == "faiss:PQ4") & (res.L == L_SEQ) & (res["mode"] == "aligned") & (res.part == "all")
+              & (res.radius == 20)].iloc[0]
+    assert f"| PQ4 (aligned) | 4.00 | {row.us_per_query:,.1f} | {100 * row.recall:.1f} | {row.n_queries} |" in section
+    assert section.count("| tiny | QM1 |") == 3 * (1 + len(FACTORIES))  # L = 1: single; L = 9: two modes

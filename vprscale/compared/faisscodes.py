@@ -26,6 +26,7 @@ from vprscale.method.kernels import count_proposals, propose
 
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
+DECODE_ROWS = 1 << 16  # codes decoded at a time
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
 _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 
@@ -148,9 +149,10 @@ class FaissCodes:
             lo += len(codes)
             progress(len(codes))
         self.index.ntotal = self.inner.ntotal
-        if self.form == "vectors":  # decoded once, in the space the inner index searches
-            self.vectors = np.concatenate([self.inner.sa_decode(self.codes[i : i + 1 << 16])
-                                           for i in range(0, n_ref, 1 << 16)] or [np.zeros((0, 0), np.float32)])
+        if self.form == "vectors":  # decoded once, block by block, in the space the inner index searches
+            self.vectors = np.empty((n_ref, self.inner.d), np.float32)
+            for i in range(0, n_ref, DECODE_ROWS):
+                self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
 
     def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
         """A product quantiser's packed codes as one centroid index per sub-quantiser (FAISS

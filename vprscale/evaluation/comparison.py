@@ -12,9 +12,18 @@ from typing import Any
 
 import matplotlib.pyplot as plt
 import pandas as pd
+from matplotlib.ticker import FuncFormatter
 
 MARKERS = {1: "o", 50: "s", 100: "^"}
 RADIUS = 20
+
+
+def _plain(v: float, _pos: int) -> str:
+    return f"{v:g}"
+
+
+def _blank(v: float, _pos: int) -> str:
+    return ""
 
 
 def _points(res: pd.DataFrame) -> pd.DataFrame:
@@ -55,6 +64,8 @@ def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> Non
                     ax.scatter(getattr(row, xcol), 100 * row.recall, marker=MARKERS.get(row.L, "D"), s=36,
                                color="none" if hollow else colours[row.method], edgecolors=colours[row.method])
                 ax.set_xscale("log")
+                ax.xaxis.set_major_formatter(FuncFormatter(_plain))
+                ax.xaxis.set_minor_formatter(FuncFormatter(_plain if xcol == "bytes_per_place" else _blank))
                 ax.set_ylim(0, 100)
                 ax.grid(alpha=0.3, which="both")
                 ax.set_xlabel(xlabel)
