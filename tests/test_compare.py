@@ -162,8 +162,9 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
 
 
 def test_same_matches_whatever_the_workers(tiny_store, tiny_index, compared, tmp_path):
-    """Training runs on one BLAS thread and searches are per query, so one worker gives the
-    matches two gave (OPQ and ITQ training would otherwise change with the thread count)."""
+    """FAISS trains on one thread and encodes and searches fixed blocks each on one thread, so
+    one worker gives the lists and matches two gave (FAISS's own threading changes its OPQ and
+    ITQ rotations and IVF distances in the last bit with the thread count, flipping near-ties)."""
     out = tmp_path / "one"
     argv = ["eval", str(tiny_store), str(tiny_index), "--L", f"1,{L_SEQ}", "--z", "97", "--noise", "qm1",
             "--out", str(out), "--workers", "1"]

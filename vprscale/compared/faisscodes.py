@@ -14,8 +14,10 @@ codes, in reference order, are what the window scores read.
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
+from typing import Any
 
 import faiss
 import numpy as np
@@ -27,6 +29,7 @@ from vprscale.method.kernels import count_proposals, propose
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
 DECODE_ROWS = 1 << 16  # codes decoded at a time
+BLOCK_ROWS = 256  # rows one thread encodes or searches at a time (fixed: the bytes must not depend on threads)
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
 _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 
@@ -38,14 +41,10 @@ def training_rows(n_ref: int) -> np.ndarray:
     return np.unique(np.linspace(0, n_ref - 1, TRAIN_ROWS).round().astype(np.int64))
 
 
-@contextmanager
-def _omp_threads(n: int) -> Iterator[None]:
-    before = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(n)
-    try:
-        yield
-    finally:
-        faiss.omp_set_num_threads(before)
+def _one_thread(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> Any:
+    """``fn(x)`` with FAISS (and the BLAS it links, threaded by OpenMP) on this thread alone."""
+    faiss.omp_set_num_threads(1)  # OpenMP's thread count is per calling thread
+    return fn(x)
 
 
 def _faiss_reason(err: Exception) -> str:
@@ -58,9 +57,13 @@ class FaissCodes:
     """One FAISS ``index_factory`` index over the references, with sequence matching on its codes.
 
     ``k`` is the number of references each query frame retrieves (its list), ``nprobe`` the
-    inverted lists an IVF index visits per frame, ``threads`` the OpenMP threads of FAISS's
-    searches and encoding (set for each call: the BLAS FAISS links is threaded by OpenMP, so
-    the one-BLAS-thread limit every vprscale job runs under would leave FAISS one thread).
+    inverted lists an IVF index visits per frame.
+
+    ``threads`` Python threads run FAISS's encoding and searches, each on blocks of
+    ``BLOCK_ROWS`` rows with FAISS single-threaded. FAISS's own multi-threading would give
+    other bytes on other thread counts (its BLAS products, OPQ rotations and IVF coarse
+    distances, change in the last bit, which flips near-ties); blocks of a fixed size, each
+    on one thread, give the same codes and lists whatever ``threads`` is.
     """
 
     def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE, threads: int = 1) -> None:
@@ -84,6 +87,7 @@ class FaissCodes:
         self.form = ("hamming" if isinstance(self.inner, faiss.IndexLSH) else
                      "pq" if isinstance(self.inner, faiss.IndexPQ) and pq.nbits <= 8 else "vectors")
         self.codes = np.zeros((0, self.inner.sa_code_size()), np.uint8)
+        self._filled = 0
         self.vectors = np.zeros((0, 0), np.float32)
 
     @property
@@ -136,22 +140,34 @@ class FaissCodes:
     def train(self, sample: np.ndarray) -> None:
         self.index.train(np.ascontiguousarray(sample, np.float32))
 
-    def fit_blocks(self, n_ref: int, blocks: Iterator[np.ndarray], progress: Callable[[int], None]) -> None:
-        """Encode and add the references, read block by block in order (after :meth:`train`)."""
+    def start(self, n_ref: int) -> None:
+        """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
+        :meth:`encode` them block by block, in order, then :meth:`finish`."""
         width = self.inner.pq.M if self.form == "pq" else self.inner.sa_code_size()
         self.codes = np.empty((n_ref, width), np.uint8)
-        lo = 0
-        for x in blocks:
-            with _omp_threads(self.threads):
-                codes = self.inner.sa_encode(self._transform(x))
-                self.inner.add_sa_codes(codes)
-            self.codes[lo : lo + len(codes)] = codes if self.form != "pq" else self._pq_indices(codes)
-            lo += len(codes)
-            progress(len(codes))
+        self._filled = 0
+
+    def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray) -> list[Any]:
+        """``fn`` of each block of ``BLOCK_ROWS`` rows of ``x``, on ``threads`` threads, in order."""
+        x = np.ascontiguousarray(x, np.float32)
+        blocks = [x[i : i + BLOCK_ROWS] for i in range(0, len(x), BLOCK_ROWS)] or [x]
+        with ThreadPoolExecutor(self.threads) as pool:
+            return list(pool.map(partial(_one_thread, fn), blocks))
+
+    def encode(self, x: np.ndarray) -> None:
+        """Encode and add the next block of references."""
+        codes = np.concatenate(self._blocks(lambda b: self.inner.sa_encode(self._transform(b)), x))
+        self.inner.add_sa_codes(codes)
+        lo, self._filled = self._filled, self._filled + len(codes)
+        self.codes[lo : self._filled] = codes if self.form != "pq" else self._pq_indices(codes)
+
+    def finish(self) -> None:
+        if self._filled != len(self.codes):
+            raise ValueError(f"{self._filled:,} of {len(self.codes):,} references encoded")
         self.index.ntotal = self.inner.ntotal
         if self.form == "vectors":  # decoded once, block by block, in the space the inner index searches
-            self.vectors = np.empty((n_ref, self.inner.d), np.float32)
-            for i in range(0, n_ref, DECODE_ROWS):
+            self.vectors = np.empty((len(self.codes), self.inner.d), np.float32)
+            for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
 
     def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
@@ -165,8 +181,8 @@ class FaissCodes:
 
     def search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
-        with _omp_threads(self.threads):
-            return self.index.search(np.ascontiguousarray(rows, np.float32), self.k)
+        found = self._blocks(lambda b: self.index.search(b, self.k), rows)
+        return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
 
     def frame_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(tables, vectors)``: what the window scores need of each query frame (the other empty)."""

@@ -36,11 +36,17 @@ def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> 
         for m in methods:
             m.train(sample)
     del sample
-    bar = tqdm(total=n_ref * len(methods), desc="encode references", unit="code", unit_scale=True,
-               file=sys.stderr, disable=True if quiet else None, leave=False)
-    blocks = [ref.blocks[i] for i in range(ref.numblocks[0])]
+    bar = tqdm(total=n_ref, desc="encode references", unit="row", unit_scale=True, file=sys.stderr,
+               disable=True if quiet else None, leave=False)
     for m in methods:
-        m.fit_blocks(n_ref, (np.asarray(b.compute(), np.float32) for b in blocks), bar.update)
+        m.start(n_ref)
+    for i in range(ref.numblocks[0]):
+        x = np.asarray(ref.blocks[i].compute(), np.float32)
+        for m in methods:
+            m.encode(x)
+        bar.update(len(x))
+    for m in methods:
+        m.finish()
     bar.close()
 
 
