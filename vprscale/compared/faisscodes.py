@@ -138,7 +138,8 @@ class FaissCodes:
         return np.ascontiguousarray(x, np.float32)
 
     def train(self, sample: np.ndarray) -> None:
-        self.index.train(np.ascontiguousarray(sample, np.float32))
+        """Train on ``sample`` with FAISS on the calling thread alone (its results change with its threads)."""
+        _one_thread(self.index.train, np.ascontiguousarray(sample, np.float32))
 
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 from typing import Any
 
 import dask.array as da
@@ -24,18 +26,16 @@ def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> 
     """Train every method on the same evenly spaced references, then encode all of them in one
     streamed pass over ``ref`` (two reads of the references, whatever the number of methods).
 
-    Training runs on one BLAS thread, as all of vprscale's work does: FAISS's OPQ and ITQ
-    training give other rotations on other thread counts, and the codes must not depend on
-    ``--workers``.
+    Each method trains on one thread (the methods side by side, on ``--workers`` threads):
+    FAISS's OPQ and ITQ training give other rotations on other thread counts, and the codes
+    must not depend on ``--workers``.
     """
     if not methods:
         return
     n_ref = ref.shape[0]
     sample = ref[training_rows(n_ref)].compute()
-    with threadpool_limits(limits=1, user_api="blas"):
-        for m in methods:
-            m.train(sample)
-    del sample
+    with threadpool_limits(limits=1, user_api="blas"), ThreadPoolExecutor(methods[0].threads) as pool:
+        list(pool.map(partial(FaissCodes.train, sample=sample), methods))  # each on one thread of its own
     bar = tqdm(total=n_ref, desc="encode references", unit="row", unit_scale=True, file=sys.stderr,
                disable=True if quiet else None, leave=False)
     for m in methods:
