@@ -76,7 +76,7 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert all(s["status"] == "ran" for s in summary["stages"])
     report = tmp / "report" / "report.md"
     assert report.is_file()
-    for fig in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance"):
+    for fig in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", "fig_compare"):
         assert (tmp / "report" / f"{fig}.png").is_file() and (tmp / "report" / f"{fig}.pdf").is_file()
     # The synthetic sources are calibrated to the paper's regime at 20K (SPEC §1.3).
     import pandas as pd
@@ -87,7 +87,7 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert at20[at20.L == 1]["recall"].iloc[0] < 0.5
     assert at20[(at20.L == 50) & (at20["mode"] == "paper")]["recall"].iloc[0] > 0.7
     saved = json.loads(Path(summary["summary_file"]).read_text())
-    assert saved["status"] == "ok" and len(saved["figures"]) == 8
+    assert saved["status"] == "ok" and len(saved["figures"]) == 10
     assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0
 
 
