@@ -28,8 +28,9 @@ from vprscale.dataset.rawchunks import rows_of
 from vprscale.dataset.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
 from vprscale.errors import InputError
 from vprscale.evaluation.algorithms import Algorithm, Run
+from vprscale.evaluation.algorithms.base import SEQUENCE_MODES
 from vprscale.evaluation.algorithms.baseline import Baseline, BaselineMap, load_baseline_map
-from vprscale.evaluation.algorithms.coarsehash import SEQUENCE_MODES, CoarseHash
+from vprscale.evaluation.algorithms.coarsehash import CoarseHash
 from vprscale.evaluation.algorithms.faisscodes import FaissMethod, fit_codes
 from vprscale.evaluation.protocol import Centres, part_weights, query_centres, window_frames
 from vprscale.jobs.cluster import cluster_peak_rss, dask_client

@@ -17,6 +17,8 @@ import numpy as np
 
 from vprscale.method.engine import window_positions
 
+SEQUENCE_MODES = ("paper", "aligned")
+
 
 @dataclass
 class Run:
@@ -52,7 +54,8 @@ class Algorithm(ABC):
         """``d``, ``K`` and ``params`` of this method's rows."""
 
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
-        """The modes this method reports at ``L`` (None: a method, or L, without modes)."""
+        """The modes this method reports at ``L`` (None: a method, or L, without modes);
+        methods with candidate lists report the requested sequence modes for L > 1."""
         return [None]
 
     def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray) -> None:
@@ -82,3 +85,8 @@ class Algorithm(ABC):
     @abstractmethod
     def localise(self, t: np.ndarray, L: int, mode: str | None, truth: np.ndarray) -> Run:
         """Match every centre ``t`` (prepared with their whole windows) by sequences of ``L``."""
+
+
+def sequence_modes(L: int, requested: list[str]) -> list[str | None]:
+    """:meth:`Algorithm.modes` of a method with paper and aligned modes."""
+    return [None] if L == 1 else [m for m in SEQUENCE_MODES if m in requested]

@@ -10,11 +10,9 @@ import numba
 import numpy as np
 
 from vprscale.evaluation.accounting import method_ops
-from vprscale.evaluation.algorithms.base import Algorithm, Run
+from vprscale.evaluation.algorithms.base import Algorithm, Run, sequence_modes
 from vprscale.method.engine import Index, QueryFrames
 from vprscale.method.kernels import in_list_distance, match_batch
-
-SEQUENCE_MODES = ("paper", "aligned")
 
 
 class CoarseHash(Algorithm):
@@ -46,7 +44,7 @@ class CoarseHash(Algorithm):
         return {"d": self.index.d, "K": self.index.k, "params": None}
 
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
-        return [None] if L == 1 else [m for m in SEQUENCE_MODES if m in requested]
+        return sequence_modes(L, requested)
 
     def _warm(self, rows: np.ndarray) -> None:
         self.index.query_frames(self.index.hash_queries(rows))

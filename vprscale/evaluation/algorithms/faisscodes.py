@@ -15,8 +15,7 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from vprscale.compared.faisscodes import FaissCodes, training_rows
-from vprscale.evaluation.algorithms.base import Algorithm, Run
-from vprscale.evaluation.algorithms.coarsehash import SEQUENCE_MODES
+from vprscale.evaluation.algorithms.base import Algorithm, Run, sequence_modes
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
 MIN_SAMPLE = 16  # centres per run at least
@@ -74,7 +73,7 @@ class FaissMethod(Algorithm):
         return {"d": None, "K": None, "params": self.codes.params}
 
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
-        return [None] if L == 1 else [m for m in SEQUENCE_MODES if m in requested]
+        return sequence_modes(L, requested)
 
     def frame_threads(self) -> int:
         return self.codes.threads
