@@ -4,10 +4,28 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.sources.writers import write_fas_npz, write_fbin, write_fvecs
+from vprscale.method.hashkernels import hash_rows
+from vprscale.method.kmeans1d import kmeans_1d
+
+
+def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Codes ``argmin_k |y_j − c_jk|`` (ties: the smaller k) and errors ``Σ_j min_k |y_j − c_jk|`` of
+    already projected rows, through the method's own kernel with the identity projection."""
+    d = y.shape[1]
+    codes, _, err, _ = hash_rows(np.asarray(y, np.float64), np.zeros(d), np.eye(d), centres, centres.shape[1])
+    return codes, err
+
+
+def kmeans_1d_exact(column: np.ndarray, k: int) -> np.ndarray:
+    """Exact 1-D k-means centres of an in-memory column (its distinct values weighted by count)."""
+    values, counts = np.unique(np.asarray(column, np.float64), return_counts=True)
+    return kmeans_1d(values, counts, k)
+
 
 SMALL_FAS = FasParams(dim=128, n_ref=3000, n_query=2000, segment_frames=(150, 500))
 DEEP_ROWS = 70_000
@@ -55,7 +73,7 @@ def tiny_store(tmp_path_factory, sources) -> Path:
 @pytest.fixture(scope="session")
 def tiny_index(tiny_store, tmp_path_factory) -> Path:
     """A d = 12 CoarseHash index of the tiny store."""
-    from vprscale.method.index import build_index
+    from vprscale.jobs.indexing import build_index
 
     out = tmp_path_factory.mktemp("index") / "tiny.index"
     build_index(tiny_store, d=12, out=out, quiet=True)

@@ -139,7 +139,7 @@ def test_reindexing_keeps_evaluations(tiny_store, tmp_path, capsys):
 
 def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys):
     """An evaluation holds its index's lock: re-indexing meanwhile is refused, not run under it."""
-    from vprscale.dataset.store import exclusive
+    from vprscale.core.publish import exclusive
 
     index = tmp_path / "y.index"
     assert main(["index", str(tiny_store), "--d", "8", "--out", str(index)]) == 0

@@ -13,7 +13,7 @@ import pytest
 import zarr
 
 from vprscale.cli import main
-from vprscale.dataset.store import exclusive
+from vprscale.core.publish import exclusive
 
 from .conftest import write_recipe
 from .test_build import ARRAYS, run_build
@@ -72,6 +72,7 @@ def test_complete_store_is_kept_unless_forced_and_survives_a_failed_rebuild(tmp_
     args_bad = [*args, "--force"]
     args_bad[args_bad.index(str(sources["fbin"]))] = str(bad)
     assert main(args_bad) == 2
+    assert "bad.fbin" in capsys.readouterr().err
     assert _bytes(store) == before
     assert main([*args, "--force"]) == 0
     assert _bytes(store) == before

@@ -8,10 +8,12 @@ import dask.array as da
 import numpy as np
 import pytest
 
-from vprscale.errors import InputError
-from vprscale.method.coarsehash import CoarseHasher, pack, quantize_projected, unpack
-from vprscale.method.kmeans1d import kmeans_1d, kmeans_1d_exact
+from vprscale.core.errors import InputError
+from vprscale.method.coarsehash import CoarseHasher, pack, unpack
+from vprscale.method.kmeans1d import kmeans_1d
 from vprscale.method.lists import inverted_lists
+
+from .conftest import kmeans_1d_exact, quantize
 
 
 def factorial_design(sigmas, repeat=5):
@@ -46,7 +48,7 @@ def test_pack_first_component_is_most_significant_and_unpack_inverts():
 def test_quantize_ties_take_the_smaller_centre():
     centres = np.array([[-1.0, 1.0], [0.0, 2.0]])
     y = np.array([[0.0, 1.0], [0.5, 1.5]])
-    np.testing.assert_array_equal(quantize_projected(y, centres), [[0, 0], [1, 1]])
+    np.testing.assert_array_equal(quantize(y, centres)[0], [[0, 0], [1, 1]])
 
 
 def test_k_greater_than_two():

@@ -10,7 +10,7 @@ import pytest
 import zarr
 
 from vprscale.cli import main
-from vprscale.errors import InputError
+from vprscale.core.errors import InputError
 
 from .conftest import write_recipe
 
@@ -31,7 +31,7 @@ def compact_store(sources, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def both_indexes(compact_store, tiny_store, tmp_path_factory) -> tuple[Path, Path]:
-    from vprscale.method.index import build_index
+    from vprscale.jobs.indexing import build_index
 
     root = tmp_path_factory.mktemp("indexes")
     compact = Path(build_index(compact_store, out=root / "compact.index", quiet=True)["index"])
@@ -79,12 +79,13 @@ def test_same_matches(both_indexes, compact_store, tiny_store, tmp_path):
     assert len(tables[0]) > 1000 and tables[0][cols].equals(tables[1][cols])
 
 
-def test_compact_store_refuses_what_it_cannot_answer(compact_store, both_indexes, tmp_path):
-    from vprscale.method.index import build_index
+def test_compact_store_refuses_what_it_cannot_answer(compact_store, both_indexes, tmp_path, capsys):
+    from vprscale.jobs.indexing import build_index
 
     with pytest.raises(InputError, match="d = 16"):
         build_index(compact_store, d=12, out=tmp_path / "x.index", quiet=True)
     assert main(["eval", str(compact_store), str(both_indexes[0]), "--L", "7", "--out", str(tmp_path / "e")]) == 2
+    assert "this compact store holds the query windows of L = [1, 50, 100]" in capsys.readouterr().err
     assert not (tmp_path / "e" / "results.parquet").exists()
 
 

@@ -7,16 +7,22 @@ import pytest
 
 from vprscale.compared.baseline import baseline_batch, nearest
 from vprscale.evaluation.evaluate import recall_curve
-from vprscale.evaluation.protocol import MIN_FAS, part_weights, query_centres
-from vprscale.method.engine import Index
+from vprscale.method.coarsehash import CoarseHasher
+from vprscale.method.index import Index
 from vprscale.method.kernels import match_batch
 from vprscale.method.online import OnlineMatcher
+from vprscale.protocol import MIN_FAS, part_weights, query_centres
 
 CENTRES = np.tile([[-1.0, 1.0]], (4, 1))  # d = 4, K = 2, equal gaps: δ = 2·Hamming in real units
 
 
-def hand_index(ref_hash) -> Index:
-    return Index.from_addresses(np.asarray(ref_hash, np.uint64), CENTRES)
+def hand_index(ref_hash, centres: np.ndarray = CENTRES, errors=None) -> Index:
+    """An index over given addresses with given centres (identity PCA); errors default to 0."""
+    ref_hash = np.asarray(ref_hash, np.uint64)
+    d = centres.shape[0]
+    hasher = CoarseHasher.from_fitted(centres.shape[1], 1 << 14, len(ref_hash), np.zeros(d), np.eye(d), centres,
+                                      np.ones(d))
+    return Index.from_addresses(ref_hash, hasher, np.zeros(len(ref_hash)) if errors is None else errors)
 
 
 def run(idx: Index, q_hash, t, L, aligned=False):
@@ -31,7 +37,7 @@ def test_exact_and_fallback_addresses_with_ties_to_the_smaller():
 
 
 def test_single_best_and_in_list_bound():
-    idx = Index.from_addresses(np.array([3, 3, 3, 5], np.uint64), CENTRES, errors=np.array([0.3, 0.1, 0.1, 0.0]))
+    idx = hand_index([3, 3, 3, 5], errors=np.array([0.3, 0.1, 0.1, 0.0]))
     a = idx.nearest_occupied(np.array([3], np.uint64))
     assert idx.best[a][0] == 1  # least error, ties to the smaller id
     from vprscale.method.kernels import in_list_distance
@@ -204,7 +210,7 @@ def test_batch_kernel_equals_the_definition(d, k, L, aligned):
     n_ref, n_q = 300, 2 * L + 20
     ref = rng.integers(0, k**d, n_ref).astype(np.uint64)
     centres = np.tile(np.linspace(-1.0, 1.0, k), (d, 1)) * rng.uniform(0.5, 2.0, (d, 1))
-    idx = Index.from_addresses(ref, centres)
+    idx = hand_index(ref, centres)
     truth = rng.integers(0, n_ref - n_q)
     q = ref[truth:truth + n_q].copy()
     noisy = rng.random(n_q) < 0.3
@@ -231,7 +237,7 @@ def test_batches_do_not_depend_on_blocks_threads_or_batch_size():
     rng = np.random.default_rng(11)
     d, L = 10, 9
     ref = rng.integers(0, 2**d, 20_000).astype(np.uint64)
-    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (d, 1)) * rng.uniform(0.5, 2.0, (d, 1)))
+    idx = hand_index(ref, np.tile([[-1.0, 1.0]], (d, 1)) * rng.uniform(0.5, 2.0, (d, 1)))
     start = rng.integers(0, len(ref) - 3_000, 8)
     q = np.concatenate([ref[s:s + 3_000] ^ (rng.random(3_000) < 0.2).astype(np.uint64) for s in start])
     centres = np.sort(rng.integers(L // 2, len(q) - L // 2, QUERY_BLOCK + 700))
@@ -256,7 +262,7 @@ def test_blocks_split_by_proposals_give_the_same_matches():
 
     rng = np.random.default_rng(3)
     ref = rng.integers(0, 8, 40_000).astype(np.uint64)
-    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (3, 1)) * np.array([[1.0], [0.7], [0.4]]))
+    idx = hand_index(ref, np.tile([[-1.0, 1.0]], (3, 1)) * np.array([[1.0], [0.7], [0.4]]))
     q = ref[5_000:5_400] ^ (rng.random(400) < 0.1).astype(np.uint64)
     centres = np.arange(10, 390, 3)
     sizes = idx.query_frames(q).stop - idx.query_frames(q).start
@@ -268,15 +274,15 @@ def test_blocks_split_by_proposals_give_the_same_matches():
 
 
 def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
-    import vprscale.method.engine as engine
+    import vprscale.method.index as index_module
 
     rng = np.random.default_rng(8)
     ref = rng.integers(0, 64, 3_000).astype(np.uint64)
-    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (6, 1)))
+    idx = hand_index(ref, np.tile([[-1.0, 1.0]], (6, 1)))
     q = ref[1_000:1_300] ^ (rng.random(300) < 0.2).astype(np.uint64)
     centres = np.arange(10, 290, 7)
     copied = run(idx, q, centres, L=15, aligned=True)
-    monkeypatch.setattr(engine, "COPIED_LISTS", 0)
+    monkeypatch.setattr(index_module, "COPIED_LISTS", 0)
     assert idx.query_frames(q).ids is idx.ids
     in_place = run(idx, q, centres, L=15, aligned=True)
     np.testing.assert_array_equal(in_place[0], copied[0])
@@ -291,7 +297,7 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     rng = np.random.default_rng(4)
     d, L = 10, 9
     ref = rng.integers(0, 2**d, 20_000).astype(np.uint64)
-    idx = Index.from_addresses(ref, np.tile([[-1.0, 1.0]], (d, 1)) * rng.uniform(0.5, 2.0, (d, 1)))
+    idx = hand_index(ref, np.tile([[-1.0, 1.0]], (d, 1)) * rng.uniform(0.5, 2.0, (d, 1)))
     q = ref[7_000:9_000] ^ (rng.random(2_000) < 0.2).astype(np.uint64)
     qf = idx.query_frames(q)
     t = np.arange(L // 2, 2_000 - L // 2, 5)
@@ -319,7 +325,7 @@ def test_query_frames_hold_only_the_frames_worked_on():
     np.testing.assert_array_equal(q.positions(np.array([102, 205]), 5), [2, 10])
     match, _ = match_batch(q.positions(np.array([102]), 5), 5, False, *q.kernel_args(), *idx.kernel_args())
     assert match[0] == 10  # frames 100…104 repeat refs 8…12
-    a = q.addr[0]
+    a = q.slot[0]
     np.testing.assert_array_equal(q.ids[q.start[0]:q.stop[0]], idx.ids[idx.offsets[a]:idx.offsets[a + 1]])
     with pytest.raises(ValueError, match="frame 103"):
         q.positions(np.array([103]), 5)  # its window reaches frame 105, which was not worked on
@@ -328,14 +334,14 @@ def test_query_frames_hold_only_the_frames_worked_on():
 @pytest.mark.parametrize(("d", "k"), [(20, 2), (5, 3)])
 def test_nearest_occupied_equals_a_full_scan(d, k):
     rng = np.random.default_rng(d)
-    idx = Index.from_addresses(rng.integers(0, k**d, 500).astype(np.uint64), np.tile(np.linspace(-1, 1, k), (d, 1)))
+    idx = hand_index(rng.integers(0, k**d, 500).astype(np.uint64), np.tile(np.linspace(-1, 1, k), (d, 1)))
     h = np.r_[rng.integers(0, k**d, 2000), idx.addresses[:50], 0, k**d - 1].astype(np.uint64)
     a = idx.addresses.astype(np.int64)
     gap = np.abs(a[None, :] - h.astype(np.int64)[:, None])
     np.testing.assert_array_equal(idx.nearest_occupied(h), gap.argmin(axis=1))  # argmin: first, i.e. smaller
 
 
-def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_index, tmp_path):
+def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_index, tmp_path, capsys):
     import pyarrow.parquet as pq
     import zarr
 
@@ -354,14 +360,16 @@ def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_inde
                  str(tmp_path / "s.parquet")]) == 0
     assert pq.read_metadata(tmp_path / "s.parquet").num_rows == 52_000
     np.save(tmp_path / "bad.npy", x[:, :7])
+    capsys.readouterr()
     assert main(["localise", str(tiny_index), str(tmp_path / "bad.npy")]) == 2
+    assert "bad.npy: frames of 7 features; the index hashes frames of 96" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("d", "n"), [(26, 1000), (30, 200_000)])
 def test_nearest_occupied_through_the_prefix_table_equals_brute_force(d, n):
     rng = np.random.default_rng(d)
     occupied = np.unique(rng.integers(0, 2**d, n, dtype=np.uint64))
-    idx = Index.from_addresses(occupied, np.tile([[-1.0, 1.0]], (d, 1)))
+    idx = hand_index(occupied, np.tile([[-1.0, 1.0]], (d, 1)))
     h = np.r_[rng.integers(0, 2**d, 3000, dtype=np.uint64), occupied[:50], occupied[-5:] + np.uint64(1)]
     got = idx.addresses[idx.nearest_occupied(h)]
     below = occupied[np.clip(np.searchsorted(occupied, h, "right") - 1, 0, None)]

@@ -8,7 +8,7 @@ from sklearn.base import clone
 from sklearn.pipeline import Pipeline
 from sklearn.utils.estimator_checks import check_estimator
 
-from vprscale import CoarseHasher, ExactPCA, Index, OnlineMatcher, RandomizedPCA
+from vprscale import CoarseHasher, ExactPCA, RandomizedPCA
 
 ESTIMATORS = [ExactPCA(), CoarseHasher(), CoarseHasher(k=3), RandomizedPCA(2)]  # widths fit 2-column data
 # Checks that cannot apply here, and why.
@@ -27,11 +27,15 @@ def test_check_estimator(est):
     assert len(results) > 40
 
 
-def test_public_names_import_from_the_package():
+def test_package_names_are_the_implementations():
+    """``from vprscale import …`` gives the classes the modules define (not copies or stand-ins)."""
     import vprscale
+    from vprscale.method import coarsehash, index, online, pca
 
-    assert {"CoarseHasher", "ExactPCA", "Index", "OnlineMatcher"} <= set(vprscale.__all__)
-    assert Index.__name__ == "Index" and OnlineMatcher.__name__ == "OnlineMatcher"
+    assert vprscale.Index is index.Index and vprscale.OnlineMatcher is online.OnlineMatcher
+    assert vprscale.CoarseHasher is coarsehash.CoarseHasher and vprscale.ExactPCA is pca.ExactPCA
+    with pytest.raises(AttributeError, match="no attribute 'Engine'"):
+        vprscale.Engine  # noqa: B018
 
 
 def test_clone_params_and_pipeline():

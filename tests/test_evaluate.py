@@ -75,7 +75,7 @@ def test_single_frame_in_list_bound_is_at_least_the_best(evaluated):
 
 def test_eval_refuses_bad_input(tiny_store, tiny_index, tmp_path, capsys, sources):
     from vprscale.dataset.build import BuildRequest, build
-    from vprscale.method.index import build_index
+    from vprscale.jobs.indexing import build_index
 
     from .conftest import write_recipe
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from vprscale.dataset.blocks import block_rng
+from vprscale.core.blocks import block_rng
 from vprscale.dataset.gaussian import LAYERS, R, V, _sfc64, block_standard_normal, ziggurat_tables
 
 

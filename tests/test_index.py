@@ -10,7 +10,9 @@ import pytest
 import zarr
 
 from vprscale.cli import main
-from vprscale.method.coarsehash import pack, project, quantization_error, quantize_projected
+from vprscale.method.coarsehash import pack, project
+
+from .conftest import quantize
 
 
 @pytest.fixture(scope="module")
@@ -21,14 +23,14 @@ def model(tiny_index):
 def test_lists_are_the_addresses_of_every_ref(tiny_index, tiny_store, model):
     ref = zarr.open_group(tiny_store, mode="r")["ref"][:]
     y = project(ref, model["mean"], model["components"])
-    h = pack(quantize_projected(y, model["centres"]), 2)
+    h = pack(quantize(y, model["centres"])[0], 2)
     lists = pq.read_table(tiny_index / "lists.parquet").to_pandas()
     assert len(lists) == len(ref)
     assert lists["hash"].is_monotonic_increasing
     np.testing.assert_array_equal(h[lists["ref_id"].to_numpy()], lists["hash"].to_numpy())
     buckets = pq.read_table(tiny_index / "buckets.parquet").to_pandas()
     np.testing.assert_array_equal(np.unique(h), buckets["hash"].to_numpy())
-    err = quantization_error(y, model["centres"])
+    err = quantize(y, model["centres"])[1]
     for row in buckets.sample(200, random_state=0).itertuples():
         ids = np.flatnonzero(h == row.hash)
         assert row.size == len(ids)
@@ -91,7 +93,9 @@ def test_index_refuses_bad_input(tiny_store, tmp_path, capsys):
     assert main(["index", str(partial)]) == 2
     assert "incomplete" in capsys.readouterr().err
     assert main(["index", str(tiny_store), "--d", "97", "--out", str(tmp_path / "i")]) == 2
+    assert "d = 97: must be an integer between 1 and the descriptor width 96" in capsys.readouterr().err
     assert main(["index", str(tiny_store), "--k", "1", "--out", str(tmp_path / "i")]) == 2
+    assert "k = 1: K must be an integer of at least 2" in capsys.readouterr().err
     assert main(["index", str(tiny_store), "--d", "41", "--k", "3", "--out", str(tmp_path / "i")]) == 2
     assert "exceed 2^64" in capsys.readouterr().err
     assert not (tmp_path / "i").exists()
@@ -116,7 +120,8 @@ def test_inverted_lists_sort_by_address_then_id(high):
 
 def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
     """Sorting partition by partition (bounded memory) gives the lists of one global sort."""
-    from vprscale.method.lists import inverted_lists, write_lists
+    from vprscale.method.indexfile import write_lists
+    from vprscale.method.lists import inverted_lists
 
     rng = np.random.default_rng(1)
     n = 100_000

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from vprscale.cli import main
-from vprscale.dataset.store import exclusive
-from vprscale.errors import InputError
+from vprscale.core.errors import InputError
+from vprscale.core.publish import exclusive
 from vprscale.jobs.pipeline import load_pipeline, run_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -113,6 +113,7 @@ def test_failed_stage_exits_non_zero_with_a_failed_summary(tmp_path, capsys):
     path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") +
                   '[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\ndeep1b = "/nonexistent.fbin"\n')
     assert main(["run", str(path)]) == 2
+    assert "/nonexistent.fbin" in capsys.readouterr().err
     summaries = list((tmp_path / "out" / "runs").glob("*.json"))
     assert len(summaries) == 1 and json.loads(summaries[0].read_text())["status"] == "failed"
 

@@ -7,7 +7,7 @@ import pytest
 import zarr
 from zarr.codecs import ZstdCodec
 
-from vprscale.dataset.rawchunks import raw_chunk_dir, rows_of
+from vprscale.core.zarrio import raw_chunk_dir, rows_of
 
 
 def stored(tmp_path, compressors=None):
@@ -45,7 +45,7 @@ def test_a_chunk_left_out_as_fill_reads_as_fill_and_a_short_file_is_an_error(tmp
 
 
 def test_whole_chunk_writes_give_zarrs_bytes_and_partial_writes_go_through_zarr(tmp_path):
-    from vprscale.dataset.rawchunks import write_rows
+    from vprscale.core.zarrio import write_rows
 
     x = np.random.default_rng(1).normal(size=(1000, 7)).astype(np.float32)
     arrays = [zarr.create_array(tmp_path / f"{name}.zarr", shape=x.shape, chunks=(300, 7), dtype="float32",
@@ -94,7 +94,7 @@ def _fallbacks(tmp_path):
 
 
 def test_every_other_layout_falls_back_to_zarr(tmp_path):
-    from vprscale.dataset.rawchunks import write_rows
+    from vprscale.core.zarrio import write_rows
 
     for name, a, x in _fallbacks(tmp_path):
         assert raw_chunk_dir(a) is None, name

@@ -8,12 +8,12 @@ import zipfile
 import numpy as np
 import pytest
 
+from vprscale.core.errors import InputError
 from vprscale.dataset.sources.base import check_finite
 from vprscale.dataset.sources.deep1b import FbinSource, FvecsSource, open_deep1b
 from vprscale.dataset.sources.fas import open_fas
 from vprscale.dataset.sources.synthetic import SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.sources.writers import write_fas_npz
-from vprscale.errors import InputError
 
 from .conftest import DEEP_ROWS, SMALL_FAS
 

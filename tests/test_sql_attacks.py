@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from vprscale.cli import main
-from vprscale.errors import InputError
+from vprscale.core.errors import InputError
 from vprscale.evaluation.sql import GRACE_S, run_sql
 
 SECRET = "s3cr3t-not-for-sql"

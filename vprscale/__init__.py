@@ -7,17 +7,10 @@ The public Python API::
 (imported on first use, so that ``import vprscale`` and the command line start fast).
 """
 
-import os
-
-# Dask's array query planning rewrites graphs in ways the streamed passes do not expect; it
-# is switched off here, before anything imports dask.array, so the Python API and the
-# command line run the same path.
-os.environ.setdefault("DASK_ARRAY__QUERY_PLANNING", "False")
-
 __version__ = "0.2.0"
 
 _PUBLIC = {"CoarseHasher": "vprscale.method.coarsehash", "ExactPCA": "vprscale.method.pca",
-           "RandomizedPCA": "vprscale.method.pca", "Index": "vprscale.method.engine",
+           "RandomizedPCA": "vprscale.method.pca", "Index": "vprscale.method.index",
            "OnlineMatcher": "vprscale.method.online"}
 __all__ = [*_PUBLIC, "__version__"]
 

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from vprscale.errors import InputError, JobFailed
+from vprscale.core.errors import InputError, JobFailed
 
 EXIT_USAGE = 2  # bad input
 EXIT_FAILURE = 1  # vprscale itself failed
@@ -88,7 +88,7 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 def cmd_index(args: argparse.Namespace) -> int:
     from vprscale.evaluation.storage import format_storage
-    from vprscale.method.index import build_index
+    from vprscale.jobs.indexing import build_index
 
     meta = build_index(args.store, d=args.d, k=args.k, out=args.out, scheduler=args.scheduler,
                        workers=args.workers, force=args.force)
@@ -142,15 +142,22 @@ def _csv(kind):
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from vprscale.evaluation.evaluate import EvalRequest, evaluate
+    from vprscale.evaluation.evaluate import EvalRequest, check_request, evaluate
+    from vprscale.jobs.indexing import sweep_indexes
 
-    summary = evaluate(EvalRequest(store=Path(args.store), index=Path(args.index) if args.index else None,
-                                   noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
-                                   z=args.z, baseline_queries=args.baseline_queries,
-                                   d_sweep=args.d, compare=args.compare, faiss_k=args.faiss_k,
-                                   faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
-                                   out=Path(args.out) if args.out else None,
-                                   workers=args.workers, scheduler=args.scheduler))
+    req = EvalRequest(store=Path(args.store), indexes=[Path(args.index)] if args.index else [],
+                      noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
+                      z=args.z, baseline_queries=args.baseline_queries,
+                      compare=args.compare, faiss_k=args.faiss_k,
+                      faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
+                      out=Path(args.out) if args.out else None,
+                      workers=args.workers, scheduler=args.scheduler, repeats=args.repeats)
+    if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
+        if args.compare:
+            raise InputError("--compare: compares with one index at a time, not with a --d sweep")
+        check_request(req)
+        req.indexes = sweep_indexes(args.store, args.d, scheduler=args.scheduler, workers=args.workers)
+    summary = evaluate(req)
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
           f"({summary['queries']:,} rows); z = {summary['z']}")
@@ -278,6 +285,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--compare-queries", type=_positive_int, default=None,
                    help="centres per compared run (default: all while the run's frames visit at most 2^35 "
                         "codes; beyond, an evenly spaced sample that fits)")
+    p.add_argument("--repeats", type=_positive_int, default=3,
+                   help="timing repeats of every timed kernel, on one thread (default 3; docs/accounting.md)")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
     p.set_defaults(func=cmd_eval)
 

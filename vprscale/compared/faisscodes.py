@@ -23,7 +23,7 @@ import faiss
 import numpy as np
 
 from vprscale.compared.codescore import score_windows
-from vprscale.errors import InputError
+from vprscale.core.errors import InputError
 from vprscale.method.kernels import count_proposals, propose
 
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
@@ -152,6 +152,8 @@ class FaissCodes:
         """``fn`` of each block of ``BLOCK_ROWS`` rows of ``x``, on ``threads`` threads, in order."""
         x = np.ascontiguousarray(x, np.float32)
         blocks = [x[i : i + BLOCK_ROWS] for i in range(0, len(x), BLOCK_ROWS)] or [x]
+        if self.threads == 1:  # on the calling thread, where its CPU time is measured
+            return [_one_thread(fn, b) for b in blocks]
         with ThreadPoolExecutor(self.threads) as pool:
             return list(pool.map(partial(_one_thread, fn), blocks))
 

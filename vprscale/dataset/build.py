@@ -26,43 +26,30 @@ import zarr
 from threadpoolctl import threadpool_limits
 
 import vprscale
+from vprscale.core.blocks import BLOCK, chunk_bounds
+from vprscale.core.cluster import cluster_peak_rss, dask_client
+from vprscale.core.errors import InputError
+from vprscale.core.passes import reduce_pass
+from vprscale.core.progress import Timings, run_tasks
+from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.dataset import compact
-from vprscale.dataset.blocks import BLOCK, apply_by_block, chunk_bounds
 from vprscale.dataset.homogenise import window_mean
+from vprscale.dataset.layout import ChunkWriter, Layout, codecs
 from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
-from vprscale.dataset.passes import reduce_pass
-from vprscale.dataset.rawchunks import write_rows
 from vprscale.dataset.recipe import Recipe, load_recipe
-from vprscale.dataset.sources.base import RowSource, check_finite
+from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.deep1b import open_deep1b
 from vprscale.dataset.sources.fas import Traverse, open_fas
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
-from vprscale.dataset.store import ATTR, PartialOutput, check_writable, exclusive
-from vprscale.errors import InputError
-from vprscale.evaluation.protocol import MIN_FAS
-from vprscale.jobs.cluster import cluster_peak_rss, dask_client
-from vprscale.jobs.progress import Timings, run_tasks
+from vprscale.dataset.store import ATTR
 from vprscale.method.coarsehash import hash_descriptors
 from vprscale.method.lists import address_dtype
 from vprscale.method.pca import block_moments
+from vprscale.protocol import EVAL_LENGTHS, MIN_FAS
 
-NOISE_LEVELS = {"query_qm1": 1.0, "query_qm2": 2.0}
 MAX_MAGNITUDE = 1e18  # homogenised values beyond this overflow float32 once squared or projected
 WRITE_BYTES_PER_S = 400e6  # the page cache's write-back on this kind of machine, measured
 PARALLEL_EFFICIENCY = 0.8  # two tasks share memory bandwidth and the chunk reads
-DEEP1B, FAS = 0, 1
-
-
-def codecs(kind: str) -> dict[str, Any]:
-    """Compression of the stored arrays.
-
-    Descriptors are stored raw: PCA-projected float32 rows barely compress (bit-shuffled
-    lz4: 0.87 of the size, zstd: 0.88) and every index or evaluation pass reads them again
-    (a 10M pass: 3.2 s raw, 5.8 s with lz4). Integer arrays compress a hundredfold.
-    """
-    if kind == "descriptors":
-        return {"compressors": None}
-    return {"compressors": [zarr.codecs.BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")]}
 
 
 @dataclass
@@ -101,102 +88,6 @@ def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
     if traverse.ref.dim < recipe.dim:
         raise InputError(f"{traverse.ref.name}: {traverse.ref.dim} dimensions, fewer than {recipe.dim}")
     return deep, traverse
-
-
-@dataclass
-class Layout:
-    """Row counts of the dataset."""
-
-    n_deep: int
-    n_fas_ref: int
-    n_fas_query: int
-
-    @property
-    def n_ref(self) -> int:
-        return self.n_deep + self.n_fas_ref
-
-    @property
-    def n_query(self) -> int:
-        return self.n_deep + self.n_fas_query
-
-
-def dataset_gt(layout: Layout, fas_gt: np.ndarray, start: int, stop: int) -> np.ndarray:
-    """Ground truth of query rows ``[start, stop)`` (docs/dataset.md, step 8); −1 means none."""
-    return gt_of(layout, fas_gt, np.arange(start, stop, dtype=np.int64))
-
-
-def gt_of(layout: Layout, fas_gt: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Ground truth of query rows ``u``; −1 means none."""
-    u = np.asarray(u, np.int64)
-    gt = u.copy()
-    fas = u >= layout.n_deep
-    j = fas_gt[u[fas] - layout.n_deep]
-    gt[fas] = np.where(j < layout.n_fas_ref, layout.n_deep + j, -1)
-    return gt
-
-
-@dataclass
-class ChunkWriter:
-    """Everything one pass-2 task needs: small matrices and the source reader, no data."""
-
-    store: str
-    source: RowSource
-    recipe: Recipe
-    layout: Layout
-    mean: np.ndarray
-    matrix: np.ndarray
-    noise_mean: np.ndarray
-    noise_std: np.ndarray
-    fas_gt: np.ndarray
-    fas_ref: np.ndarray  # the kept FAS rows, projected
-    fas_query: np.ndarray
-
-    def deep_rows(self, a: int, b: int) -> np.ndarray:
-        """Deep1B reference rows ``[a, min(b, n_deep))``: homogenised, projected, rescaled."""
-        d_hi = min(b, self.layout.n_deep)
-        if a >= d_hi:
-            return np.empty((0, self.recipe.dim), np.float32)
-        h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
-        rows = apply_by_block(project_rows, h, a, self.mean, self.matrix)
-        # Finite inputs can still overflow float32 once averaged and projected (values near 3e38).
-        check_finite(rows, a, f"{self.source.name} (rows {max(0, a - self.recipe.window // 2):,}–"
-                              f"{min(self.recipe.deep1b_rows_read, d_hi + self.recipe.window // 2) - 1:,} "
-                              "homogenised and projected overflow float32; dataset row)")
-        return rows
-
-    def _fas(self, rows: np.ndarray, a: int, b: int, n_total: int) -> np.ndarray:
-        """The FAS rows (of ``rows``, which follow the Deep1B part) inside dataset rows ``[a, b)``."""
-        n_deep = self.layout.n_deep
-        return rows[max(0, a - n_deep) : max(0, min(b, n_total) - n_deep)]
-
-    def ref_rows(self, a: int, b: int, deep: np.ndarray | None = None) -> np.ndarray:
-        """Reference rows ``[a, b)`` exactly as the full layout stores them (``deep``: their Deep1B
-        part, when already computed)."""
-        deep = self.deep_rows(a, b) if deep is None else deep
-        return np.concatenate([deep, self._fas(self.fas_ref, a, b, self.layout.n_ref)])
-
-    def query_rows(self, deep: np.ndarray, a: int, b: int) -> list[np.ndarray]:
-        """Query rows ``[a, b)`` of each noise level, given the Deep1B reference rows from ``a``."""
-        fas = self._fas(self.fas_query, a, b, self.layout.n_query)
-        return [np.concatenate([q, fas]) for q in noisy_rows(deep, a, self.recipe.seed, self.noise_mean,
-                                                             self.noise_std, tuple(NOISE_LEVELS.values()))]
-
-    def __call__(self, a: int, b: int) -> None:
-        lay = self.layout
-        deep = self.deep_rows(a, b)
-        group = zarr.open_group(self.store, mode="r+")
-        if a < lay.n_ref:
-            write_rows(group["ref"], a, self.ref_rows(a, b, deep))
-            group["ref_part"][a : min(b, lay.n_ref)] = self._parts(a, min(b, lay.n_ref))
-        if a < lay.n_query:
-            q_hi = min(b, lay.n_query)
-            for name, q in zip(NOISE_LEVELS, self.query_rows(deep, a, b), strict=True):
-                write_rows(group[name], a, q)
-            group["gt"][a:q_hi] = dataset_gt(lay, self.fas_gt, a, q_hi)
-            group["query_part"][a:q_hi] = self._parts(a, q_hi)
-
-    def _parts(self, a: int, b: int) -> np.ndarray:
-        return (np.arange(a, b) >= self.layout.n_deep).astype(np.uint8)
 
 
 def _versions() -> dict[str, str]:
@@ -320,9 +211,6 @@ def build(req: BuildRequest) -> dict[str, Any]:
                 print(f"{final} is complete; use --force to rebuild it", file=sys.stderr)
                 return {"skipped": True, "store": str(final)}
         return _build(recipe, deep, traverse, final, req)
-
-
-EVAL_LENGTHS = (1, 50, 100)  # the sequence lengths whose windows a compact store keeps
 
 
 class DeepMoments:

@@ -9,7 +9,7 @@ while the index needs a few bytes. At 100M places and beyond the build therefore
   the map of the d = 1 baseline), 12 bytes in all;
 - the fitted CoarseHash model (``transforms/coarsehash``), fitted on moments the build
   derives (:meth:`~vprscale.dataset.merge.MergeTransform.ref_moments`) and histograms of a pass;
-- the query rows inside the windows the protocol evaluates (:mod:`vprscale.evaluation.protocol`),
+- the query rows inside the windows the protocol evaluates (:mod:`vprscale.protocol`),
   for both noise levels, with their frame numbers, truth and part.
 
 Every reference row is computed exactly as the full layout writes it, chunk by chunk in
@@ -20,24 +20,21 @@ has the same addresses, lists and matches as an index of the full store of the s
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import dask
 import numpy as np
 import zarr
 
-from vprscale.dataset.blocks import BLOCK, chunk_bounds
-from vprscale.dataset.passes import reduce_pass
-from vprscale.dataset.store import PartialOutput
-from vprscale.evaluation.protocol import query_centres, window_frames
-from vprscale.jobs.progress import Timings, compute
+from vprscale.core.blocks import BLOCK, chunk_bounds
+from vprscale.core.passes import reduce_pass
+from vprscale.core.progress import Timings, compute
+from vprscale.core.publish import PartialOutput
+from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, codecs, gt_of
+from vprscale.dataset.store import MODEL, load_model
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors, project
 from vprscale.method.lists import address_dtype
-
-if TYPE_CHECKING:
-    from vprscale.dataset.build import ChunkWriter
-
-MODEL = ("mean", "components", "centres", "explained_variance", "ranges")
+from vprscale.protocol import query_centres, window_frames
 
 
 class _Histograms:
@@ -92,8 +89,6 @@ def _queries_of_block(writer: ChunkWriter, a: int, frames: np.ndarray) -> list[n
 def write_compact(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, timings: Timings,
                   ref_moments: np.ndarray, lengths: tuple[int, ...], quiet: bool) -> dict[str, Any]:
     """Passes 2 and 3 of a compact build, and the evaluated query windows; the layout's attributes."""
-    from vprscale.dataset.build import NOISE_LEVELS, codecs, gt_of
-
     lay, recipe = writer.layout, writer.recipe
     work = Path(partial.path) / ".work"
     bounds = chunk_bounds(lay.n_ref, recipe.chunk_rows)
@@ -140,15 +135,3 @@ def write_compact(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput
         partial.mark("queries")
     return {"n_ref": lay.n_ref, "n_query": lay.n_query, "eval_lengths": list(lengths), "z": z,
             "coarsehash": {"d": hasher.d_, "k": hasher.k}}
-
-
-def load_model(group: zarr.Group) -> CoarseHasher:
-    """The CoarseHash model a compact store was hashed with."""
-    m = group["transforms/coarsehash"]
-    hasher = CoarseHasher(d=int(m.attrs["d"]), k=int(m.attrs["k"]), bins=int(m.attrs["bins"]))
-    for name in MODEL:
-        setattr(hasher, f"{name}_", m[name][:])
-    hasher.d_ = int(m.attrs["d"])
-    hasher.n_features_in_ = hasher.components_.shape[1]
-    hasher.n_ref_ = int(group["ref_hash"].shape[0])
-    return hasher

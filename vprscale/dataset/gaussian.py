@@ -20,7 +20,7 @@ import math
 import numba
 import numpy as np
 
-from vprscale.dataset.blocks import block_rng
+from vprscale.core.blocks import block_rng
 
 LAYERS = 256
 R = 3.6541528853610088  # right edge of the base layer's rectangle (Marsaglia & Tsang, 256 layers)

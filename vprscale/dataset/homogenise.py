@@ -11,7 +11,7 @@ import dask.array as da
 import numba
 import numpy as np
 
-from vprscale.dataset.blocks import block_spans
+from vprscale.core.blocks import block_spans
 from vprscale.dataset.sources.base import RowSource
 
 

@@ -10,10 +10,10 @@ import dask
 import numba
 import numpy as np
 
-from vprscale.dataset.blocks import BLOCK, block_spans
+from vprscale.core.blocks import BLOCK, block_spans
+from vprscale.core.progress import compute
 from vprscale.dataset.gaussian import block_standard_normal
 from vprscale.dataset.sources.fas import Traverse
-from vprscale.jobs.progress import compute
 from vprscale.method.pca import ExactPCA, RandomizedPCA, block_moments
 
 NOISE_STREAM = 17

@@ -9,8 +9,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from vprscale.dataset.blocks import BLOCK
-from vprscale.errors import InputError
+from vprscale.core.blocks import BLOCK
+from vprscale.core.errors import InputError
 
 _FIELDS: dict[str, type | tuple[type, ...]] = {
     "scale": str, "deep1b_rows_read": int, "deep1b_rows_kept": int, "fas_ref_rows": (int, str),

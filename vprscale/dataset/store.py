@@ -1,125 +1,26 @@
-"""Lifecycle of an output directory: lock, work in a hidden partial copy, publish atomically.
+"""The dataset store (Zarr v3, docs/dataset.md): opening a complete store and reading what
+every job asks of it (its provenance digest, layout, reference moments, compact model).
 
-A build (or an index) writes into ``.<name>.partial`` beside its final path, records each
-finished unit of work as a marker file, and only when everything is written sets
-``complete`` and renames the partial copy into place. So a reader never finds an
-incomplete output at the public path, a killed job resumes from its markers, and
-``--force`` replaces an existing output only once the new one is whole.
+The layouts themselves are written by :mod:`vprscale.dataset.layout` (full) and
+:mod:`vprscale.dataset.compact`; this module is how everything above reads a store.
 """
 
 from __future__ import annotations
 
-import fcntl
+import hashlib
 import json
 import os
-import shutil
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zarr
 
-from vprscale.errors import InputError
+from vprscale.core.errors import InputError
+from vprscale.method.coarsehash import CoarseHasher
 
 ATTR = "vprscale"
-
-
-@contextmanager
-def exclusive(path: Path):
-    """Hold an advisory lock for ``path``; a second holder is refused (kill -9 frees it)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    lock = path.with_name(f".{path.name}.lock")
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise InputError(f"{path}: another vprscale job is writing this output (lock {lock})") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-        yield
-    finally:
-        os.close(fd)
-
-
-class PartialOutput:
-    """The hidden work copy of an output directory, with its done-markers.
-
-    Publishing is a sequence of idempotent steps with one commit point: when the work is
-    whole, a seal file ``.<name>.sealed`` is written beside it (atomically); then the
-    work copy's bookkeeping (``.work``, ``.done``, ``.job.json``) is removed, an older
-    output is moved aside to ``.<name>.old``, the work copy is renamed to the final path,
-    and the old output and the seal are removed. A job killed anywhere in that sequence
-    leaves the seal, and the next run of the job (:meth:`recover`) finishes the sequence
-    instead of starting over; a job killed before the seal resumes from its markers.
-    """
-
-    def __init__(self, final: Path, key: dict[str, Any]) -> None:
-        self.final = final
-        self.path = final.with_name(f".{final.name}.partial")
-        self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
-        self._markers = self.path / ".done"
-        self.sealed = final.with_name(f".{final.name}.sealed")
-        self.old = final.with_name(f".{final.name}.old")
-
-    def recover(self) -> bool:
-        """Finish a publish that a killed run sealed; True if there was one (the output is then published)."""
-        if not self.sealed.is_file():
-            if self.old.exists() and self.final.exists():
-                shutil.rmtree(self.old)  # an old output the last publish did not get to remove
-            return False
-        self._publish_steps()
-        return True
-
-    def open(self) -> bool:
-        """Create the work copy, or keep it if it belongs to the same job; True if resumed."""
-        key_file = self.path / ".job.json"
-        if key_file.is_file() and json.loads(key_file.read_text()) == self.key:
-            return True
-        if self.path.exists():
-            shutil.rmtree(self.path)
-        self._markers.mkdir(parents=True)
-        key_file.write_text(json.dumps(self.key, sort_keys=True, indent=1))
-        return False
-
-    def done(self, unit: str) -> bool:
-        return (self._markers / unit).exists()
-
-    def mark(self, unit: str) -> None:
-        tmp = self._markers / f".{unit}.tmp"
-        tmp.write_text("")
-        tmp.replace(self._markers / unit)
-
-    def publish(self) -> None:
-        """Seal the finished work copy, then move it to the final path, replacing an older output last."""
-        tmp = self.sealed.with_name(self.sealed.name + ".tmp")
-        tmp.write_text(json.dumps(self.key, sort_keys=True))
-        tmp.replace(self.sealed)
-        self._publish_steps()
-
-    def _publish_steps(self) -> None:
-        if self.path.exists():
-            for name in (".work", ".done"):
-                shutil.rmtree(self.path / name, ignore_errors=True)
-            (self.path / ".job.json").unlink(missing_ok=True)
-            if self.final.exists():
-                if self.old.exists():
-                    shutil.rmtree(self.old)
-                self.final.replace(self.old)
-            self.path.replace(self.final)
-        if self.old.exists():
-            shutil.rmtree(self.old)
-        self.sealed.unlink(missing_ok=True)
-
-
-def check_writable(out: Path) -> None:
-    """Fail early, naming the directory, if outputs cannot be written there."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"--out {out}: cannot create the output directory: {exc.strerror}") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise InputError(f"--out {out}: the output directory is not writable")
+MODEL = ("mean", "components", "centres", "explained_variance", "ranges")  # a compact store's CoarseHash model
 
 
 def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.Group:
@@ -132,3 +33,28 @@ def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.
     if not meta.get("complete"):
         raise InputError(f"{p}: the {kind} store is incomplete (its build did not finish)")
     return group
+
+
+def store_identity(store: Path) -> str:
+    """A digest of a store's provenance: an index records it, an evaluation checks it."""
+    meta = open_complete_group(store).attrs[ATTR]
+    core = {k: meta.get(k) for k in ("recipe", "sources", "layout", "seed", "rescale")}
+    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def store_layout(group: zarr.Group) -> dict[str, Any]:
+    """The layout attributes of a store (``kind`` is ``full`` for stores built before layouts had a name)."""
+    return {"kind": "full", **group.attrs[ATTR].get("layout", {})}
+
+
+def ref_moments(group: zarr.Group) -> np.ndarray | None:
+    """The reference moments a build derived (``None`` for stores built before they were kept)."""
+    t = group.get("transforms")
+    return t["ref_moments"][:] if t is not None and "ref_moments" in t else None
+
+
+def load_model(group: zarr.Group) -> CoarseHasher:
+    """The CoarseHash model a compact store was hashed with."""
+    m = group["transforms/coarsehash"]
+    return CoarseHasher.from_fitted(int(m.attrs["k"]), int(m.attrs["bins"]), int(group["ref_hash"].shape[0]),
+                                    **{name: m[name][:] for name in MODEL})

@@ -11,12 +11,11 @@ from __future__ import annotations
 import json
 import sys
 import time
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -24,32 +23,29 @@ import zarr
 from tqdm import tqdm
 
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
-from vprscale.dataset.rawchunks import rows_of
-from vprscale.dataset.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
-from vprscale.errors import InputError
-from vprscale.evaluation.algorithms import Algorithm, Run
-from vprscale.evaluation.algorithms.base import SEQUENCE_MODES
-from vprscale.evaluation.algorithms.baseline import Baseline, BaselineMap, load_baseline_map
-from vprscale.evaluation.algorithms.coarsehash import CoarseHash
-from vprscale.evaluation.algorithms.faisscodes import FaissMethod, fit_codes
-from vprscale.evaluation.protocol import Centres, part_weights, query_centres, window_frames
-from vprscale.jobs.cluster import cluster_peak_rss, dask_client
-from vprscale.method.engine import Index
-from vprscale.method.index import (
-    build_index,
-    default_index_dir,
-    load_index_meta,
-    store_identity,
-    store_layout,
+from vprscale.core.cluster import cluster_peak_rss, dask_client
+from vprscale.core.errors import InputError
+from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.core.zarrio import rows_of
+from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
+from vprscale.evaluation.algorithms import registry
+from vprscale.evaluation.algorithms.base import Answer
+from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit, load_baseline_map
+from vprscale.evaluation.algorithms.faisscodes import fit_codes
+from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
+from vprscale.method.index import Index
+from vprscale.protocol import (
+    PARTS,
+    SEQUENCE_MODES,
+    Centres,
+    part_weights,
+    query_centres,
+    window_frames,
+    window_positions,
 )
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
-MODES = SEQUENCE_MODES
 RADII = np.arange(21)
-# Batched kernels run on numba's threads (``--workers`` of them): measured wall time × threads /
-# queries is the time per query per core.
-PARTS = {"all": None, "deep1b": 0, "fas": 1}
-BASELINE_SUBSAMPLE = 64  # baseline queries per run at 10^8 query rows and beyond (each scans every place)
 
 
 @dataclass
@@ -57,18 +53,18 @@ class EvalRequest:
     """What ``vprscale eval`` was asked for."""
 
     store: Path
-    index: Path | None = None
+    indexes: list[Path] = field(default_factory=list)  # one index, or one per width of a d sweep
     noises: list[str] = field(default_factory=lambda: ["qm1", "qm2"])
     lengths: list[int] = field(default_factory=lambda: [1, 50, 100])
     modes: list[str] = field(default_factory=lambda: ["paper", "aligned"])
     baseline: bool = True
     z: int | None = None
     baseline_queries: int | None = None  # queries per baseline run; None: all below 10^8 query rows, else a sample
-    d_sweep: list[int] | None = None
     compare: list[str] = field(default_factory=list)  # FAISS index_factory strings
     faiss_k: int | None = None  # top-k per frame (None: CoarseHash's mean list size)
     faiss_nprobe: int = DEFAULT_NPROBE
     compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
+    repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     out: Path | None = None
     workers: int = 2
     scheduler: str | None = None
@@ -134,16 +130,17 @@ def recall_curve(error: np.ndarray) -> np.ndarray:
     return (error[:, None] <= RADII[None, :]).mean(axis=0)
 
 
-def _validate(req: EvalRequest) -> None:
+def check_request(req: EvalRequest) -> None:
+    """Refuse bad parameters before anything is read or built (the index list is checked by :func:`evaluate`)."""
     for flag, values in (("--noise", req.noises), ("--L", req.lengths), ("--modes", req.modes)):
         if not values:
             raise InputError(f"{flag}: the list is empty; give at least one value")
     unknown = [n for n in req.noises if n not in NOISES]
     if unknown:
         raise InputError(f"--noise {','.join(unknown)}: unknown noise; choose from {', '.join(NOISES)}")
-    bad = [m for m in req.modes if m not in MODES]
+    bad = [m for m in req.modes if m not in SEQUENCE_MODES]
     if bad:
-        raise InputError(f"--modes {','.join(bad)}: unknown mode; choose from {', '.join(MODES)}")
+        raise InputError(f"--modes {','.join(bad)}: unknown mode; choose from {', '.join(SEQUENCE_MODES)}")
     if any(L < 1 for L in req.lengths):
         raise InputError("--L: sequence lengths must be at least 1")
     if req.z is not None and req.z < 1:
@@ -152,38 +149,17 @@ def _validate(req: EvalRequest) -> None:
                         ("--compare-queries", req.compare_queries)):
         if value is not None and value < 1:
             raise InputError(f"{flag} {value}: must be at least 1")
-    if req.compare and req.d_sweep:
-        raise InputError("--compare: compares with one index at a time, not with a --d sweep")
     if len(set(req.compare)) != len(req.compare):
         raise InputError(f"--compare: {next(f for f in req.compare if req.compare.count(f) > 1)} given twice")
 
 
-def _indexed_from(path: Path, identity: str) -> bool:
-    """Whether ``path`` holds a complete index of the store with this identity."""
-    try:
-        return load_index_meta(path)["store"]["identity"] == identity
-    except InputError:
-        return False
-
-
-def _indexes(req: EvalRequest, identity: str) -> list[Path]:
-    if req.d_sweep:
-        paths = []
-        for d in req.d_sweep:
-            path = default_index_dir(req.store, d, 2)
-            if not _indexed_from(path, identity):
-                build_index(req.store, d=d, k=2, out=path, scheduler=req.scheduler, workers=req.workers,
-                            quiet=req.quiet)
-            paths.append(path)
-        return paths
-    if req.index is None:
-        raise InputError("eval: give an INDEX, or --d to index the store at several widths")
-    return [req.index]
-
-
 def evaluate(req: EvalRequest) -> dict[str, Any]:
     """Run the grid and write ``results.parquet`` and ``queries.parquet``; returns a summary."""
-    _validate(req)
+    check_request(req)
+    if not req.indexes:
+        raise InputError("eval: give an INDEX, or --d to index the store at several widths")
+    if req.compare and len(req.indexes) > 1:
+        raise InputError("--compare: compares with one index at a time, not with a --d sweep")
     t_start = time.perf_counter()
     group = open_complete_group(req.store)
     meta = group.attrs[ATTR]
@@ -198,10 +174,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     if req.compare and layout["kind"] == "compact":
         raise InputError(f"--compare: {req.store} is a compact store and keeps no reference descriptors to "
                          "encode; build it with --layout full")
-    threads = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(req.workers, numba.config.NUMBA_NUM_THREADS)))
-    with dask_client(req.scheduler, req.workers) as client, _restore_threads(threads):
-        index_paths = _indexes(req, identity)
+    with dask_client(req.scheduler, req.workers) as client:
+        index_paths = req.indexes
         indexes = []
         for path in index_paths:
             idx = Index.load(path).warm()  # the directory read in order, not timed as random reads
@@ -238,7 +212,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             _write_parquet(partial.path / "queries.parquet", queries, provenance)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
-                       "baseline_queries": _baseline_limit(req, qs), "layout": layout["kind"],
+                       "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
                        "compare": {c.name: {"params": c.params, "bytes_per_place": c.bytes_per_place}
                                    for c in compared}, "compare_fit_s": fit_s if compared else None, **provenance}
@@ -246,14 +220,6 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
-
-
-@contextmanager
-def _restore_threads(n: int):
-    try:
-        yield
-    finally:
-        numba.set_num_threads(n)
 
 
 def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[FaissCodes]:
@@ -269,75 +235,60 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
     return [FaissCodes(factory, dim, k, req.faiss_nprobe, req.workers) for factory in req.compare]
 
 
-def _baseline_limit(req: EvalRequest, qs: QuerySet) -> int | None:
-    """Queries the baseline localises per run (None: all); a full scan of 10^8 places costs ~0.1 s a query."""
-    if req.baseline_queries is not None:
-        return req.baseline_queries
-    return BASELINE_SUBSAMPLE if qs.n_query >= 10**8 else None
-
-
-def _subsample(n: int, limit: int | None) -> np.ndarray:
-    """``limit`` evenly spaced positions of ``n`` (all when there are no more)."""
-    if limit is None or n <= limit:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
-
-
-def _algorithms(req: EvalRequest, qs: QuerySet, path: Path, idx: Index, dim: int, base: BaselineMap | None,
-                compared: list[FaissCodes], centres: dict[int, Centres]) -> list[Algorithm]:
-    """The methods evaluated on one index: CoarseHash, then the baseline and the compared methods."""
-    coarse = CoarseHash(idx, path, dim)
-    algos: list[Algorithm] = [coarse]
-    if base is not None:
-        algos.append(Baseline(base, coarse, dim, _baseline_limit(req, qs)))
-    n_centres = max(len(c.t) for c in centres.values())
-    algos += [FaissMethod(codes, n_centres, max(req.lengths), req.compare_queries) for codes in compared]
-    return algos
-
-
 def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
           compared: list[FaissCodes]) -> tuple[list[dict], list[dict]]:
+    """Every method of every index on every noise, L and mode; the methods come from the registry."""
     rows: list[dict] = []
     queries: list[dict] = []
     centres = {L: qs.centres(z, L) for L in req.lengths}
     frames = window_frames([centres[L].t for L in req.lengths], req.lengths)
     weights = part_weights(qs.n_query, qs.n_deep)
-    methods = [(path, _algorithms(req, qs, path, idx, dim, base, compared, centres)) for path, idx in indexes]
-    combos = len(req.noises) * len(indexes) * len(req.lengths)
-    bar = tqdm(total=combos, desc="evaluate", unit="combo", file=sys.stderr, disable=None, leave=False)
+    runner = Runner(req.workers, req.repeats)
+    methods = [(path, registry.create(registry.Context(
+        index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
+        lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
+        compared=compared, compare_queries=req.compare_queries))) for path, idx in indexes]
+    steps = len(req.noises) * sum(len(algos) for _, algos in methods) * (1 + len(req.lengths))
+    bar = tqdm(total=steps, desc="evaluate", unit="step", file=sys.stderr, disable=True if req.quiet else None,
+               leave=False)
     for noise in req.noises:
         x_q = qs.rows(noise, frames)
         for path, algos in methods:
-            samples = {}
+            prepared = []
             for alg in algos:  # the per-frame work of each method, on the frames of the centres it localises
-                samples[alg] = {L: _subsample(len(centres[L].t), alg.query_limit) for L in req.lengths}
-                held = window_frames([centres[L].t[samples[alg][L]] for L in req.lengths], req.lengths)
-                alg.prepare(noise, held, x_q[np.searchsorted(frames, held)])
+                bar.set_postfix_str(f"{noise} {alg.name}: per-frame work")
+                alg.prepare(noise, frames, x_q, {L: centres[L].t for L in req.lengths})
+                sample = {L: spread(len(centres[L].t), alg.query_limit) for L in req.lengths}
+                held = window_frames([centres[L].t[sample[L]] for L in req.lengths], req.lengths)
+                prepared.append((alg, sample, held, *runner.frames(alg, x_q[np.searchsorted(frames, held)])))
+                bar.update()
             for L in req.lengths:
                 c = centres[L]
-                w = weights if c.fas_stride is not None else None
-                for alg in algos:
-                    sub = samples[alg][L]
-                    t = c.t[sub]
+                for alg, sample, held, state, frame_cost in prepared:
+                    t = c.t[sample[L]]
                     truth, parts = qs.gt_at(t), qs.part_at(t)
+                    pos = window_positions(held, t, L)
                     key = {"noise": noise, "L": L, "index": str(Path(path).resolve()), "fas_stride": c.fas_stride,
                            "method": alg.name, **alg.columns(), "bytes_per_place": alg.bytes_per_place}
                     for mode in alg.modes(L, req.modes):
-                        run = alg.localise(t, L, mode, truth)
-                        _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, run, w)
-                bar.update()
+                        bar.set_postfix_str(f"{noise} {alg.name} L={L} {mode or ''}".rstrip())
+                        answer, timing = runner.localise(alg, state, pos, L, mode, frame_cost)
+                        in_list = alg.in_list(state, pos, truth) if L == 1 else None
+                        _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, answer, timing, in_list,
+                              weights if c.fas_stride is not None else None)
+                    bar.update()
     bar.close()
     return rows, queries
 
 
-def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray, parts: np.ndarray, run: Run,
-          weights: dict[str, float] | None) -> None:
+def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray, parts: np.ndarray,
+          answer: Answer, timing: Timing, in_list: np.ndarray | None, weights: dict[str, float] | None) -> None:
     """Rows of ``results`` and ``queries`` for one run of one method.
 
     With ``weights`` (a stratified sample) the overall recall weights each part's recall by
     its share of the query rows; without, it is the share of all queries localised.
     """
-    match, n_r, in_list = run.match, run.n_r, run.in_list
+    match, n_r = answer.match, answer.n_r
     error = np.abs(np.asarray(match, np.int64) - truth)
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
     curves = {name: (recall_curve(error[sel]), recall_curve(in_list[sel]) if in_list is not None else None)
@@ -354,8 +305,7 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
                  "nr_median": float(np.median(nr)) if len(nr) else np.nan,
                  "nr_p95": float(np.percentile(nr, 95)) if len(nr) else np.nan,
-                 "us_per_query": run.us_per_query, "us_per_frame": run.us_per_frame,
-                 "ops_per_query": run.ops_per_query}
+                 **timing.columns(), "ops_per_query": answer.ops_per_query}
         for r in RADII:
             rows.append({**key, "part": name, "radius": int(r), "recall": float(curve[r]),
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})

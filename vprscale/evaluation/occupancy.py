@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
-from vprscale.method.index import load_index_meta
+from vprscale.method.indexfile import load_index_meta
 
 
 def occupancy(index: str | Path, top: int = 10) -> dict[str, Any]:

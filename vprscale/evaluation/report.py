@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from vprscale.errors import InputError  # noqa: E402
+from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.evaluation.accounting import method_ops  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 
@@ -224,7 +224,7 @@ def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] 
     """Write the figures and ``report.md`` into ``out``; returns their paths."""
     res, evals, indexes = load_results(results)
     for p in extra_indexes or []:
-        from vprscale.method.index import load_index_meta
+        from vprscale.method.indexfile import load_index_meta
 
         meta = load_index_meta(p)
         if not any(i["path"] == str(p) for i in indexes):

@@ -28,8 +28,8 @@ import duckdb
 import pyarrow.csv as pacsv
 import pyarrow.dataset as pads
 
-from vprscale.errors import InputError
-from vprscale.method.index import load_index_meta
+from vprscale.core.errors import InputError
+from vprscale.method.indexfile import load_index_meta
 
 GRACE_S = 5.0  # how long an interrupted query may take to stop before it is abandoned
 

@@ -152,7 +152,7 @@ def bench_online(store: str, index: str, L: int, frames: int = 3000) -> str:
     import numba
     import zarr
 
-    from vprscale.method.engine import Index
+    from vprscale.method.index import Index
     from vprscale.method.online import OnlineMatcher
 
     idx = Index.load(index)

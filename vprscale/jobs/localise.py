@@ -21,11 +21,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import zarr
 
-from vprscale.errors import InputError
-from vprscale.jobs.progress import ChunkProgress
-from vprscale.method.engine import Index
-from vprscale.method.index import load_index_meta
+from vprscale.core.errors import InputError
+from vprscale.core.progress import ChunkProgress
+from vprscale.method.index import Index
+from vprscale.method.indexfile import load_index_meta
 from vprscale.method.online import OnlineMatcher
+from vprscale.protocol import centre_lag
 
 READ_ROWS = 4096
 
@@ -74,7 +75,7 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
         matcher = OnlineMatcher(Index.load(index), L, mode)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    lag = L - 1 - L // 2
+    lag = centre_lag(L)
     match = np.full(rows, -1, np.int64)
     n_r = np.zeros(rows, np.int64)
     progress = None if quiet else ChunkProgress("localise", (rows + READ_ROWS - 1) // READ_ROWS)

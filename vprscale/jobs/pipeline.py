@@ -28,9 +28,9 @@ from pathlib import Path
 from typing import Any
 
 import vprscale
+from vprscale.core.errors import InputError, JobFailed
+from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml
-from vprscale.dataset.store import exclusive
-from vprscale.errors import InputError, JobFailed
 
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
@@ -42,7 +42,8 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "eval": {"store": ("stage", True), "index": ("stage", False), "d_sweep": ("list[int]", False),
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
-             "faiss_k": ("int", False), "compare_queries": ("int", False)},
+             "faiss_k": ("int", False), "compare_queries": ("int", False),
+             "repeats": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
 PRODUCERS = {"source": {"synth"}, "store": {"build"}, "index": {"index"}, "results": {"eval"},
@@ -272,7 +273,7 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
                                                              if "d_sweep" in p else [])
         for factory in p.get("compare", []):
             cmd += ["--compare", factory]
-        for key in ("faiss_k", "compare_queries"):
+        for key in ("faiss_k", "compare_queries", "repeats"):
             cmd += ["--" + key.replace("_", "-"), str(p[key])] if key in p else []
         return cmd + cluster
     cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"]]

@@ -15,8 +15,8 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import check_is_fitted
 
-from vprscale.errors import InputError
-from vprscale.jobs.progress import compute
+from vprscale.core.errors import InputError
+from vprscale.core.progress import compute
 from vprscale.method.hashkernels import column_histogram, hash_rows, project_rows
 from vprscale.method.kmeans1d import kmeans_1d
 from vprscale.method.pca import ExactPCA, moments_of
@@ -36,19 +36,6 @@ def _as_dask(x: np.ndarray | da.Array) -> da.Array:
 def project(x: np.ndarray, mean: np.ndarray, components: np.ndarray) -> np.ndarray:
     """Centred projection of rows in float64 (each row's bits depend on that row alone)."""
     return project_rows(np.asarray(x), mean, np.ascontiguousarray(components.T))
-
-
-def quantize_with_error(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Codes ``argmin_k |y_j − c_jk|`` (uint8; ties: the smaller k) and ``Σ_j min_k |y_j − c_jk|``
-    of already projected rows (the identity projection of :func:`hash_rows`)."""
-    d = y.shape[1]
-    codes, _, err, _ = hash_rows(np.asarray(y, np.float64), np.zeros(d), np.eye(d), centres, centres.shape[1])
-    return codes, err
-
-
-def quantize_projected(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """``argmin_k |y_j − c_jk|`` per column (ties: the smaller k), as uint8 codes."""
-    return quantize_with_error(y, centres)[0]
 
 
 def hash_descriptors(x: np.ndarray, mean: np.ndarray, components: np.ndarray,
@@ -75,11 +62,6 @@ def unpack(h: np.ndarray, d: int, k: int) -> np.ndarray:
         codes[:, j] = (h % base).astype(np.uint8)
         h //= base
     return codes
-
-
-def quantization_error(y: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """``Σ_j min_k |y_j − c_jk|``: how far a row is from its address (the single best of docs/method.md)."""
-    return quantize_with_error(y, centres)[1]
 
 
 class CoarseHasher(TransformerMixin, BaseEstimator):
@@ -117,6 +99,19 @@ class CoarseHasher(TransformerMixin, BaseEstimator):
         if self.k**d > 2**64:
             raise InputError(f"d = {d}, k = {self.k}: K^d = {self.k}^{d} addresses exceed 2^64")
         return int(d)
+
+    @classmethod
+    def from_fitted(cls, k: int, bins: int, n_ref: int, mean: np.ndarray, components: np.ndarray,
+                    centres: np.ndarray, explained_variance: np.ndarray,
+                    ranges: np.ndarray | None = None) -> CoarseHasher:
+        """A fitted hasher from the arrays it learned (as an index or a compact store keeps them)."""
+        hasher = cls(d=int(components.shape[0]), k=k, bins=bins)
+        hasher.d_, hasher.n_features_in_, hasher.n_ref_ = int(components.shape[0]), int(components.shape[1]), n_ref
+        hasher.mean_, hasher.components_, hasher.centres_ = mean, components, centres
+        hasher.explained_variance_ = explained_variance
+        if ranges is not None:
+            hasher.ranges_ = ranges
+        return hasher
 
     def fit(self, X: np.ndarray | da.Array, y: None = None, moments: np.ndarray | None = None) -> CoarseHasher:
         """Exact PCA, then per-component 1-D k-means; two streamed passes over the reference rows ``X``.

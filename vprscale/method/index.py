@@ -1,198 +1,288 @@
-"""``vprscale index``: fit CoarseHash on a dataset store and write the index directory.
-
-Directory layout (all written into a hidden partial copy and published when whole):
-
-- ``index.json``: parameters, provenance of the store, storage accounting, timings;
-- ``model/{mean,components,centres,explained_variance}.npy``: the fitted hasher;
-- the inverted lists (:mod:`vprscale.method.lists`): ``ref_hash.npy``, ``ids.npy``,
-  ``addresses.npy``, ``offsets.npy``, ``best.npy`` (memory-mapped by the engine) and
-  ``lists.parquet`` / ``buckets.parquet`` (for SQL);
-- ``components.parquet``: per component and cluster: centre, reference count and share.
-
-A full store is fitted here (PCA on the moments its build derived, histograms and
-hashing in two passes over ``ref``); a compact store was hashed by its build, and its
-index only sorts the lists.
+"""The index container of the query engine (docs/method.md): a loaded (memory-mapped) index,
+query hashing, the per-frame work on query frames, and matching through the kernels of
+:mod:`vprscale.method.kernels`. The frame-by-frame matcher is :mod:`vprscale.method.online`.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import shutil
-import time
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
-from typing import Any
 
-import dask
+import dask.array as da
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
-import zarr
 
-import vprscale
-from vprscale.dataset.blocks import chunk_bounds
-from vprscale.dataset.compact import load_model
-from vprscale.dataset.rawchunks import rows_of
-from vprscale.dataset.store import ATTR, PartialOutput, check_writable, exclusive, open_complete_group
-from vprscale.errors import InputError
-from vprscale.evaluation.storage import file_bytes, storage_table
-from vprscale.jobs.cluster import cluster_peak_rss, dask_client
-from vprscale.jobs.progress import Timings, run_tasks
+from vprscale.core.publish import PartialOutput
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
-from vprscale.method.lists import write_lists
+from vprscale.method.indexfile import read_arrays, write_arrays
+from vprscale.method.kernels import (
+    DELTA_MAX_UNITS,
+    bit_gaps,
+    bit_planes,
+    byte_tables,
+    match_batch,
+    nearest_occupied,
+    retrieve_lists,
+)
+from vprscale.method.lists import inverted_lists
+from vprscale.protocol import centre_lag, check_window, window_positions, window_start
 
-INDEX_FORMAT = 2  # 2: lists as .npy files beside the Parquet copies
-MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_variance.npy"], "P4": ["mean.npy"]}
-
-
-def store_identity(store: Path) -> str:
-    """A digest of a store's provenance: an index records it, an evaluation checks it."""
-    meta = open_complete_group(store).attrs[ATTR]
-    core = {k: meta.get(k) for k in ("recipe", "sources", "layout", "seed", "rescale")}
-    return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def _hash_chunk(x: np.ndarray, mean: np.ndarray, comp: np.ndarray,
-                centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    _, h, err, _ = hash_descriptors(x, mean, comp, centres)
-    return h, err.astype(np.float32)  # errors are compared in float32, as a compact store keeps them
+COPIED_LISTS = 1 << 25  # ids (256 MB) up to which query frames get their own copy of their lists
 
 
-def default_index_dir(store: Path, d: int, k: int) -> Path:
-    return store.parent / f"{store.name.removesuffix('.zarr')}-d{d}-k{k}.index"
+@dataclass
+class QueryFrames:
+    """The per-frame work on query frames, done once per frame as it arrives (docs/method.md).
 
+    A frame is hashed, given the nearest occupied address, and has that address's list
+    retrieved (the paper's O(1) list look-up per new frame); for K = 2 its address also
+    goes into bit planes like the references' (:func:`bit_planes`). Every window that
+    contains the frame then reads these, so a query's sequence match never goes back to
+    the index's lists: its L lists are adjacent here, in frame order. (Unless the frames'
+    lists hold more than ``COPIED_LISTS`` ids together, as a coarse index's do: then
+    ``ids`` is the index's own and the bounds point into it.)
 
-def store_layout(group: zarr.Group) -> dict[str, Any]:
-    """The layout attributes of a store (``kind`` is ``full`` for stores built before layouts had a name)."""
-    return {"kind": "full", **group.attrs[ATTR].get("layout", {})}
-
-
-def ref_moments(group: zarr.Group) -> np.ndarray | None:
-    """The reference moments a build derived (``None`` for stores built before they were kept)."""
-    t = group.get("transforms")
-    return t["ref_moments"][:] if t is not None and "ref_moments" in t else None
-
-
-def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | Path | None = None,
-                scheduler: str | None = None, workers: int = 2, quiet: bool = False,
-                force: bool = False) -> dict[str, Any]:
-    """Fit (or, for a compact store, load) CoarseHash, hash every reference, and write the index directory.
-
-    An existing index is replaced only when the new one is whole; if evaluations sit in its
-    ``eval/`` folder, only with ``force``, and they are then kept beside the new index in
-    ``<index>.previous-eval/`` (they belong to the old one).
+    Only the frames worked on are held, ascending; arrays are indexed by position among
+    them, and a window's frames, consecutive in the sequence, are consecutive here too.
     """
-    store = Path(store)
-    group = open_complete_group(store)
-    layout = store_layout(group)
-    if layout["kind"] == "compact":
-        hasher = load_model(group)
-        n_ref, dim = int(layout["n_ref"]), hasher.components_.shape[1]
-        if (d is not None and d != hasher.d_) or k != hasher.k:
-            raise InputError(f"{store}: a compact store holds addresses for d = {hasher.d_}, K = {hasher.k} only "
-                             f"(asked: d = {d}, K = {k}); rebuild it with --layout full for other widths")
-        d_eff = hasher.d_
-    else:
-        n_ref, dim = group["ref"].shape
-        hasher = CoarseHasher(d=d, k=k)
-        d_eff = hasher._check(n_ref, dim)
-    final = Path(out) if out else default_index_dir(store, d_eff, k)
-    check_writable(final.parent)
-    identity = store_identity(store)
-    timings = Timings(quiet)
-    t0 = time.perf_counter()
-    with exclusive(final), dask_client(scheduler, workers) as client:
-        partial = PartialOutput(final, {"store": identity, "d": d_eff, "k": k})
-        partial.recover()
-        if final.exists() and not (final / "index.json").is_file():
-            raise InputError(f"--out {final}: exists and is not a vprscale index; not replaced")
-        if (final / "eval").is_dir() and any((final / "eval").iterdir()) and not force:
-            raise InputError(f"{final}: holds evaluations in eval/; re-indexing would orphan them "
-                             "(--force keeps them beside the new index, in <index>.previous-eval/)")
-        partial.open()
-        if layout["kind"] == "compact":
-            chunk = group["ref_hash"].chunks[0]
-            stored_h, stored_err = group["ref_hash"], group["ref_err"]
 
-            def addresses(a: int, b: int) -> np.ndarray:
-                return stored_h[a:b]
+    frames: np.ndarray  # the frames held (ascending), positions 0 … n − 1
+    hashes: np.ndarray  # own address of every frame (uint64)
+    slot: np.ndarray  # position of the occupied address used, among the occupied addresses
+    start: np.ndarray  # the list of the frame at position i is ids[start[i]:stop[i]]
+    stop: np.ndarray
+    ids: np.ndarray
+    planes: np.ndarray  # K = 2: bit b of positions 64·i … 64·i + 63 as word i·d + b
 
-            def errors(a: int, b: int) -> np.ndarray:
-                return stored_err[a:b]
-        else:
-            ref = rows_of(group["ref"])
-            with timings.stage(f"fit CoarseHash (d = {d_eff}, K = {k}) on {n_ref:,} refs"):
-                hasher.fit(ref, moments=ref_moments(group))
-            parts = [dask.delayed(_hash_chunk, nout=2)(blk, hasher.mean_, hasher.components_, hasher.centres_)
-                     for blk in ref.to_delayed().ravel()]
-            with timings.stage("hash every reference"):
-                results = run_tasks([dask.delayed(tuple)(p) for p in parts], "hash refs")
-            h = np.concatenate([r[0] for r in results])
-            err = np.concatenate([r[1] for r in results])
-            chunk = max(1, len(h))
+    def positions(self, t: np.ndarray, L: int = 1) -> np.ndarray:
+        """Positions of frames ``t``, each with the whole window of ``L`` centred on it held."""
+        return window_positions(self.frames, t, L)
 
-            def addresses(a: int, b: int) -> np.ndarray:
-                return h[a:b]
-
-            def errors(a: int, b: int) -> np.ndarray:
-                return err[a:b]
-        with timings.stage("sort and write the inverted lists"):
-            lists = write_lists(partial.path, addresses, errors, chunk_bounds(n_ref, chunk), n_ref, d_eff, k,
-                                quiet=quiet)
-            _write_model(partial.path, hasher, lists["level_counts"], n_ref)
-        peak = cluster_peak_rss(client)
-        disk = {"P1": file_bytes(partial.path / "ref_hash.npy"),
-                **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
-        list_bytes = file_bytes(*(partial.path / f"{n}.npy" for n in ("ids", "addresses", "offsets", "best")))
-        built = store / "build.json"
-        meta = {
-            "kind": "coarsehash-index", "complete": True, "format": INDEX_FORMAT, "d": d_eff, "k": k,
-            "n_ref": int(n_ref), "dim": int(dim), "occupied": int(lists["occupied"]), "bins": hasher.bins,
-            "store": {"path": str(store.resolve()), "identity": identity, "layout": layout["kind"],
-                      "scale": group.attrs[ATTR]["recipe"]["scale"], "rescale": group.attrs[ATTR].get("rescale", True),
-                      "built": json.loads(built.read_text()) if built.is_file() else {}},
-            "storage": storage_table(int(n_ref), d_eff, k, int(dim), disk),
-            "lists": {"bytes": list_bytes, "bytes_per_place": list_bytes / max(1, n_ref),
-                      "partitions": lists["partitions"]},
-            "timings_s": timings.stages, "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
-            "versions": {"vprscale": vprscale.__version__},
-        }
-        (partial.path / "index.json").write_text(json.dumps(meta, indent=1))
-        if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside
-            kept = final.with_name(f"{final.name}.previous-eval")
-            if kept.exists():
-                shutil.rmtree(kept)
-            (final / "eval").rename(kept)
-        partial.publish()
-    return {"index": str(final), **meta}
+    def kernel_args(self) -> tuple:
+        """``(hashes, planes, start, stop, ids)``: the query frames' arguments of :func:`match_batch`."""
+        return self.hashes, self.planes, self.start, self.stop, self.ids
 
 
-def _write_model(path: Path, hasher: CoarseHasher, counts: np.ndarray, n_ref: int) -> None:
-    (path / "model").mkdir(exist_ok=True)
-    for name in ("mean", "components", "centres", "explained_variance"):
-        np.save(path / "model" / f"{name}.npy", getattr(hasher, f"{name}_"))
-    d, k = counts.shape
-    comp = pa.table({"component": np.repeat(np.arange(1, d + 1), k).astype(np.int32),
-                     "cluster": np.tile(np.arange(k), d).astype(np.int32),
-                     "centre": hasher.centres_.ravel(),
-                     "refs": counts.ravel().astype(np.int64),
-                     "share": (counts / n_ref).ravel(),
-                     "variance": np.repeat(hasher.explained_variance_, k)})
-    pq.write_table(comp, path / "components.parquet")
+@dataclass(repr=False)
+class Index:
+    """A CoarseHash index: a fitted :class:`~vprscale.method.coarsehash.CoarseHasher` and the
+    inverted lists of its references (docs/method.md), shaped like a FAISS index.
+
+    ``Index.build(ref, d=…, k=…)`` fits and adds in one call (or ``Index.build(ref,
+    hasher=fitted)``), :meth:`match` localises a traverse, :meth:`save` / :meth:`load` (and
+    the module's :func:`write_index` / :func:`read_index`) write and open the directory
+    format of :mod:`vprscale.method.indexfile` that every command reads. A loaded index
+    memory-maps its lists, so opening one costs nothing whatever its size.
+    """
+
+    hasher: CoarseHasher
+    addresses: np.ndarray  # sorted occupied addresses
+    offsets: np.ndarray  # CSR: ids of the occupied address at slot a are ids[offsets[a]:offsets[a+1]]
+    ids: np.ndarray  # ref ids, grouped by address, ascending inside
+    best: np.ndarray  # single best ref id per occupied address
+    ref_hash: np.ndarray  # the address of every reference
+    meta: dict = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, ref: np.ndarray | da.Array, d: int | None = None, k: int = 2,
+              hasher: CoarseHasher | None = None) -> Index:
+        """Fit CoarseHash on reference rows ``ref`` (numpy or Dask; or take a fitted ``hasher``)
+        and add every row: the index of ``ref`` in memory, ids ``0 … len(ref) − 1``.
+
+        For stores of any size the ``vprscale index`` job does the same in bounded memory.
+        """
+        if hasher is None:
+            hasher = CoarseHasher(d=d, k=k).fit(ref)
+        elif d is not None and d != hasher.d_ or k != hasher.k:
+            raise ValueError(f"d = {d}, k = {k}: give either d and k or a fitted hasher "
+                             f"(its d = {hasher.d_}, k = {hasher.k}), not both")
+        x = ref.compute() if isinstance(ref, da.Array) else np.asarray(ref)
+        _, h, err, _ = hash_descriptors(hasher._rows(x), hasher.mean_, hasher.components_, hasher.centres_)
+        return cls.from_addresses(h, hasher, err.astype(np.float32))
+
+    @classmethod
+    def from_addresses(cls, ref_hash: np.ndarray, hasher: CoarseHasher, errors: np.ndarray) -> Index:
+        """The index of references with given addresses and quantisation errors (the single best
+        of an address is its least error, ties to the smaller id)."""
+        ref_hash = np.asarray(ref_hash, np.uint64)
+        errors = np.asarray(errors)
+        if errors.shape != ref_hash.shape:
+            raise ValueError(f"errors: shape {errors.shape}, one per address {ref_hash.shape} expected")
+        lists = inverted_lists(ref_hash, errors)
+        offsets = np.r_[lists["offsets"], len(ref_hash)].astype(np.int64)
+        return cls(hasher, lists["addresses"], offsets, lists["order"].astype(np.int64),
+                   lists["best"].astype(np.int64), ref_hash, {"n_ref": len(ref_hash)})
+
+    @classmethod
+    def load(cls, path: str | Path) -> Index:
+        """Open an index directory (:func:`read_index`)."""
+        return read_index(path)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the index directory (:func:`write_index`)."""
+        return write_index(self, path)
+
+    def __repr__(self) -> str:
+        return (f"Index(d={self.d}, k={self.k}, n_ref={self.n_ref:,}, occupied={len(self.addresses):,}, "
+                f"features={self.components.shape[1]})")
+
+    @property
+    def d(self) -> int:
+        return int(self.hasher.d_)
+
+    @property
+    def k(self) -> int:
+        return int(self.hasher.k)
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.hasher.mean_
+
+    @property
+    def components(self) -> np.ndarray:
+        return self.hasher.components_
+
+    @property
+    def centres(self) -> np.ndarray:
+        return self.hasher.centres_
+
+    @property
+    def n_ref(self) -> int:
+        return len(self.ref_hash)
+
+    def weights(self) -> np.ndarray:
+        """Fixed-point ``|c_ja − c_jb|`` as a (d, K, K) int64 table."""
+        diff = np.abs(self.centres[:, :, None] - self.centres[:, None, :])
+        span = (self.centres[:, -1] - self.centres[:, 0]).sum()
+        return np.rint(diff * (DELTA_MAX_UNITS / span)).astype(np.int64)
+
+    @cached_property
+    def planes(self) -> np.ndarray:
+        """For K = 2 the references' addresses as bit planes (:func:`bit_planes`); else empty.
+
+        ``d / 8`` bytes per place, built once per loaded index (0.1 s per 10M places).
+        """
+        return bit_planes(self.ref_hash, self.d) if self.k == 2 else np.zeros(0, np.uint64)
+
+    def kernel_args(self) -> tuple:
+        """``(ref_hash, planes, gaps, w, tables, d, k, δ_max)``: the index's arguments of :func:`match_batch`.
+
+        ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
+        """
+        w, tables, dmax = self.delta_tables()
+        return self.ref_hash, self.planes, bit_gaps(w), w, tables, self.d, self.k, dmax
+
+    def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
+        """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame."""
+        w = self.weights()
+        tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
+        return w, tables, np.int64(w[:, 0, -1].sum())
+
+    def hash_queries(self, x: np.ndarray) -> np.ndarray:
+        """Own addresses of query rows (docs/method.md)."""
+        x = np.asarray(x)
+        if x.ndim != 2 or x.shape[1] != self.components.shape[1]:
+            raise ValueError(f"query rows have shape {x.shape}; this index hashes rows of "
+                             f"{self.components.shape[1]} features")
+        return hash_descriptors(x, self.mean, self.components, self.centres)[1]
+
+    def match(self, frames: np.ndarray, L: int, mode: str = "paper",
+              centres: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Localise a traverse: ``(match, n_r)`` for each centre, by sequences of ``L`` frames.
+
+        ``frames`` are query descriptors in traverse order (rows); ``centres`` index them
+        (default: every centre whose whole window lies inside ``frames``). ``mode`` is
+        ``"paper"`` (candidates: the union of the window's lists) or ``"aligned"`` (each
+        list member proposes the centre it implies). L = 1 gives each frame's single best,
+        with its list's length as N_r.
+        """
+        check_window(L, mode)
+        h = self.hash_queries(frames)
+        if L > len(h):
+            raise ValueError(f"L = {L}: longer than the {len(h)} frames given")
+        t = np.arange(L // 2, len(h) - centre_lag(L)) if centres is None else np.asarray(centres, np.int64)
+        if len(t) and (window_start(t.min(), L) < 0 or window_start(t.max(), L) + L > len(h)):
+            raise ValueError(f"centres: each window of {L} frames must lie inside the {len(h)} frames given")
+        qf = self.query_frames(h)
+        if L == 1:
+            a = qf.slot[t]
+            return self.best[a].astype(np.int64), (self.offsets[a + 1] - self.offsets[a]).astype(np.int64)
+        return match_batch(qf.positions(t, L), L, mode == "aligned", *qf.kernel_args(), *self.kernel_args())
+
+    @cached_property
+    def prefix_table(self) -> tuple[np.ndarray, int]:
+        """``(first, shift)``: the occupied addresses whose top bits are ``p`` are ``first[p] … first[p+1]``.
+
+        About one prefix per occupied address (2^16 to 2^24 of them), so a search touches two
+        table entries and a run of a few addresses, one page of a memory-mapped index,
+        instead of ~log2(occupied) scattered reads (at 1B places a 2^16 table left ~9,000
+        addresses, several pages, per prefix). Counted chunk by chunk, in bounded memory.
+        """
+        bits = int(np.ceil(self.d * np.log2(self.k)))
+        wanted = int(np.ceil(np.log2(max(2, len(self.addresses)))))
+        shift = max(0, bits - min(24, max(16, wanted)))
+        counts = np.zeros((1 << (bits - shift)) + 1, np.int64)
+        for a in range(0, len(self.addresses), 1 << 24):
+            part = (np.asarray(self.addresses[a : a + (1 << 24)], np.uint64) >> np.uint64(shift)).astype(np.int64)
+            counts[1:] += np.bincount(part, minlength=len(counts) - 1)
+        return np.cumsum(counts), shift
+
+    def warm(self) -> Index:
+        """Hold the per-address arrays (addresses, offsets, single bests) in memory, read in
+        order, and build the prefix table and bit planes now.
+
+        A batch then times look-ups, not first touches of a memory-mapped file: on this VM a
+        page's first touch costs 5–35 µs even from the page cache, and at 1B places each
+        query frame touches several. The ids stay memory-mapped (a frame reads one list).
+        """
+        self.addresses, self.offsets, self.best = (np.array(a) for a in (self.addresses, self.offsets, self.best))
+        _ = self.prefix_table, self.planes
+        return self
+
+    def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None) -> QueryFrames:
+        """The per-frame work on query frames with own addresses ``h`` (docs/method.md).
+
+        ``frames`` (ascending; default ``0 … len(h) − 1``) number them in their sequence.
+        See :class:`QueryFrames`.
+        """
+        h = np.asarray(h, np.uint64)
+        frames = np.arange(len(h)) if frames is None else np.asarray(frames, np.int64)
+        a = self.nearest_occupied(h)
+        start, stop = self.offsets[a], self.offsets[a + 1]
+        if (stop - start).sum() <= COPIED_LISTS:
+            start, stop, ids = retrieve_lists(self.offsets, self.ids, a)
+        else:  # long lists (a coarse index): read in place
+            ids = self.ids
+        planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
+        return QueryFrames(frames, h, a, start, stop, ids, planes)
+
+    def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
+        """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
+        first, shift = self.prefix_table
+        return nearest_occupied(self.addresses, first, shift, np.asarray(h, np.uint64))
 
 
-def load_index_meta(index: str | Path) -> dict[str, Any]:
-    """``index.json`` of a complete index, or an error naming the directory."""
-    p = Path(index)
-    meta_file = p / "index.json"
-    if not meta_file.is_file():
-        raise InputError(f"{p}: not a vprscale index (no index.json)")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
-    if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != "coarsehash-index":
-        raise InputError(f"{p}: the index is incomplete or of another kind")
-    if meta.get("format", 1) < INDEX_FORMAT:
-        raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")
-    return meta
+def read_index(path: str | Path) -> Index:
+    """Open an index directory (:mod:`vprscale.method.indexfile`); the lists and the map are
+    memory-mapped, not read."""
+    hasher, arrays, meta = read_arrays(path)
+    return Index(hasher, arrays["addresses"], arrays["offsets"], arrays["ids"], arrays["best"], arrays["ref_hash"],
+                 meta)
+
+
+def write_index(index: Index, path: str | Path) -> Path:
+    """Write ``index`` as the directory that :func:`read_index` and every command open.
+
+    Written whole into a hidden work copy beside ``path`` and published by renames; an
+    existing index at ``path`` is replaced only then, anything else there is refused.
+    """
+    path = Path(path)
+    if path.exists() and not (path / "index.json").is_file():
+        raise ValueError(f"{path}: exists and is not an index directory; not replaced")
+    publish = PartialOutput(path, {"save": index.n_ref})
+    publish.recover()
+    publish.open()
+    write_arrays(publish.path, index.hasher, index.ref_hash, index.addresses, index.offsets, index.ids, index.best,
+                 index.meta)
+    publish.publish()
+    return path

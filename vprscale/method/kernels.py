@@ -3,7 +3,7 @@ address, the symmetric code distance δ, bit planes and the batched sequence mat
 
 Sequence distances are computed in fixed point (int64; δ_max is ``DELTA_MAX_UNITS``), so that
 sums are exact and associative: the batch kernel, any batching and the online matcher agree
-bit for bit. :class:`~vprscale.method.engine.Index` hands these kernels their arrays.
+bit for bit. :class:`~vprscale.method.index.Index` hands these kernels their arrays.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows i
 
 
 @numba.njit(cache=True, nogil=True)
-def _retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(start, stop, lists)``: the lists of addresses ``a`` copied one after another."""
     start = np.empty(a.shape[0], np.int64)
     stop = np.empty(a.shape[0], np.int64)
@@ -38,7 +38,7 @@ def _retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tupl
 
 
 @numba.njit(cache=True, nogil=True)
-def _nearest_occupied(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarray) -> np.ndarray:
+def nearest_occupied(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarray) -> np.ndarray:
     out = np.empty(h.shape[0], np.int64)
     for i in range(h.shape[0]):
         x = h[i]
@@ -103,7 +103,7 @@ def delta(h1: np.uint64, h2: np.uint64, w: np.ndarray, tables: np.ndarray, d: in
 
 
 @numba.njit(cache=True, nogil=True)
-def _score(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_hash: np.ndarray,
+def score_window(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_hash: np.ndarray,
            w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64, bound: np.int64) -> np.int64:
     """Score of centre ``c`` for the window at ``t``, abandoned once it reaches ``bound``.
 
@@ -145,12 +145,12 @@ def bit_planes(h: np.ndarray, d: int) -> np.ndarray:
     for blk in numba.prange((n + 63) // 64):
         row = out[blk * d:]
         for p in range(64 * blk, min(n, 64 * blk + 64)):
-            _set_bit(row, h[p], p & 63, d)
+            set_bit(row, h[p], p & 63, d)
     return out
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _set_bit(row: np.ndarray, x: np.uint64, bit: int, d: int) -> None:
+def set_bit(row: np.ndarray, x: np.uint64, bit: int, d: int) -> None:
     """Bit ``bit`` of word ``b`` of a plane row becomes bit ``b`` of address ``x``, for every plane."""
     for b in range(d):
         row[b] |= ((x >> np.uint64(b)) & np.uint64(1)) << np.uint64(bit)
@@ -164,7 +164,7 @@ def _window_words(planes: np.ndarray, d: int, p: np.int64, e: int) -> np.uint64:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, masks: np.ndarray,
+def score_planes(p: np.int64, planes: np.ndarray, d: int, q_words: np.ndarray, masks: np.ndarray,
                   gaps: np.ndarray) -> np.int64:
     """K = 2 score of the window of references starting at ``p`` (all inside the map).
 
@@ -198,7 +198,7 @@ def _prefetch_window(planes: np.ndarray, d: int, p: np.int64, L: int) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
-def _candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
+def window_candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
                 ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
     """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
 
@@ -267,7 +267,7 @@ def propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q
                 bits += 1
             if (1 << bits) > slots.shape[0]:
                 slots = np.empty(1 << bits, np.int64)
-            n_r[qi] = _candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
+            n_r[qi] = window_candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
                                   slots[: 1 << bits], bits)
             for j in range(first[qi], first[qi] + n_r[qi]):
                 counts[blk, cand[j] >> shift] += 1
@@ -366,9 +366,9 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
             if fast and j + PREFETCH < stop:
                 _prefetch_window(planes, d, (pairs[j + PREFETCH] >> 20) - half, L)
             if fast and c >= half and c - half + L <= n_ref:
-                s = _score_planes(c - half, planes, d, q_words[qi], masks, gaps)
+                s = score_planes(c - half, planes, d, q_words[qi], masks, gaps)
             else:
-                s = _score(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax, run_s[run, qi] + 1)
+                s = score_window(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax, run_s[run, qi] + 1)
             if s < run_s[run, qi] or (s == run_s[run, qi] and c < run_c[run, qi]):
                 run_s[run, qi] = s
                 run_c[run, qi] = c
@@ -400,7 +400,7 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     their reference window lies (:func:`_pairs_by_window`), and scored in that order, so
     that the bit planes of the map stream through the caches instead of being fetched
     window by window. For K = 2 a window inside the map is scored on bit planes
-    (:func:`_score_planes`); other windows, and K > 2, frame by frame (:func:`_score`).
+    (:func:`score_planes`); other windows, and K > 2, frame by frame (:func:`score_window`).
     """
     n = centres_t.shape[0]
     n_ref = ref_hash.shape[0]

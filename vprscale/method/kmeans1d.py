@@ -81,9 +81,3 @@ def kmeans_1d(values: np.ndarray, weights: np.ndarray, k: int) -> np.ndarray:
     centres = [np.average(x[a:b], weights=w[a:b]) for a, b in zip(splits[:-1], splits[1:], strict=True) if b > a]
     centres += [centres[-1]] * (k - len(centres))
     return np.asarray(centres)
-
-
-def kmeans_1d_exact(column: np.ndarray, k: int) -> np.ndarray:
-    """Exact centres of an in-memory column (its distinct values weighted by count)."""
-    values, counts = np.unique(np.asarray(column, np.float64), return_counts=True)
-    return kmeans_1d(values, counts, k)

@@ -17,12 +17,20 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from vprscale.method.engine import Index
-from vprscale.method.kernels import _candidates, _nearest_occupied, _score, _score_planes, _set_bit, window_masks
+from vprscale.method.index import Index
+from vprscale.method.kernels import (
+    nearest_occupied,
+    score_planes,
+    score_window,
+    set_bit,
+    window_candidates,
+    window_masks,
+)
+from vprscale.protocol import check_window
 
 
 class OnlineMatcher:
-    """Localise query frames one at a time against an :class:`~vprscale.method.engine.Index`.
+    """Localise query frames one at a time against an :class:`~vprscale.method.index.Index`.
 
     Parameters
     ----------
@@ -36,14 +44,11 @@ class OnlineMatcher:
     """
 
     def __init__(self, index: Index, L: int, mode: str = "paper") -> None:
-        if mode not in ("paper", "aligned"):
-            raise ValueError(f"mode = {mode!r}: choose 'paper' or 'aligned'")
-        if isinstance(L, bool) or not isinstance(L, int | np.integer) or L < 1:
-            raise ValueError(f"L = {L!r}: must be a positive integer")
+        check_window(L, mode)
         self.index, self.L, self.mode = index, int(L), mode
         self.n_r: int | None = None
         ref_hash, planes, bit_gap, w, tables, d, k, dmax = index.kernel_args()
-        first, shift = index._prefix
+        first, shift = index.prefix_table
         longest = int(np.max(np.diff(np.asarray(index.offsets, np.int64)))) if len(index.offsets) > 1 else 1
         capacity = 2 * self.L * max(1, longest)
         masks, gaps = window_masks(self.L, d, bit_gap)
@@ -93,7 +98,7 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
     """One frame: its list into the window, then the window's match (−1 until L frames)."""
     one = np.empty(1, np.uint64)
     one[0] = h
-    a = _nearest_occupied(addresses, first, shift, one)[0]
+    a = nearest_occupied(addresses, first, shift, one)[0]
     slot = st[3]
     if st[0] >= L:  # the oldest frame leaves the window
         st[1] += ring_n[slot]
@@ -125,21 +130,22 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
         pos += ring_n[j]
         q_stop[i] = pos
         if fast:
-            _set_bit(q_planes[(i >> 6) * d:], ring_h[j], i & 63, d)
+            set_bit(q_planes[(i >> 6) * d:], ring_h[j], i & 63, d)
     total = st[2] - st[1]
     bits = 4
     while (1 << bits) < 2 * total:
         bits += 1
     q_words = q_planes[: masks.shape[0]]  # the window starts at frame 0: its words are the plane rows as they are
     n_ref = ref_hash.shape[0]
-    n_r = _candidates(np.int64(half), L, half, aligned, q_start, q_stop, buf, n_ref, cand, slots[: 1 << bits], bits)
+    n_r = window_candidates(np.int64(half), L, half, aligned, q_start, q_stop, buf, n_ref, cand, slots[: 1 << bits],
+                            bits)
     best, best_s = np.int64(-1), np.int64(2**62)
     for m in range(n_r):
         c = cand[m]
         if fast and c >= half and c - half + L <= n_ref:
-            s = _score_planes(c - half, planes, d, q_words, masks, gaps)
+            s = score_planes(c - half, planes, d, q_words, masks, gaps)
         else:
-            s = _score(c, np.int64(half), L, half, ref_hash, q_hash, w, tables, d, k, dmax, best_s + 1)
+            s = score_window(c, np.int64(half), L, half, ref_hash, q_hash, w, tables, d, k, dmax, best_s + 1)
         if s < best_s or (s == best_s and c < best):
             best_s, best = s, c
     return best, np.int64(n_r)

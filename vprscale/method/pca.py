@@ -21,10 +21,11 @@ import dask
 import dask.array as da
 import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.extmath import svd_flip
 from sklearn.utils.validation import check_is_fitted
 
-from vprscale.dataset.blocks import BLOCK, block_spans
-from vprscale.jobs.progress import compute
+from vprscale.core.blocks import BLOCK, block_spans
+from vprscale.core.progress import compute
 from vprscale.method.validation import check_rows
 
 
@@ -56,11 +57,9 @@ def orthonormal(y: np.ndarray) -> np.ndarray:
 
 
 def sign_flip(components: np.ndarray) -> np.ndarray:
-    """Make the largest-magnitude loading of every component (row) positive."""
-    idx = np.argmax(np.abs(components), axis=1)
-    signs = np.sign(components[np.arange(len(components)), idx])
-    signs[signs == 0] = 1
-    return components * signs[:, None]
+    """Make the largest-magnitude loading of every component (row) positive: scikit-learn's
+    ``svd_flip`` on the rows, applied to a copy."""
+    return svd_flip(None, np.array(components, copy=True), u_based_decision=False)[1]
 
 
 class ExactPCA(TransformerMixin, BaseEstimator):

@@ -12,8 +12,8 @@ from typing import Any
 import dask.array as da
 import numpy as np
 
-from vprscale.dataset.blocks import BLOCK
-from vprscale.errors import InputError
+from vprscale.core.blocks import BLOCK
+from vprscale.core.errors import InputError
 
 _TAKE_RUN = 4096
 

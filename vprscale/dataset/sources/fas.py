@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from vprscale.core.errors import InputError
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fingerprint import file_fingerprint
-from vprscale.errors import InputError
 
 
 @dataclass

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from vprscale.dataset.blocks import BLOCK, block_rng, block_spans
+from vprscale.core.blocks import BLOCK, block_rng, block_spans
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fas import Traverse
 
@@ -152,8 +152,8 @@ class SyntheticFAS:
         self.seed, self.params = int(seed), params
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"format": "synthetic-fas", "generator": GENERATOR_VERSION, "seed": self.seed,
-                **asdict(self.params)}
+        params = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self.params).items()}
+        return {"format": "synthetic-fas", "generator": GENERATOR_VERSION, "seed": self.seed, **params}
 
     @property
     def _model(self) -> dict[str, np.ndarray]:

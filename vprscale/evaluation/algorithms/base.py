@@ -1,90 +1,83 @@
 """The interface every evaluated method implements (docs/protocol.md, "Methods").
 
-The grid (:mod:`vprscale.evaluation.evaluate`) knows nothing of how a method works: per
-noise level it hands each method the query frames it needs (:meth:`Algorithm.prepare`, the
-per-frame work, timed) and then asks it to localise the centres of each sequence length and
-mode (:meth:`Algorithm.localise`). Adding a method means adding a class, not editing the loop.
+A method does two things, and the runner (:mod:`vprscale.evaluation.runner`) times both:
+
+- :meth:`Algorithm.frames`: the per-frame work on query frames (hash and list look-up, a
+  FAISS search, a projection), done once per frame and shared by every window that holds
+  it; it returns whatever the method keeps of the frames (its *frame state*);
+- :meth:`Algorithm.localise`: the match of each centre by sequences of ``L`` frames, read
+  from the frame state.
+
+Nothing here measures time: a method never times itself, so every method's figures mean the
+same thing. Methods are found through the registry (:mod:`.registry`), never a hand-written
+list in the grid.
 """
 
 from __future__ import annotations
 
-import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from vprscale.method.engine import window_positions
-
-SEQUENCE_MODES = ("paper", "aligned")
+from vprscale.protocol import SEQUENCE_MODES
 
 
 @dataclass
-class Run:
+class Answer:
     """One method's answers for the centres of one (noise, L, mode)."""
 
-    match: np.ndarray
-    n_r: np.ndarray
-    us_per_query: float  # per query per core, per-frame work included
-    us_per_frame: float | None  # of which the per-frame work
-    ops_per_query: float
-    in_list: np.ndarray | None = None  # L = 1: distance from the truth to the nearest id the frame retrieved
+    match: np.ndarray  # matched reference id per centre
+    n_r: np.ndarray  # candidates scored per centre
+    ops_per_query: float  # counted unitary operations per query (docs/accounting.md)
 
 
 class Algorithm(ABC):
     """A localisation method under the protocol.
 
-    ``name`` is the ``method`` column of the results, ``columns`` its other identifying
+    ``name`` is the ``method`` column of the results, :meth:`columns` its other identifying
     columns (``d``, ``K``, ``params``), ``bytes_per_place`` what it stores per place to
     answer a query. ``query_limit`` is the number of centres per run it localises (an
     evenly spaced sample; None: all), for methods whose every query scans the whole map.
+    ``threads`` is how many threads the runner lets it use (1 while it is being timed).
     """
 
     name: str
     bytes_per_place: float
     query_limit: int | None = None
-
-    def __init__(self) -> None:
-        self.frames = np.zeros(0, np.int64)
-        self.us_per_frame = 0.0
+    threads: int = 1
 
     @abstractmethod
     def columns(self) -> dict[str, Any]:
         """``d``, ``K`` and ``params`` of this method's rows."""
 
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
-        """The modes this method reports at ``L`` (None: a method, or L, without modes);
-        methods with candidate lists report the requested sequence modes for L > 1."""
+        """The modes this method reports at ``L`` (None: a method, or L, without modes)."""
         return [None]
 
-    def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray) -> None:
-        """Do the per-frame work on query ``frames`` (ascending) with descriptors ``rows``."""
-        self.frames = np.asarray(frames, np.int64)
-        self._warm(rows[:1])
-        t0 = time.perf_counter()
-        self._prepare(noise, rows)
-        self.us_per_frame = (time.perf_counter() - t0) * self.frame_threads() / max(1, len(frames)) * 1e6
+    def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray,  # noqa: B027 - optional hook
+                centres: dict[int, np.ndarray]) -> None:
+        """Untimed set-up for one noise level, before any timed work (default: nothing).
 
-    def frame_threads(self) -> int:
-        """Threads the per-frame work runs on (its wall time × threads is its time per core)."""
-        return 1
+        ``frames`` (ascending) and their descriptor ``rows`` are every frame of the
+        evaluation, ``centres`` every centre of each L, before the method's own sample.
+        """
 
     @abstractmethod
-    def _warm(self, rows: np.ndarray) -> None:
-        """Compile or load what the per-frame work runs, outside its timing."""
+    def frames(self, rows: np.ndarray) -> Any:
+        """The per-frame work on query descriptor ``rows`` (consecutive held frames, in order);
+        returns the frame state that :meth:`localise` reads."""
 
     @abstractmethod
-    def _prepare(self, noise: str, rows: np.ndarray) -> None:
-        """The per-frame work itself (timed by :meth:`prepare`)."""
+    def localise(self, state: Any, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+        """Match the centres at positions ``pos`` of the frame state (each with its whole
+        window of ``L`` frames held, at consecutive positions) by sequences of ``L``."""
 
-    def window_positions(self, t: np.ndarray, L: int) -> np.ndarray:
-        """Positions of centres ``t`` among the prepared frames (their windows' frames consecutive)."""
-        return window_positions(self.frames, t, L)
-
-    @abstractmethod
-    def localise(self, t: np.ndarray, L: int, mode: str | None, truth: np.ndarray) -> Run:
-        """Match every centre ``t`` (prepared with their whole windows) by sequences of ``L``."""
+    def in_list(self, state: Any, pos: np.ndarray, truth: np.ndarray) -> np.ndarray | None:
+        """L = 1: each frame's distance from its truth to the nearest id it retrieved (the
+        in-list bound); None for methods without lists. Untimed."""
+        return None
 
 
 def sequence_modes(L: int, requested: list[str]) -> list[str | None]:

@@ -2,24 +2,24 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 import zarr
 
 from vprscale.compared.baseline import baseline_batch
+from vprscale.core.zarrio import rows_of
 from vprscale.dataset.compact import baseline_map
-from vprscale.dataset.rawchunks import rows_of
+from vprscale.dataset.store import ref_moments
 from vprscale.evaluation.accounting import baseline_ops
-from vprscale.evaluation.algorithms.base import Algorithm, Run
+from vprscale.evaluation.algorithms.base import Algorithm, Answer
 from vprscale.evaluation.algorithms.coarsehash import CoarseHash
-from vprscale.method.index import ref_moments
 from vprscale.method.pca import ExactPCA, moments_of
+from vprscale.protocol import window_positions
 
 FLOAT_BYTES = 4  # the baseline's map: one float32 per place
+SUBSAMPLE = 64  # baseline queries per run at 10^8 query rows and beyond (each scans every place)
 
 
 @dataclass
@@ -51,32 +51,54 @@ def load_baseline_map(group: zarr.Group, layout: dict[str, Any]) -> BaselineMap:
 
 
 class Baseline(Algorithm):
-    """SeqSLAM on one principal component; its N_r is CoarseHash's paper-mode mean N_r at
-    the same L (``coarse``), so both methods score as many candidates."""
+    """SeqSLAM on one principal component.
+
+    Its N_r at each L is CoarseHash's paper-mode mean N_r over every centre of that L, on
+    the same index and noise (``coarse``), so both methods score as many candidates; it is
+    worked out, untimed, in :meth:`prepare`.
+    """
 
     name = "baseline"
     bytes_per_place = float(FLOAT_BYTES)
 
     def __init__(self, base: BaselineMap, coarse: CoarseHash, dim: int, query_limit: int | None) -> None:
-        super().__init__()
         self.base, self.coarse, self.dim, self.query_limit = base, coarse, dim, query_limit
         self.x_range = float(np.ptp(base.x)) if len(base.x) else 0.0
-        self.y = np.zeros(0)
+        self.budget: dict[int, int] = {}
 
     def columns(self) -> dict[str, Any]:
         return {"d": 1, "K": None, "params": None}
 
-    def _warm(self, rows: np.ndarray) -> None:
-        self.base.project(rows)
+    def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray, centres: dict[int, np.ndarray]) -> None:
+        state = self.coarse.frames(rows)
+        self.budget = {}
+        for L, t in centres.items():
+            n_r = self.coarse.localise(state, window_positions(frames, t, L), L, "paper").n_r if L > 1 else []
+            self.budget[L] = max(1, int(round(float(np.mean(n_r)) if len(n_r) else 1.0)))
 
-    def _prepare(self, noise: str, rows: np.ndarray) -> None:
-        self.y = self.base.project(rows)
+    def frames(self, rows: np.ndarray) -> np.ndarray:
+        return self.base.project(rows)
 
-    def localise(self, t: np.ndarray, L: int, mode: str | None, truth: np.ndarray) -> Run:
-        nr = max(1, int(round(self.coarse.paper_n_r(L))))
-        pos = self.window_positions(t, L)
-        baseline_batch(pos[:1], L, nr, self.base.x, self.y, self.x_range)  # compile outside the timing
-        t0 = time.perf_counter()
-        match, n_r = baseline_batch(pos, L, nr, self.base.x, self.y, self.x_range)
-        us = (time.perf_counter() - t0) * numba.get_num_threads() / max(1, len(pos)) * 1e6 + self.us_per_frame
-        return Run(match, n_r, us, self.us_per_frame, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
+    def localise(self, state: np.ndarray, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+        nr = self.budget[L]
+        match, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range)
+        return Answer(match, n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
+
+
+def baseline_limit(requested: int | None, n_query: int) -> int | None:
+    """Queries the baseline localises per run (None: all).
+
+    Each query scans every place (~0.1 s at 10^8 places), so at 10^8 query rows and beyond a
+    run localises an evenly spaced sample; ``--baseline-queries`` sets its size anywhere.
+    """
+    if requested is not None:
+        return requested
+    return SUBSAMPLE if n_query >= 10**8 else None
+
+
+def create(context: Any) -> list[Algorithm]:
+    """The registry's factory: the baseline, unless the evaluation was run without it."""
+    if context.baseline is None:
+        return []
+    return [Baseline(context.baseline, CoarseHash(context.index, context.dim), context.dim,
+                     baseline_limit(context.baseline_queries, context.n_query))]

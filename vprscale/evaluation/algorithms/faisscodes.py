@@ -3,22 +3,21 @@
 from __future__ import annotations
 
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Any
 
 import dask.array as da
-import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from vprscale.compared.faisscodes import FaissCodes, training_rows
-from vprscale.evaluation.algorithms.base import Algorithm, Run, sequence_modes
+from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
 MIN_SAMPLE = 16  # centres per run at least
+MISSING = np.iinfo(np.int64).max  # in-list distance of a frame that retrieved nothing
 
 
 def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> None:
@@ -52,12 +51,12 @@ def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> 
 class FaissMethod(Algorithm):
     """One FAISS index: L = 1 is its top-1, L > 1 scores the window's candidates over the codes.
 
-    Flat codes are searched exhaustively (every frame visits every place), so beyond a scan
-    budget (``SCAN_BUDGET`` codes per run) a run localises an evenly spaced sample of centres.
+    The frame state is each frame's top-k (FAISS's own search) and its terms of the window
+    scores. Flat codes are searched exhaustively (every frame visits every place), so beyond
+    a scan budget (``SCAN_BUDGET`` codes per run) a run localises an evenly spaced sample.
     """
 
     def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None) -> None:
-        super().__init__()
         self.codes = codes
         self.name = codes.name
         self.bytes_per_place = codes.bytes_per_place
@@ -65,9 +64,14 @@ class FaissMethod(Algorithm):
             scan = codes.scan_per_frame() * max_L
             query_limit = None if n_centres * scan <= SCAN_BUDGET else max(MIN_SAMPLE, int(SCAN_BUDGET // scan))
         self.query_limit = query_limit
-        self.ids = np.zeros((0, codes.k), np.int64)
-        self.tables = np.zeros((0, 1, 1), np.float32)
-        self.q_vectors = np.zeros((0, 0), np.float32)
+
+    @property
+    def threads(self) -> int:  # FAISS's searches run on the codes' threads
+        return self.codes.threads
+
+    @threads.setter
+    def threads(self, n: int) -> None:
+        self.codes.threads = n
 
     def columns(self) -> dict[str, Any]:
         return {"d": None, "K": None, "params": self.codes.params}
@@ -75,30 +79,28 @@ class FaissMethod(Algorithm):
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
         return sequence_modes(L, requested)
 
-    def frame_threads(self) -> int:
-        return self.codes.threads
-
-    def _warm(self, rows: np.ndarray) -> None:
-        self.codes.search(rows)
-
-    def _prepare(self, noise: str, rows: np.ndarray) -> None:
+    def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
-        _, self.ids = self.codes.search(rows)
-        self.tables, self.q_vectors = self.codes.frame_terms(rows)
+        _, ids = self.codes.search(rows)
+        return (ids, *self.codes.frame_terms(rows))
 
-    def localise(self, t: np.ndarray, L: int, mode: str | None, truth: np.ndarray) -> Run:
-        pos = self.window_positions(t, L)
+    def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+        ids, tables, q_vectors = state
         frame_ops = self.codes.frame_ops()
         if L == 1:
-            ids = self.ids[pos]
-            found = ids >= 0
-            error = np.where(found, np.abs(ids - truth[:, None]), np.iinfo(np.int64).max)
-            return Run(ids[:, 0], found.sum(axis=1), self.us_per_frame, self.us_per_frame, frame_ops,
-                       error.min(axis=1) if ids.shape[1] else np.full(len(t), np.iinfo(np.int64).max))
-        args = (L, mode == "aligned", self.ids, self.tables, self.q_vectors)
-        self.codes.match(pos[:1], *args)  # compile outside the timing
-        t0 = time.perf_counter()
-        match, n_r = self.codes.match(pos, *args)
-        us = (time.perf_counter() - t0) * numba.get_num_threads() / max(1, len(pos)) * 1e6 + self.us_per_frame
+            found = ids[pos]
+            return Answer(found[:, 0], (found >= 0).sum(axis=1), frame_ops)
+        match, n_r = self.codes.match(pos, L, mode == "aligned", ids, tables, q_vectors)
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
-        return Run(match, n_r, us, self.us_per_frame, frame_ops + L * n_r_mean * self.codes.pair_ops())
+        return Answer(match, n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
+
+    def in_list(self, state: tuple, pos: np.ndarray, truth: np.ndarray) -> np.ndarray:
+        ids = state[0][pos]
+        error = np.where(ids >= 0, np.abs(ids - truth[:, None]), MISSING)
+        return error.min(axis=1) if ids.shape[1] else np.full(len(pos), MISSING)
+
+
+def create(context: Any) -> list[Algorithm]:
+    """The registry's factory: one method per FAISS code the evaluation compares (``--compare``)."""
+    return [FaissMethod(codes, context.n_centres, max(context.lengths), context.compare_queries)
+            for codes in context.compared]

@@ -9,6 +9,10 @@ figure weights each part by its share of the query rows (:func:`part_weights`).
 
 The same function decides which query rows a compact store keeps (the windows of the
 centres) and which centres an evaluation of that store localises, so the two agree.
+
+This module is the protocol's one home: its constants (part codes, the evaluated lengths,
+``MIN_FAS``) and its window arithmetic. It imports nothing of vprscale's, so the method,
+the dataset build and the evaluation all read the same definitions.
 """
 
 from __future__ import annotations
@@ -19,6 +23,28 @@ from dataclasses import dataclass
 import numpy as np
 
 MIN_FAS = 200  # FAS centres at least, per sequence length
+DEEP1B, FAS = 0, 1  # part codes of ``ref_part`` / ``query_part``
+PARTS = {"all": None, "deep1b": DEEP1B, "fas": FAS}  # the parts results are reported for (None: every row)
+EVAL_LENGTHS = (1, 50, 100)  # the paper's sequence lengths: the default grid, and the windows a compact store keeps
+SEQUENCE_MODES = ("paper", "aligned")
+
+
+def check_window(L: int, mode: str) -> None:
+    """A sequence length and mode the matchers accept (ValueError naming the one that is not)."""
+    if mode not in SEQUENCE_MODES:
+        raise ValueError(f"mode = {mode!r}: choose 'paper' or 'aligned'")
+    if isinstance(L, bool) or not isinstance(L, int | np.integer) or L < 1:
+        raise ValueError(f"L = {L!r}: must be a positive integer")
+
+
+def window_start(t: np.ndarray | int, L: int) -> np.ndarray | int:
+    """First frame of the window of ``L`` centred on ``t``: ``t − ⌊L/2⌋`` (docs/method.md)."""
+    return t - L // 2
+
+
+def centre_lag(L: int) -> int:
+    """Frames between a window's centre and its last frame: a window completed by frame u is centred on u − lag."""
+    return L - 1 - L // 2
 
 
 @dataclass(frozen=True)
@@ -30,8 +56,8 @@ class Centres:
 
 
 def _valid(t: np.ndarray, gt_at: Callable[[np.ndarray], np.ndarray], n_query: int, L: int) -> np.ndarray:
-    half = L // 2
-    t = t[(t - half >= 0) & (t - half + L <= n_query)]
+    first = window_start(t, L)
+    t = t[(first >= 0) & (first + L <= n_query)]
     return t[gt_at(t) >= 0]
 
 
@@ -58,5 +84,19 @@ def part_weights(n_query: int, n_deep: int) -> dict[str, float]:
 
 def window_frames(centres: list[np.ndarray], lengths: list[int]) -> np.ndarray:
     """Every query frame inside some evaluated window (ascending)."""
-    frames = [(c[:, None] + np.arange(L)[None, :] - L // 2).ravel() for c, L in zip(centres, lengths, strict=True)]
+    frames = [(window_start(c[:, None], L) + np.arange(L)[None, :]).ravel()
+              for c, L in zip(centres, lengths, strict=True)]
     return np.unique(np.concatenate(frames)) if frames else np.empty(0, np.int64)
+
+
+def window_positions(frames: np.ndarray, t: np.ndarray, L: int) -> np.ndarray:
+    """Positions of frames ``t`` among the held ``frames`` (ascending), each with the whole
+    window of ``L`` centred on it held, so that a window's frames are consecutive positions."""
+    t = np.asarray(t, np.int64)
+    pos = np.searchsorted(frames, t)
+    first, last = pos - L // 2, pos - L // 2 + L - 1
+    ok = (first >= 0) & (last < len(frames))
+    ok[ok] &= (frames[first[ok]] == t[ok] - L // 2) & (frames[last[ok]] == t[ok] - L // 2 + L - 1)
+    if not ok.all():
+        raise ValueError(f"frame {t[~ok][0]}: its window of {L} is not among the query frames held")
+    return pos

@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 import dask
 
-from vprscale.jobs.progress import ChunkProgress
+from vprscale.core.progress import ChunkProgress
 
 S = TypeVar("S")
 

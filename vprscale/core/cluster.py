@@ -14,7 +14,7 @@ from threadpoolctl import threadpool_limits
 if TYPE_CHECKING:
     from distributed import Client
 
-from vprscale.errors import InputError
+from vprscale.core.errors import InputError
 
 
 def single_threaded_blas() -> None:
@@ -25,6 +25,21 @@ def single_threaded_blas() -> None:
     on the machine's cores. One thread per product keeps "same seed, same bytes".
     """
     threadpool_limits(limits=1, user_api="blas")
+
+
+def check_query_planning() -> None:
+    """Refuse to run with Dask's array query planning on.
+
+    Its expression graphs rewrite the streamed passes (and ``map_overlap``/``map_blocks``
+    chunking) in ways they do not expect. Dask reads the setting once, when ``dask.array``
+    is first imported, and leaves it off by default; vprscale does not change a program's
+    environment to force it, it says so when a job starts.
+    """
+    import dask.array as da
+
+    if getattr(da, "ARRAY_EXPR_ENABLED", None) or dask.config.get("array.query-planning", None):
+        raise InputError("dask's array.query-planning is on (DASK_ARRAY__QUERY_PLANNING or dask config); "
+                         "vprscale's streamed passes need it off")
 
 
 @contextmanager
@@ -38,6 +53,7 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
     15 ms per task, which tripled the time of a pass over a 10M-row store read from the
     page cache.
     """
+    check_query_planning()
     if scheduler:
         from distributed import Client  # imported only here: 0.3 s a local run need not pay
 

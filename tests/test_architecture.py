@@ -1,0 +1,141 @@
+"""The package's floors (docs/architecture.md) and the one owner of the index format."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import grimp
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from vprscale.method.coarsehash import CoarseHasher
+from vprscale.method.index import Index, read_index, write_index
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_floors_contract_holds():
+    """import-linter's layers contract in pyproject.toml: no floor imports a floor above it
+    (function-level imports included)."""
+    done = subprocess.run(["lint-imports", "--config", str(ROOT / "pyproject.toml")], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
+    assert "0 broken" in done.stdout
+
+
+def test_no_module_imports_itself_through_another():
+    graph = grimp.build_graph("vprscale")
+    cycles = sorted({tuple(sorted((m, n))) for m in graph.modules for n in graph.find_modules_directly_imported_by(m)
+                     if graph.chain_exists(importer=n, imported=m)})
+    assert cycles == []
+
+
+def test_method_floor_holds_no_store_job_or_lock():
+    """method/ is the pure method: no Zarr store, no Dask cluster, no lock, no progress of a job."""
+    graph = grimp.build_graph("vprscale", "zarr", "distributed", "filelock")
+    method = graph.find_descendants("vprscale.method") | {"vprscale.method"}
+    for name in method:
+        imported = graph.find_modules_directly_imported_by(name)
+        bad = {m for m in imported if m.split(".")[0] in ("zarr", "distributed", "filelock")
+               or m in ("vprscale.core.cluster", "vprscale.core.zarrio", "vprscale.core.passes")}
+        assert not bad, f"{name} imports {sorted(bad)}"
+
+
+def test_import_leaves_the_environment_alone():
+    code = ("import os; before = dict(os.environ); import vprscale; from vprscale import Index; "
+            "print(dict(os.environ) == before)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DASK_")}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT)
+    assert done.stdout.strip() == "True", done.stderr
+
+
+def test_index_build_equals_the_index_job(tiny_store, tiny_index):
+    """``Index.build(ref)`` in memory gives the addresses, lists and single bests the
+    ``vprscale index`` job writes for the same store."""
+    import zarr
+
+    job = read_index(tiny_index)
+    ref = zarr.open_group(tiny_store, mode="r")["ref"][:]
+    built = Index.build(ref, d=12, k=2)
+    for name in ("ref_hash", "addresses", "offsets", "ids", "best"):
+        np.testing.assert_array_equal(np.asarray(getattr(built, name)), np.asarray(getattr(job, name)), err_msg=name)
+    # the job's PCA comes from moments the build summed while writing the rows, this one from
+    # the rows themselves: the centres agree to float rounding, the lists exactly
+    np.testing.assert_allclose(built.centres, job.centres, rtol=1e-6)
+    again = Index.build(ref, hasher=built.hasher)
+    np.testing.assert_array_equal(again.ids, built.ids)
+    assert f"n_ref={len(ref):,}" in repr(built) and len(repr(built)) < 200
+
+
+def test_build_refuses_d_with_a_fitted_hasher():
+    ref = np.random.default_rng(0).standard_normal((256, 8))
+    hasher = CoarseHasher(d=4).fit(ref)
+    with pytest.raises(ValueError, match="either d and k or a fitted hasher"):
+        Index.build(ref, d=5, hasher=hasher)
+
+
+def test_from_addresses_needs_one_error_per_address():
+    hasher = CoarseHasher(d=2).fit(np.random.default_rng(0).standard_normal((64, 4)))
+    with pytest.raises(ValueError, match="one per address"):
+        Index.from_addresses(np.array([0, 1, 2], np.uint64), hasher, np.zeros(2))
+
+
+def test_saved_index_is_the_job_format_and_every_command_reads_it(tiny_store, tiny_index, tmp_path):
+    """An ``Index.save`` copy holds the files the index job writes, with equal bytes for the
+    lists, and works with sql, occupancy, eval and localise."""
+    original = tiny_index
+    copy = tmp_path / "copy.index"
+    Index.load(original).save(copy)
+    written = {p.relative_to(original).as_posix() for p in original.rglob("*") if p.is_file()}
+    assert {p.relative_to(copy).as_posix() for p in copy.rglob("*") if p.is_file()} == written
+    for name in ("ref_hash", "ids", "addresses", "offsets", "best"):
+        assert (copy / f"{name}.npy").read_bytes() == (original / f"{name}.npy").read_bytes(), name
+    for name in ("mean", "components", "centres", "explained_variance"):
+        assert (copy / "model" / f"{name}.npy").read_bytes() == (original / "model" / f"{name}.npy").read_bytes()
+    for table in ("lists", "buckets", "components"):
+        assert pq.read_table(copy / f"{table}.parquet").equals(pq.read_table(original / f"{table}.parquet")), table
+    assert json.loads((copy / "index.json").read_text())["store"] == json.loads(
+        (original / "index.json").read_text())["store"]
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "vprscale.cli", *args], capture_output=True, text=True,
+                              cwd=tmp_path)
+
+    n_ref = read_index(original).n_ref
+    sql = cli("sql", str(copy), "SELECT count(*) AS n FROM lists", "--json")
+    assert sql.returncode == 0, sql.stderr
+    assert json.loads(sql.stdout.splitlines()[0])["n"] == n_ref
+    occ = cli("occupancy", str(copy), "--json")
+    assert occ.returncode == 0, occ.stderr
+    assert json.loads(occ.stdout)["occupied"] == read_index(original).addresses.shape[0]
+    matches = []
+    for idx in (original, copy):
+        ev = cli("eval", str(tiny_store), str(idx), "--noise", "qm1", "--L", "1,50", "--modes", "paper",
+                 "--no-baseline", "--repeats", "1", "--out", str(tmp_path / f"ev-{idx.name}"))
+        assert ev.returncode == 0, ev.stderr
+        matches.append(pq.read_table(tmp_path / f"ev-{idx.name}" / "queries.parquet").to_pandas())
+    assert len(matches[0]) > 0
+    np.testing.assert_array_equal(matches[0].match.to_numpy(), matches[1].match.to_numpy())
+    loc = cli("localise", str(copy), str(tiny_store / "query_qm1"), "--L", "50", "--out", str(tmp_path / "m.parquet"))
+    assert loc.returncode == 0, loc.stderr
+    assert pq.read_table(tmp_path / "m.parquet").num_rows > 0
+
+
+def test_saving_over_something_else_is_refused(tmp_path):
+    hasher = CoarseHasher(d=3).fit(np.random.default_rng(0).standard_normal((128, 4)))
+    idx = Index.build(np.random.default_rng(1).standard_normal((128, 4)), hasher=hasher)
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "keep.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not an index directory"):
+        write_index(idx, tmp_path / "x")
+    assert (tmp_path / "x" / "keep.txt").read_text() == "mine"
+    write_index(idx, tmp_path / "y")
+    again = read_index(tmp_path / "y")
+    np.testing.assert_array_equal(again.ids, idx.ids)
+    shutil.rmtree(tmp_path / "y")

@@ -1,0 +1,120 @@
+"""Lifecycle of an output directory: lock, work in a hidden partial copy, publish atomically.
+
+A build (or an index) writes into ``.<name>.partial`` beside its final path, records each
+finished unit of work as a marker file, and only when everything is written sets
+``complete`` and renames the partial copy into place. So a reader never finds an
+incomplete output at the public path, a killed job resumes from its markers, and
+``--force`` replaces an existing output only once the new one is whole.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from filelock import FileLock, Timeout
+
+from vprscale.core.errors import InputError
+
+
+@contextmanager
+def exclusive(path: Path):
+    """Hold an advisory lock for ``path``; a second holder is refused at once (kill -9 frees it).
+
+    The lock is ``filelock``'s (``flock`` on ``.<name>.lock`` beside the output), taken
+    without waiting: a scheduled job that finds its output busy should say so, not queue.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = FileLock(path.with_name(f".{path.name}.lock"), timeout=0, thread_local=False)
+    try:
+        lock.acquire()
+    except Timeout:
+        raise InputError(f"{path}: another vprscale job is writing this output (lock {lock.lock_file})") from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
+class PartialOutput:
+    """The hidden work copy of an output directory, with its done-markers.
+
+    Publishing is a sequence of idempotent steps with one commit point: when the work is
+    whole, a seal file ``.<name>.sealed`` is written beside it (atomically); then the
+    work copy's bookkeeping (``.work``, ``.done``, ``.job.json``) is removed, an older
+    output is moved aside to ``.<name>.old``, the work copy is renamed to the final path,
+    and the old output and the seal are removed. A job killed anywhere in that sequence
+    leaves the seal, and the next run of the job (:meth:`recover`) finishes the sequence
+    instead of starting over; a job killed before the seal resumes from its markers.
+    """
+
+    def __init__(self, final: Path, key: dict[str, Any]) -> None:
+        self.final = final
+        self.path = final.with_name(f".{final.name}.partial")
+        self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
+        self._markers = self.path / ".done"
+        self.sealed = final.with_name(f".{final.name}.sealed")
+        self.old = final.with_name(f".{final.name}.old")
+
+    def recover(self) -> bool:
+        """Finish a publish that a killed run sealed; True if there was one (the output is then published)."""
+        if not self.sealed.is_file():
+            if self.old.exists() and self.final.exists():
+                shutil.rmtree(self.old)  # an old output the last publish did not get to remove
+            return False
+        self._publish_steps()
+        return True
+
+    def open(self) -> bool:
+        """Create the work copy, or keep it if it belongs to the same job; True if resumed."""
+        key_file = self.path / ".job.json"
+        if key_file.is_file() and json.loads(key_file.read_text()) == self.key:
+            return True
+        if self.path.exists():
+            shutil.rmtree(self.path)
+        self._markers.mkdir(parents=True)
+        key_file.write_text(json.dumps(self.key, sort_keys=True, indent=1))
+        return False
+
+    def done(self, unit: str) -> bool:
+        return (self._markers / unit).exists()
+
+    def mark(self, unit: str) -> None:
+        tmp = self._markers / f".{unit}.tmp"
+        tmp.write_text("")
+        tmp.replace(self._markers / unit)
+
+    def publish(self) -> None:
+        """Seal the finished work copy, then move it to the final path, replacing an older output last."""
+        tmp = self.sealed.with_name(self.sealed.name + ".tmp")
+        tmp.write_text(json.dumps(self.key, sort_keys=True))
+        tmp.replace(self.sealed)
+        self._publish_steps()
+
+    def _publish_steps(self) -> None:
+        if self.path.exists():
+            for name in (".work", ".done"):
+                shutil.rmtree(self.path / name, ignore_errors=True)
+            (self.path / ".job.json").unlink(missing_ok=True)
+            if self.final.exists():
+                if self.old.exists():
+                    shutil.rmtree(self.old)
+                self.final.replace(self.old)
+            self.path.replace(self.final)
+        if self.old.exists():
+            shutil.rmtree(self.old)
+        self.sealed.unlink(missing_ok=True)
+
+
+def check_writable(out: Path) -> None:
+    """Fail early, naming the directory, if outputs cannot be written there."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out {out}: cannot create the output directory: {exc.strerror}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise InputError(f"--out {out}: the output directory is not writable")

@@ -1,0 +1,125 @@
+"""The runner: it calls every method's per-frame work and localisation, and it alone times them.
+
+Two figures come out of each call (docs/accounting.md, "How times are measured"):
+
+- **cost per query per core** (``us_per_query``): the CPU time of the thread that did the
+  work, with the method on one thread, per query, plus the per-frame work once (the cost of
+  one new frame and its match in a sliding deployment). CPU time of one thread does not
+  move with ``--workers`` or with other load on the machine, as wall time does. It is
+  measured ``repeats`` times on an evenly spaced sample of at most ``TIMED_QUERIES`` centres
+  (``TIMED_FRAMES`` frames for the per-frame work) and reported as the median with the
+  smallest and largest (``us_per_query_lo``, ``us_per_query_hi``);
+- **throughput** (``queries_per_s``): queries per second of wall time on all ``--workers``,
+  from the call that produced the answers.
+
+Only the timed kernels are repeated, never the whole grid; each is run once on one centre
+first, so that compilation is never timed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+
+from vprscale.evaluation.algorithms.base import Algorithm, Answer
+
+TIMED_QUERIES = 1024  # centres a timing repeat localises (evenly spaced; all when there are fewer)
+TIMED_FRAMES = 256  # frames a timing repeat works on
+DEFAULT_REPEATS = 3
+
+
+def spread(n: int, limit: int | None) -> np.ndarray:
+    """``limit`` evenly spaced positions of ``n`` (all when there are no more)."""
+    if limit is None or n <= limit:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, limit).round().astype(np.int64))
+
+
+@dataclass
+class FrameCost:
+    """The per-frame work's cost: CPU µs per frame of each repeat, and wall µs per frame on all workers."""
+
+    cpu_us: list[float]
+    wall_us: float
+
+
+@dataclass
+class Timing:
+    """The timing columns of one run (see the module's docstring)."""
+
+    us_per_query: float
+    us_per_query_lo: float
+    us_per_query_hi: float
+    us_per_frame: float
+    queries_per_s: float
+    repeats: int
+    timed_queries: int
+
+    def columns(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _cpu_us(fn: Callable[[], Any], n: int) -> float:
+    """CPU µs of the calling thread per item while ``fn()`` runs."""
+    t0 = time.thread_time()
+    fn()
+    return (time.thread_time() - t0) / max(1, n) * 1e6
+
+
+class Runner:
+    """Runs methods on ``workers`` threads for their answers, and on one thread for their costs."""
+
+    def __init__(self, workers: int, repeats: int = DEFAULT_REPEATS) -> None:
+        if repeats < 1:
+            raise ValueError(f"repeats = {repeats}: must be at least 1")
+        self.workers, self.repeats = workers, repeats
+
+    @contextmanager
+    def _threads(self, alg: Algorithm, n: int) -> Iterator[None]:
+        before = numba.get_num_threads(), alg.threads
+        numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+        alg.threads = n
+        try:
+            yield
+        finally:
+            numba.set_num_threads(before[0])
+            alg.threads = before[1]
+
+    def frames(self, alg: Algorithm, rows: np.ndarray) -> tuple[Any, FrameCost]:
+        """The method's frame state for ``rows``, and what the per-frame work cost."""
+        with self._threads(alg, 1):
+            alg.frames(rows[:1])  # compile and load outside the timing
+        with self._threads(alg, self.workers):
+            t0 = time.perf_counter()
+            state = alg.frames(rows)
+            wall = (time.perf_counter() - t0) / max(1, len(rows)) * 1e6
+        sample = rows[spread(len(rows), TIMED_FRAMES)]
+        with self._threads(alg, 1):
+            cpu = [_cpu_us(lambda: alg.frames(sample), len(sample)) for _ in range(self.repeats)]
+        return state, FrameCost(cpu, wall)
+
+    def localise(self, alg: Algorithm, state: Any, pos: np.ndarray, L: int, mode: str | None,
+                 frame: FrameCost) -> tuple[Answer, Timing]:
+        """The method's answers for the centres at ``pos``, and their timing columns."""
+        with self._threads(alg, 1):
+            alg.localise(state, pos[:1], L, mode)  # compile outside the timing
+        with self._threads(alg, self.workers):
+            t0 = time.perf_counter()
+            answer = alg.localise(state, pos, L, mode)
+            wall = time.perf_counter() - t0
+        sample = pos[spread(len(pos), TIMED_QUERIES)]
+        with self._threads(alg, 1):
+            per_query = [_cpu_us(lambda: alg.localise(state, sample, L, mode), len(sample)) + f
+                         for f in frame.cpu_us]
+        n = len(pos)
+        seconds = wall + n * frame.wall_us * 1e-6
+        timing = Timing(float(np.median(per_query)), float(min(per_query)), float(max(per_query)),
+                        float(np.median(frame.cpu_us)), n / seconds if n and seconds > 0 else float("nan"),
+                        self.repeats, len(sample))
+        return answer, timing

@@ -1,0 +1,153 @@
+"""``vprscale index``: fit CoarseHash on a dataset store and write the index directory.
+
+The directory's format is :mod:`vprscale.method.indexfile`'s; this job adds the store's
+provenance, storage accounting and timings to its ``index.json``, and writes it into a
+hidden partial copy that is published when whole.
+
+A full store is fitted here (PCA on the moments its build derived, histograms and
+hashing in two passes over ``ref``); a compact store was hashed by its build, and its
+index only sorts the lists.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import dask
+import numpy as np
+
+import vprscale
+from vprscale.core.blocks import chunk_bounds
+from vprscale.core.cluster import cluster_peak_rss, dask_client
+from vprscale.core.errors import InputError
+from vprscale.core.progress import Timings, run_tasks
+from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.core.zarrio import rows_of
+from vprscale.dataset.store import ATTR, load_model, open_complete_group, ref_moments, store_identity, store_layout
+from vprscale.evaluation.storage import file_bytes, storage_table
+from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
+from vprscale.method.indexfile import LIST_FILES, MODEL_FILES, load_index_meta, write_lists, write_meta, write_model
+
+
+def _hash_chunk(x: np.ndarray, mean: np.ndarray, comp: np.ndarray,
+                centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    _, h, err, _ = hash_descriptors(x, mean, comp, centres)
+    return h, err.astype(np.float32)  # errors are compared in float32, as a compact store keeps them
+
+
+def default_index_dir(store: Path, d: int, k: int) -> Path:
+    return store.parent / f"{store.name.removesuffix('.zarr')}-d{d}-k{k}.index"
+
+
+def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | Path | None = None,
+                scheduler: str | None = None, workers: int = 2, quiet: bool = False,
+                force: bool = False) -> dict[str, Any]:
+    """Fit (or, for a compact store, load) CoarseHash, hash every reference, and write the index directory.
+
+    An existing index is replaced only when the new one is whole; if evaluations sit in its
+    ``eval/`` folder, only with ``force``, and they are then kept beside the new index in
+    ``<index>.previous-eval/`` (they belong to the old one).
+    """
+    store = Path(store)
+    group = open_complete_group(store)
+    layout = store_layout(group)
+    if layout["kind"] == "compact":
+        hasher = load_model(group)
+        n_ref, dim = int(layout["n_ref"]), hasher.components_.shape[1]
+        if (d is not None and d != hasher.d_) or k != hasher.k:
+            raise InputError(f"{store}: a compact store holds addresses for d = {hasher.d_}, K = {hasher.k} only "
+                             f"(asked: d = {d}, K = {k}); rebuild it with --layout full for other widths")
+        d_eff = hasher.d_
+    else:
+        n_ref, dim = group["ref"].shape
+        hasher = CoarseHasher(d=d, k=k)
+        d_eff = hasher._check(n_ref, dim)
+    final = Path(out) if out else default_index_dir(store, d_eff, k)
+    check_writable(final.parent)
+    identity = store_identity(store)
+    timings = Timings(quiet)
+    t0 = time.perf_counter()
+    with exclusive(final), dask_client(scheduler, workers) as client:
+        partial = PartialOutput(final, {"store": identity, "d": d_eff, "k": k})
+        partial.recover()
+        if final.exists() and not (final / "index.json").is_file():
+            raise InputError(f"--out {final}: exists and is not a vprscale index; not replaced")
+        if (final / "eval").is_dir() and any((final / "eval").iterdir()) and not force:
+            raise InputError(f"{final}: holds evaluations in eval/; re-indexing would orphan them "
+                             "(--force keeps them beside the new index, in <index>.previous-eval/)")
+        partial.open()
+        if layout["kind"] == "compact":
+            chunk = group["ref_hash"].chunks[0]
+            stored_h, stored_err = group["ref_hash"], group["ref_err"]
+
+            def addresses(a: int, b: int) -> np.ndarray:
+                return stored_h[a:b]
+
+            def errors(a: int, b: int) -> np.ndarray:
+                return stored_err[a:b]
+        else:
+            ref = rows_of(group["ref"])
+            with timings.stage(f"fit CoarseHash (d = {d_eff}, K = {k}) on {n_ref:,} refs"):
+                hasher.fit(ref, moments=ref_moments(group))
+            parts = [dask.delayed(_hash_chunk, nout=2)(blk, hasher.mean_, hasher.components_, hasher.centres_)
+                     for blk in ref.to_delayed().ravel()]
+            with timings.stage("hash every reference"):
+                results = run_tasks([dask.delayed(tuple)(p) for p in parts], "hash refs")
+            h = np.concatenate([r[0] for r in results])
+            err = np.concatenate([r[1] for r in results])
+            chunk = max(1, len(h))
+
+            def addresses(a: int, b: int) -> np.ndarray:
+                return h[a:b]
+
+            def errors(a: int, b: int) -> np.ndarray:
+                return err[a:b]
+        with timings.stage("sort and write the inverted lists"):
+            lists = write_lists(partial.path, addresses, errors, chunk_bounds(n_ref, chunk), n_ref, d_eff, k,
+                                quiet=quiet)
+            write_model(partial.path, hasher, lists["level_counts"], n_ref)
+        peak = cluster_peak_rss(client)
+        disk = {"P1": file_bytes(partial.path / "ref_hash.npy"),
+                **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
+        list_bytes = file_bytes(*(partial.path / f"{n}.npy" for n in LIST_FILES))
+        built = store / "build.json"
+        extra = {
+            "store": {"path": str(store.resolve()), "identity": identity, "layout": layout["kind"],
+                      "scale": group.attrs[ATTR]["recipe"]["scale"], "rescale": group.attrs[ATTR].get("rescale", True),
+                      "built": json.loads(built.read_text()) if built.is_file() else {}},
+            "storage": storage_table(int(n_ref), d_eff, k, int(dim), disk),
+            "lists": {"bytes": list_bytes, "bytes_per_place": list_bytes / max(1, n_ref),
+                      "partitions": lists["partitions"]},
+            "timings_s": timings.stages, "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
+            "versions": {"vprscale": vprscale.__version__},
+        }
+        meta = write_meta(partial.path, hasher, n_ref, lists["occupied"], extra)
+        if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside
+            kept = final.with_name(f"{final.name}.previous-eval")
+            if kept.exists():
+                shutil.rmtree(kept)
+            (final / "eval").rename(kept)
+        partial.publish()
+    return {"index": str(final), **meta}
+
+
+def sweep_indexes(store: str | Path, widths: list[int], scheduler: str | None = None, workers: int = 2,
+                  quiet: bool = False) -> list[Path]:
+    """The K = 2 indexes of ``store`` at each width of a d sweep (Fig. 4a), built where missing."""
+    store = Path(store)
+    identity = store_identity(store)
+    paths = []
+    for d in widths:
+        path = default_index_dir(store, d, 2)
+        try:
+            current = load_index_meta(path)["store"]["identity"] == identity
+        except InputError:
+            current = False
+        if not current:
+            build_index(store, d=d, k=2, out=path, scheduler=scheduler, workers=workers, quiet=quiet)
+        paths.append(path)
+    return paths
