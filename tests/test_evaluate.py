@@ -91,3 +91,67 @@ def test_eval_refuses_bad_input(tiny_store, tiny_index, tmp_path, capsys, source
     build_index(tmp_path / "other.zarr", d=10, out=other_index, quiet=True)
     assert main(["eval", str(tiny_store), str(other_index), "--out", str(tmp_path / "e")]) == 2
     assert "built from another store" in capsys.readouterr().err
+
+
+def test_results_carry_their_provenance_and_spread(evaluated, tiny_store, tiny_index, tmp_path):
+    import json
+
+    from vprscale.core.provenance import PARQUET_KEY
+
+    res, _ = evaluated
+    assert (res["us_per_query_lo"] <= res["us_per_query"]).all()
+    assert (res["us_per_query"] <= res["us_per_query_hi"]).all()
+    assert (res["repeats"] == 3).all() and (res["queries_per_s"] > 0).all()
+    assert (res["timed_queries"] <= res["n_queries"].where(res.part == "all").max()).all()
+    out = tmp_path / "e"
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline",
+                 "--out", str(out), "--repeats", "2"]) == 0
+    record = json.loads(pq.read_schema(out / "results.parquet").metadata[PARQUET_KEY])
+    assert record == json.loads((out / "eval.json").read_text())["provenance"]
+    assert record["command"].startswith("vprscale eval ") and "--repeats 2" in record["command"]
+    assert record["cores"] >= 1 and len(record["load_average"]) == 3 and record["cpu"]
+    assert record["vprscale"] and "commit" in record and "dirty" in record and record["time"].endswith("+00:00")
+    assert record["inputs"]["indexes"][0]["path"] == str(tiny_index.resolve())
+    index_meta = json.loads((tiny_index / "index.json").read_text())
+    assert index_meta["provenance"]["inputs"]["store_identity"] == record["inputs"]["store_identity"]
+    assert json.loads((tiny_store / "build.json").read_text())["provenance"]["inputs"]["recipe"]["scale"] == "tiny"
+
+
+def test_eval_never_overwrites_an_evaluation_without_force(tiny_store, tiny_index, tmp_path, capsys):
+    out = tmp_path / "e"
+    args = ["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline", "--out",
+            str(out), "--repeats", "1"]
+    assert main([*args, "--z", "100"]) == 0
+    before = {f.name: f.read_bytes() for f in out.iterdir()}
+    capsys.readouterr()
+    assert main([*args, "--z", "500"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(f"{out}: already holds an evaluation; --force replaces it and keeps it beside, in "
+                        "e.previous/ (or give another --out)") and len(err.splitlines()) == 1
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+    assert main([*args, "--z", "500", "--force"]) == 0
+    kept = tmp_path / "e.previous"
+    assert {f.name: f.read_bytes() for f in kept.iterdir()} == before
+    assert pq.read_table(out / "queries.parquet").num_rows < pq.read_table(kept / "queries.parquet").num_rows
+
+
+def test_cost_per_query_holds_under_load_and_workers(tiny_store, tiny_index, tmp_path):
+    """Per-query cost is CPU time of one thread: with two busy loops on the machine, one
+    worker or two give the same figure within 35 % (wall time × threads moved 6-18× here)."""
+    import subprocess
+    import sys
+
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        costs = {}
+        for workers in (1, 2):
+            out = tmp_path / f"w{workers}"
+            assert main(["eval", str(tiny_store), str(tiny_index), "--L", "50", "--noise", "qm1", "--modes", "paper",
+                         "--no-baseline", "--repeats", "5", "--workers", str(workers), "--out", str(out)]) == 0
+            res = pq.read_table(out / "results.parquet").to_pandas()
+            row = res[(res.method == "coarsehash") & (res.part == "all") & (res.radius == 0)].iloc[0]
+            costs[workers] = row.us_per_query
+    finally:
+        for p in busy:
+            p.kill()
+    assert abs(costs[2] - costs[1]) / costs[1] < 0.35, costs

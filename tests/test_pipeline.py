@@ -59,7 +59,7 @@ def _quickstart(tmp_path: Path) -> Path:
     text = (ROOT / "pipelines" / "quickstart.toml").read_text()
     data = tomllib.loads(text)
     text = text.replace(f'out = "{data["out"]}"', f'out = "{tmp_path / "data"}"')
-    text = text.replace('out = "reports/quickstart"', f'out = "{tmp_path / "report"}"')
+    text = text.replace('out = "data/quickstart/report"', f'out = "{tmp_path / "report"}"')
     return _write(tmp_path / "quickstart.toml", text)
 
 
@@ -89,6 +89,58 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     saved = json.loads(Path(summary["summary_file"]).read_text())
     assert saved["status"] == "ok" and len(saved["figures"]) == 10
     assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0
+
+
+def _dry_run(path: Path, pythonpath: Path | None = None) -> dict[str, dict]:
+    """``vprscale run --dry-run`` as a user runs it, stage by stage: (run, reasons)."""
+    import subprocess
+    import sys
+
+    env = {**os.environ, **({"PYTHONPATH": str(pythonpath)} if pythonpath else {})}
+    done = subprocess.run([sys.executable, "-m", "vprscale.cli", "run", str(path), "--dry-run"], capture_output=True,
+                          text=True, env=env, cwd=path.parent)
+    assert done.returncode == 0, done.stderr
+    found = {}
+    for line in done.stdout.splitlines():
+        verdict, name, why = re.match(r"(run|skip)\s+(\S+) \(\w+\): (.*)", line).groups()
+        found[name] = {"run": verdict == "run", "why": why}
+    return found
+
+
+def test_a_changed_report_module_reruns_only_the_report(quickstart_run, tmp_path):
+    """The code a stage depends on is the modules its job imports: a change to the report code
+    re-runs the report stage, not the builds, indexes or evaluations."""
+    _, path, _ = quickstart_run
+    assert not any(s["run"] for s in _dry_run(path).values())
+    import vprscale
+
+    copy = tmp_path / "pkg"
+    shutil.copytree(Path(vprscale.__file__).parent, copy / "vprscale", ignore=shutil.ignore_patterns("__pycache__"))
+    with (copy / "vprscale" / "evaluation" / "report.py").open("a") as f:
+        f.write("\n# a change to the report code\n")
+    plan = _dry_run(path, pythonpath=copy)
+    assert {name for name, s in plan.items() if s["run"]} == {"report"}
+    assert "code changed (vprscale.evaluation.report)" in plan["report"]["why"]
+
+
+def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp_path):
+    tmp, path, summary = quickstart_run
+    figure = next(Path(f) for f in summary["figures"] if f.endswith("fig3_recall.png"))
+    results = Path(next(s["outputs"]["eval"] for s in summary["stages"] if s["name"] == "eval-20K"))
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    shutil.move(figure, kept / figure.name)
+    plan = _dry_run(path)
+    assert {name for name, s in plan.items() if s["run"]} == {"report"}
+    assert f"output {figure} missing" in plan["report"]["why"]
+    shutil.move(kept / figure.name, figure)
+    shutil.move(results / "results.parquet", kept / "results.parquet")
+    plan = _dry_run(path)
+    assert {name for name, s in plan.items() if s["run"]} == {"eval-20K", "report"}
+    assert f"output {results} changed" in plan["eval-20K"]["why"]
+    assert "upstream stage eval-20K re-runs" in plan["report"]["why"]
+    shutil.move(kept / "results.parquet", results / "results.parquet")
+    assert not any(s["run"] for s in _dry_run(path).values())
 
 
 def test_rerun_does_no_work_and_a_changed_stage_reruns_with_dependants(quickstart_run):
@@ -132,9 +184,11 @@ def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, mon
                   f'fas = "{sources["fas"]}"\n')
     ran = []
 
+    (tmp_path / "store").mkdir()
+
     def fake_stage(pipe, stage, outputs, scheduler, console):  # the decision is under test, not the build
         ran.append(stage.name)
-        return {"store": str(tmp_path)}
+        return {"store": str(tmp_path / "store")}
 
     monkeypatch.setattr(pl, "_run_stage", fake_stage)
 
@@ -150,6 +204,9 @@ def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, mon
     later = deep.stat().st_mtime_ns + 1_000_000_000
     os.utime(deep, ns=(later, later))
     assert status() == "ran" and status() == "skipped"
-    monkeypatch.setattr(pl, "code_fingerprint", lambda: "another-version-of-the-code")
+    real = pl.stage_code
+    monkeypatch.setattr(pl, "stage_code", lambda kind, graph: {**real(kind, graph), "vprscale.dataset.build": "new"})
     assert status() == "ran" and status() == "skipped"
-    assert ran == ["b"] * 4
+    (tmp_path / "store" / "chunk").write_text("a file the build did not write")
+    assert status() == "ran" and status() == "skipped"
+    assert ran == ["b"] * 5

@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from vprscale.core.errors import InputError, JobFailed
+from vprscale.core.provenance import set_command
 
 EXIT_USAGE = 2  # bad input
 EXIT_FAILURE = 1  # vprscale itself failed
@@ -151,7 +152,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
                       compare=args.compare, faiss_k=args.faiss_k,
                       faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
                       out=Path(args.out) if args.out else None,
-                      workers=args.workers, scheduler=args.scheduler, repeats=args.repeats)
+                      workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
+                      force=args.force)
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
         if args.compare:
             raise InputError("--compare: compares with one index at a time, not with a --d sweep")
@@ -177,7 +179,12 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from vprscale.jobs.pipeline import run_pipeline
 
-    summary = run_pipeline(args.pipeline, scheduler=args.scheduler, force=args.force)
+    summary = run_pipeline(args.pipeline, scheduler=args.scheduler, force=args.force, dry_run=args.dry_run)
+    if args.dry_run:
+        for s in summary["stages"]:
+            why = "; ".join(s["reasons"]) if s["run"] else "up to date"
+            print(f"{'run ' if s['run'] else 'skip'}  {s['name']} ({s['kind']}): {why}")
+        return 0
     ran = [s["name"] for s in summary["stages"] if s["status"] == "ran"]
     print(f"pipeline {summary['name']}: {summary['status']}; ran {len(ran)} of {len(summary['stages'])} stages "
           f"({', '.join(ran) or 'none: everything was up to date'}); summary {summary['summary_file']}")
@@ -285,6 +292,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--compare-queries", type=_positive_int, default=None,
                    help="centres per compared run (default: all while the run's frames visit at most 2^35 "
                         "codes; beyond, an evenly spaced sample that fits)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an evaluation already in the output; the old one is kept beside, as <out>.previous")
     p.add_argument("--repeats", type=_positive_int, default=3,
                    help="timing repeats of every timed kernel, on one thread (default 3; docs/accounting.md)")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
@@ -301,6 +310,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("pipeline", help="a pipeline TOML file")
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler")
     p.add_argument("--force", action="store_true", help="re-run every stage, even those up to date")
+    p.add_argument("--dry-run", action="store_true",
+                   help="list every stage with run or skip and the reason (which parameter, input, module or output)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")
@@ -352,7 +363,9 @@ def _version() -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser().parse_args(argv)
+    set_command(["vprscale", *argv])
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         _check_outputs(args)

@@ -31,6 +31,7 @@ from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.passes import reduce_pass
 from vprscale.core.progress import Timings, run_tasks
+from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.dataset import compact
 from vprscale.dataset.homogenise import window_mean
@@ -248,9 +249,9 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
                  recipe.fas_rows("query", traverse.query.n_rows))
     layout = req.layout or recipe.layout
-    provenance = {"recipe": {**recipe.as_dict(), "layout": layout}, "rescale": req.rescale,
-                  "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
-    partial = PartialOutput(final, provenance)
+    provenance_key = {"recipe": {**recipe.as_dict(), "layout": layout}, "rescale": req.rescale,
+                      "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
+    partial = PartialOutput(final, provenance_key)
     resumed = partial.open()
     if resumed and not req.quiet:
         print(f"resuming the unfinished build in {partial.path}", file=sys.stderr)
@@ -286,9 +287,10 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     elapsed = time.perf_counter() - t_start
     summary = {"store": str(final), "scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref,
                "query_rows": lay.n_query, "resumed": resumed, "stages_s": timings.stages,
-               "wall_s": elapsed, "peak_rss_bytes": peak}
+               "wall_s": elapsed, "peak_rss_bytes": peak,
+               "provenance": provenance(inputs={k: provenance_key[k] for k in ("recipe", "sources")})}
     group = zarr.open_group(store, mode="r+")
-    group.attrs[ATTR] = {**provenance, "complete": True, "versions": _versions(), "seed": recipe.seed,
+    group.attrs[ATTR] = {**provenance_key, "complete": True, "versions": _versions(), "seed": recipe.seed,
                          "layout": {"kind": layout, "n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
                                     "n_fas_query": lay.n_fas_query, **extra}}
     (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},

@@ -9,6 +9,7 @@ measured µs and counted operations per query) and ``queries.parquet`` (one row 
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from contextlib import ExitStack
@@ -25,6 +26,7 @@ from tqdm import tqdm
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.provenance import parquet_metadata, provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.core.zarrio import rows_of
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
@@ -65,6 +67,7 @@ class EvalRequest:
     faiss_nprobe: int = DEFAULT_NPROBE
     compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
+    force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
     out: Path | None = None
     workers: int = 2
     scheduler: str | None = None
@@ -192,6 +195,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(f"--out {out}: is a file, not a directory for the evaluation")
         if out.is_dir() and any(out.iterdir()) and not (out / "eval.json").is_file():
             raise InputError(f"--out {out}: exists and holds something other than an evaluation; not replaced")
+        if (out / "eval.json").is_file() and not req.force:
+            raise InputError(f"{out}: already holds an evaluation; --force replaces it and keeps it beside, "
+                             f"in {out.name}.previous/ (or give another --out)")
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
         base = load_baseline_map(group, layout) if req.baseline else None
@@ -206,17 +212,26 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             fit_codes(compared, rows_of(group["ref"]), req.quiet) if compared else None
             fit_s = time.perf_counter() - t_fit
             rows, queries = _grid(req, qs, z, dim, indexes, base, compared)
-            provenance = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
-                          "store_identity": identity}
-            _write_parquet(partial.path / "results.parquet", rows, provenance)
-            _write_parquet(partial.path / "queries.parquet", queries, provenance)
+            columns = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
+                       "store_identity": identity}
+            record = provenance(inputs={"store_identity": identity, "indexes": [
+                {"path": str(Path(p).resolve()), "store_identity": i.meta["store"]["identity"], "d": i.d, "k": i.k}
+                for p, i in indexes]}, workers=req.workers, repeats=req.repeats)
+            _write_parquet(partial.path / "results.parquet", rows, columns, record)
+            _write_parquet(partial.path / "queries.parquet", queries, columns, record)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
                        "compare": {c.name: {"params": c.params, "bytes_per_place": c.bytes_per_place}
-                                   for c in compared}, "compare_fit_s": fit_s if compared else None, **provenance}
+                                   for c in compared}, "compare_fit_s": fit_s if compared else None, **columns,
+                       "provenance": record}
             (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
+            if req.force and (out / "eval.json").is_file():  # the previous evaluation is kept, not replaced
+                kept = out.with_name(f"{out.name}.previous")
+                if kept.exists():
+                    shutil.rmtree(kept)
+                out.rename(kept)
             partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
@@ -315,8 +330,11 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
                         "part": "deep1b" if parts[i] == 0 else "fas"})
 
 
-def _write_parquet(path: Path, rows: list[dict], provenance: dict) -> None:
-    pq.write_table(pa.Table.from_pylist([{**r, **provenance} for r in rows]), path, compression="zstd")
+def _write_parquet(path: Path, rows: list[dict], columns: dict, record: dict) -> None:
+    """Rows with the store's columns; the provenance record in the file's key-value metadata."""
+    table = pa.Table.from_pylist([{**r, **columns} for r in rows])
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(record)})
+    pq.write_table(table, path, compression="zstd")
 
 
 def _summary_table(rows: list[dict]) -> str:

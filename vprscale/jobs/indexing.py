@@ -25,6 +25,7 @@ from vprscale.core.blocks import chunk_bounds
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.progress import Timings, run_tasks
+from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.core.zarrio import rows_of
 from vprscale.dataset.store import ATTR, load_model, open_complete_group, ref_moments, store_identity, store_layout
@@ -124,6 +125,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
                       "partitions": lists["partitions"]},
             "timings_s": timings.stages, "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
             "versions": {"vprscale": vprscale.__version__},
+            "provenance": provenance(inputs={"store": str(store.resolve()), "store_identity": identity}),
         }
         meta = write_meta(partial.path, hasher, n_ref, lists["occupied"], extra)
         if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside

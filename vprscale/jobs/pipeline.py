@@ -1,11 +1,12 @@
 """``vprscale run``: batch pipelines of stages (synth, build, index, eval, report) from TOML.
 
-A pipeline file names an output directory and an ordered list of stages. Each stage's
-fingerprint covers its kind, its parameters, what it reads (a build's recipe file and
-source files), the fingerprints of the stages it reads from, and vprscale's code; a stage
-whose fingerprint matches its last complete run (and whose outputs still exist) is
-skipped, so re-running a finished pipeline does no work and changing a parameter, an
-input or the code re-runs that stage and everything downstream of it. Every run writes a
+A pipeline file names an output directory and an ordered list of stages. A stage re-runs
+when its kind or parameters, what it reads (a build's recipe file and source files), a
+stage it reads from, the code its job runs (the modules it imports, not the whole
+package) or its outputs (missing, or changed since it wrote them) changed; otherwise it is
+skipped, so re-running a finished pipeline does no work, and a change to the report code
+re-runs the report, not the builds. ``vprscale run --dry-run`` says, stage by stage, what
+would run and why. Every run writes a
 JSON summary (times, peak memory, bytes on disk per stage) and a log under
 ``<out>/runs/``; two runs on the same output directory never overlap.
 
@@ -29,8 +30,10 @@ from typing import Any
 
 import vprscale
 from vprscale.core.errors import InputError, JobFailed
+from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml
+from vprscale.evaluation.algorithms.registry import BUILTIN
 
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
@@ -142,42 +145,64 @@ class _Tee(io.TextIOBase):
         return len(s)
 
 
-def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False) -> dict[str, Any]:
+def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False,
+                 dry_run: bool = False) -> dict[str, Any]:
     """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``).
 
-    ``force`` re-runs every stage even where nothing it depends on changed.
+    Each stage runs when something it depends on changed (:func:`plan_stage` says what) and
+    is skipped otherwise; ``force`` re-runs every stage. ``dry_run`` decides and reports,
+    stage by stage, without running anything or writing a summary.
     """
     pipe = load_pipeline(path)
-    pipe.out.mkdir(parents=True, exist_ok=True)
     state_file = pipe.out / "pipeline-state.json"
+    state = _read_state(state_file)
+    graph = _import_graph()
+    if dry_run:
+        decisions = []
+        for stage in pipe.stages:
+            parts = _parts(stage, {d["name"]: d["fingerprint"] for d in decisions}, graph)
+            reasons = _reasons(stage, parts, state.get(stage.name, {}), {d["name"] for d in decisions if d["run"]},
+                               force)
+            decisions.append({"name": stage.name, "kind": stage.kind, "fingerprint": _digest(parts),
+                              "run": bool(reasons), "reasons": reasons})
+        return {"name": pipe.name, "dry_run": True, "stages": decisions}
+    pipe.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     runs = pipe.out / "runs"
     runs.mkdir(exist_ok=True)
     summary: dict[str, Any] = {"pipeline": str(pipe.path), "name": pipe.name, "started": stamp, "stages": [],
-                               "vprscale": vprscale.__version__, "status": "running"}
+                               "vprscale": vprscale.__version__, "status": "running",
+                               "provenance": provenance(inputs={"pipeline": hashlib.sha256(
+                                   pipe.path.read_bytes()).hexdigest()[:16]})}
     with exclusive(pipe.out / "pipeline"), open(runs / f"{stamp}.log", "w") as log:
-        state = json.loads(state_file.read_text()) if state_file.is_file() else {}
+        state = _read_state(state_file)  # as it is now that the run holds the lock
         fingerprints: dict[str, str] = {}
+        ran: set[str] = set()
         outputs: dict[str, dict[str, Any]] = {}
-        code = code_fingerprint()
         tee_err = _Tee(sys.stderr, log)
         try:
             for stage in pipe.stages:
-                fp = _fingerprint(stage, fingerprints, code)
-                fingerprints[stage.name] = fp
+                parts = _parts(stage, fingerprints, graph)
+                fp = fingerprints[stage.name] = _digest(parts)
                 prev = state.get(stage.name, {})
+                reasons = _reasons(stage, parts, prev, ran, force)
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp}
-                if not force and prev.get("fingerprint") == fp and _outputs_exist(prev.get("outputs", {})):
+                if not reasons:
                     outputs[stage.name] = prev["outputs"]
                     entry |= {"status": "skipped", "outputs": prev["outputs"], "seconds": 0.0}
-                    print(f"= {stage.name} ({stage.kind}): unchanged, skipped", file=tee_err)
+                    print(f"= {stage.name} ({stage.kind}): up to date, skipped", file=tee_err)
                 else:
-                    print(f"▶ {stage.name} ({stage.kind})", file=tee_err)
+                    print(f"▶ {stage.name} ({stage.kind}): {'; '.join(reasons)}", file=tee_err)
                     t0 = time.perf_counter()
+                    state.pop(stage.name, None)  # a stage that fails midway is not up to date
+                    _write_json(state_file, state)
                     out = _run_stage(pipe, stage, outputs, scheduler, tee_err)
                     outputs[stage.name] = out
-                    entry |= {"status": "ran", "outputs": out, "seconds": time.perf_counter() - t0}
-                    state[stage.name] = {"fingerprint": fp, "outputs": out, "finished": datetime.now(UTC).isoformat()}
+                    ran.add(stage.name)
+                    entry |= {"status": "ran", "reasons": reasons, "outputs": out,
+                              "seconds": time.perf_counter() - t0}
+                    state[stage.name] = {"fingerprint": fp, "parts": parts, "outputs": out,
+                                         "signatures": _signatures(out), "finished": datetime.now(UTC).isoformat()}
                     _write_json(state_file, state)
                 summary["stages"].append(entry)
             summary["status"] = "ok"
@@ -194,19 +219,49 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
     return summary
 
 
+def _read_state(path: Path) -> dict[str, Any]:
+    """The pipeline's record of its last complete stages (empty if there is none or it is unreadable:
+    then every stage re-runs, which is safe)."""
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return {}
+    return state if isinstance(state, dict) else {}
+
+
 def _write_json(path: Path, data: dict) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(data, indent=1, default=str))
     tmp.replace(path)
 
 
-def code_fingerprint() -> str:
-    """A digest of vprscale's own source files: a change of code re-runs the stages it may change."""
+# The modules a stage's job starts from; the code a stage runs is these, every vprscale module they
+# import (function-level imports included), the command line and the package's version.
+ENTRY_MODULES = {"synth": ["vprscale.dataset.synth"], "build": ["vprscale.dataset.build"],
+                 "index": ["vprscale.jobs.indexing"], "report": ["vprscale.evaluation.report"],
+                 "eval": ["vprscale.evaluation.evaluate", "vprscale.jobs.indexing",
+                          *(target.partition(":")[0] for target in BUILTIN.values())]}
+ALWAYS = ("vprscale", "vprscale.cli")  # the version and the command itself (not every job it can import)
+
+
+def _import_graph() -> Any:
+    import grimp
+
+    return grimp.build_graph("vprscale", cache_dir=None)
+
+
+def stage_code(kind: str, graph: Any) -> dict[str, str]:
+    """Digest of every module the job of a ``kind`` stage runs, by module name."""
+    modules = set(ALWAYS)
+    for entry in ENTRY_MODULES[kind]:
+        modules |= {entry} | graph.find_upstream_modules(entry)
     root = Path(vprscale.__file__).parent
-    digest = hashlib.sha256(vprscale.__version__.encode())
-    for f in sorted(root.rglob("*.py")):
-        digest.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
-    return digest.hexdigest()[:16]
+    code = {}
+    for name in sorted(m for m in modules if m.startswith("vprscale")):
+        rel = Path(*name.split(".")[1:])
+        path = root / rel / "__init__.py" if (root / rel).is_dir() else (root / rel).with_suffix(".py")
+        code[name] = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    return code
 
 
 def _inputs(stage: Stage) -> dict[str, Any]:
@@ -226,21 +281,71 @@ def _inputs(stage: Stage) -> dict[str, Any]:
     return found
 
 
-def _fingerprint(stage: Stage, upstream: dict[str, str], code: str) -> str:
-    """A stage's identity: its kind and parameters, what it reads, its upstream stages and the code."""
+def _parts(stage: Stage, upstream: dict[str, str], graph: Any) -> dict[str, Any]:
+    """What a stage depends on: its kind and parameters, what it reads, the fingerprints of the
+    stages it reads from, and the code its job runs (module by module)."""
     refs = {}
     for key, value in stage.params.items():
         for ref in value if isinstance(value, list) else [value]:
             if isinstance(ref, str) and ref in upstream:
                 refs[f"{key}:{ref}"] = upstream[ref]
-    body = {"kind": stage.kind, "params": stage.params, "upstream": refs, "inputs": _inputs(stage), "code": code}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return json.loads(json.dumps({"kind": stage.kind, "params": stage.params, "upstream": refs,
+                                  "inputs": _inputs(stage), "code": stage_code(stage.kind, graph)},
+                                 sort_keys=True, default=str))
 
 
-def _outputs_exist(outputs: dict[str, Any]) -> bool:
-    paths = [v for k, v in outputs.items() if k not in ("figures", "peak_rss_bytes", "bytes_on_disk")
-             and isinstance(v, str)]
-    return bool(paths) and all(Path(p).exists() for p in paths)
+def _digest(parts: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _reasons(stage: Stage, parts: dict[str, Any], prev: dict[str, Any], ran: set[str], force: bool) -> list[str]:
+    """Why a stage must run (empty: it is up to date), in words a user can act on."""
+    if force:
+        return ["--force"]
+    if not prev or "parts" not in prev:
+        return ["no complete run recorded"]
+    old = prev["parts"]
+    reasons = []
+    if old.get("params") != parts["params"] or old.get("kind") != parts["kind"]:
+        changed = sorted(k for k in set(parts["params"]) | set(old.get("params", {}))
+                         if parts["params"].get(k) != old.get("params", {}).get(k))
+        reasons.append(f"parameters changed ({', '.join(changed) or 'kind'})")
+    for key in sorted(set(parts["inputs"]) | set(old.get("inputs", {}))):
+        if parts["inputs"].get(key) != old.get("inputs", {}).get(key):
+            reasons.append(f"input {key} changed")
+    refs = [r.split(":", 1)[1] for r in parts["upstream"]]
+    reran = sorted({r for r in refs if r in ran})
+    if reran:
+        reasons.append(f"upstream stage {', '.join(reran)} re-runs")
+    elif parts["upstream"] != old.get("upstream"):
+        reasons.append("an upstream stage changed")
+    code, old_code = parts["code"], old.get("code", {})
+    changed = sorted(m for m in set(code) | set(old_code) if code.get(m) != old_code.get(m))
+    if changed:
+        reasons.append(f"code changed ({', '.join(changed[:4])}{', …' if len(changed) > 4 else ''})")
+    now = _signatures(prev.get("outputs", {}))
+    for out, sig in sorted(prev.get("signatures", {}).items()):
+        if out not in now:
+            reasons.append(f"output {out} missing")
+        elif now[out] != sig:
+            reasons.append(f"output {out} changed")
+    if not prev.get("signatures"):
+        reasons.append("no outputs recorded")
+    return reasons
+
+
+def _signatures(outputs: dict[str, Any]) -> dict[str, str]:
+    """A cheap signature (names, sizes, modification times) of every output file or directory that exists."""
+    paths = [v for k, v in outputs.items() if k not in ("peak_rss_bytes", "bytes_on_disk") and isinstance(v, str)]
+    paths += [f for f in outputs.get("figures", []) if isinstance(f, str)]
+    found = {}
+    for p in map(Path, paths):
+        if not p.exists():
+            continue
+        files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+        body = [(str(f.relative_to(p)) if p.is_dir() else "", f.stat().st_size, f.stat().st_mtime_ns) for f in files]
+        found[str(p)] = hashlib.sha256(json.dumps(body).encode()).hexdigest()[:16]
+    return found
 
 
 def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
@@ -275,7 +380,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
             cmd += ["--compare", factory]
         for key in ("faiss_k", "compare_queries", "repeats"):
             cmd += ["--" + key.replace("_", "-"), str(p[key])] if key in p else []
-        return cmd + cluster
+        # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)
+        return cmd + ["--force"] + cluster
     cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"]]
     for i in p.get("indexes", []):
         cmd += ["--index", outputs[i]["index"]]
