@@ -195,5 +195,8 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     res = compared["results"]
     row = res[(res.method == "faiss:PQ4") & (res.L == L_SEQ) & (res["mode"] == "aligned") & (res.part == "all")
               & (res.radius == 20)].iloc[0]
-    assert f"| PQ4 (aligned) | 4.00 | {row.us_per_query:,.1f} | {100 * row.recall:.1f} | {row.n_queries} |" in section
+    time = f"{row.us_per_query:,.2f} ({row.us_per_query_lo:,.2f}–{row.us_per_query_hi:,.2f})"
+    assert f"| PQ4 (aligned) | 4.00 | {time} | {100 * row.recall:.1f} | {row.n_queries} |" in section
+    # every ratio is of medians measured in the same run (one evaluation here)
+    assert "different runs" not in section and "faster" in section or "slower" in section
     assert section.count("| tiny | QM1 |") == 3 * (1 + len(FACTORIES))  # L = 1: single; L = 9: two modes

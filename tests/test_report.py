@@ -55,3 +55,22 @@ def test_report_writes_every_figure_and_the_right_numbers(tmp_path):
     assert "| 20K | 15 | 12.0 | 1.00 | 3.0 | 0.50 | – | – |" in text
     assert "| 20K | 15 | 20,000 | 0.160 |" in text
     assert "37,400" in text and len(rep["figures"]) == 8
+
+
+def test_report_opens_with_provenance_and_flags_mixed_commits(tmp_path):
+    first = _results(tmp_path)
+    record = {"vprscale": "0.3.0", "commit": "a" * 40, "dirty": False, "command": "vprscale eval s i",
+              "cpu": "Test CPU", "cores": 2, "load_average": [0.1, 0.2, 0.3], "time": "2026-11-30T00:00:00+00:00"}
+    (first / "eval.json").write_text(json.dumps({"wall_s": 1.0, "provenance": record}))
+    text = write_report([first], tmp_path / "one")["report"]
+    head = open(text).read().split("## Figures")[0]
+    assert "## Provenance" in head and "commit aaaaaaaaaaaa" in head and "Test CPU (2 cores" in head
+    assert "different commits" not in head
+    second = tmp_path / "ev2"
+    second.mkdir()
+    res = pd.read_parquet(first / "results.parquet")
+    res.assign(scale="1M").to_parquet(second / "results.parquet")
+    (second / "eval.json").write_text(json.dumps({"wall_s": 1.0, "provenance": {**record, "commit": "b" * 40,
+                                                                                 "dirty": True}}))
+    head = open(write_report([first, second], tmp_path / "two")["report"]).read().split("## Figures")[0]
+    assert "**These results come from 2 different commits** (aaaaaaaaaaaa, bbbbbbbbbbbb (dirty tree))" in head

@@ -9,6 +9,7 @@ from contextlib import contextmanager
 from typing import Any
 
 import dask
+from dask.callbacks import Callback
 from tqdm import tqdm
 from tqdm.dask import TqdmCallback
 
@@ -25,14 +26,35 @@ def _client() -> Any:
         return None
 
 
-def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
-    """``dask.compute`` with a per-task progress bar, on a distributed client if one is active.
+class _LoggedTasks(Callback):
+    """A Dask callback that reports finished tasks as :class:`ChunkProgress` lines (for logs)."""
 
-    Bars are drawn only on an interactive terminal, so logs of scheduled runs stay clean.
+    def __init__(self, desc: str) -> None:
+        super().__init__()
+        self.desc = desc
+        self.progress: ChunkProgress | None = None
+
+    def _start_state(self, dsk: Any, state: dict) -> None:
+        total = sum(len(state[k]) for k in ("ready", "waiting", "running", "finished") if k in state)
+        self.progress = ChunkProgress(self.desc, total, unit="tasks")
+
+    def _posttask(self, key: Any, result: Any, dsk: Any, state: dict, worker_id: Any) -> None:
+        if self.progress is not None:
+            self.progress.update(1)
+
+
+def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
+    """``dask.compute`` with per-task progress, on a distributed client if one is active.
+
+    A bar on an interactive terminal; in a log (a scheduled run), a line every ~5 % of the
+    tasks with the time left, so that no long pass is silent.
     """
     client = _client()
     if client is None:
-        with TqdmCallback(desc=desc, unit="task", file=sys.stderr, leave=False, disable=None):
+        if sys.stderr.isatty():
+            with TqdmCallback(desc=desc, unit="task", file=sys.stderr, leave=False):
+                return dask.compute(*collections)
+        with _LoggedTasks(desc):
             return dask.compute(*collections)
     from distributed.diagnostics.progressbar import TextProgressBar
 
@@ -80,19 +102,24 @@ class Timings:
             print(f"✓ {name} ({self.stages[name]:.1f} s)", file=sys.stderr, flush=True)
 
 
+LINE_SECONDS = 2.0  # in a log, a progress line at most this often (and the last one always)
+
+
 class ChunkProgress:
-    """Progress of a long pass on stderr: tqdm's bar on a terminal, a line every ~5 % in a log.
+    """Progress of a long pass on stderr: tqdm's bar on a terminal, in a log a line every ~5 %
+    (at most one per ``LINE_SECONDS``, and the last).
 
     Scheduled runs write logs, where a bar's carriage returns are noise; a line with the
     chunks done and the time left tells the same.
     """
 
-    def __init__(self, desc: str, total: int, done: int = 0) -> None:
-        self.desc, self.total, self.done = desc, total, done
+    def __init__(self, desc: str, total: int, done: int = 0, unit: str = "chunks") -> None:
+        self.desc, self.total, self.done, self.unit = desc, total, done, unit
         self.t0, self.start = time.perf_counter(), done
-        self.bar = (tqdm(total=total, initial=done, desc=desc, unit="chunk", file=sys.stderr, leave=False)
+        self.bar = (tqdm(total=total, initial=done, desc=desc, unit=unit, file=sys.stderr, leave=False)
                     if sys.stderr.isatty() else None)
         self._next = done + max(1, total // 20)
+        self._last = self.t0
 
     def update(self, n: int) -> None:
         self.done += n
@@ -101,9 +128,35 @@ class ChunkProgress:
             if self.done >= self.total:
                 self.bar.close()
             return
-        if self.done >= self._next or self.done == self.total:
+        now = time.perf_counter()
+        if (self.done >= self._next and now - self._last >= LINE_SECONDS) or self.done == self.total:
+            self._last = now
             rate = (self.done - self.start) / max(1e-9, time.perf_counter() - self.t0)
             left = (self.total - self.done) / rate if rate > 0 else float("nan")
-            print(f"  {self.desc}: {self.done:,}/{self.total:,} chunks, {left:,.0f} s left", file=sys.stderr,
+            print(f"  {self.desc}: {self.done:,}/{self.total:,} {self.unit}, {left:,.0f} s left", file=sys.stderr,
                   flush=True)
             self._next = self.done + max(1, self.total // 20)
+
+
+class StepProgress:
+    """Named steps of a job: a bar showing the current step on a terminal, a line per step in a log."""
+
+    def __init__(self, desc: str, total: int, quiet: bool = False) -> None:
+        self.desc, self.total, self.quiet, self.done = desc, total, quiet, 0
+        self.t0 = time.perf_counter()
+        self.bar = (tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=False)
+                    if sys.stderr.isatty() and not quiet else None)
+
+    def step(self, name: str) -> None:
+        """Step ``name`` starts (the previous one, if any, is done)."""
+        if self.bar is not None:
+            self.bar.update(1 if self.done else 0)
+            self.bar.set_postfix_str(name)
+        elif not self.quiet:
+            print(f"  {self.desc} [{self.done + 1}/{self.total}, {time.perf_counter() - self.t0:,.0f} s] {name}",
+                  file=sys.stderr, flush=True)
+        self.done += 1
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()

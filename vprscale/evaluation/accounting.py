@@ -1,8 +1,9 @@
-"""Unitary operations per query (paper §Discussion, docs/accounting.md)."""
+"""Unitary operations per query (paper §Discussion, docs/accounting.md), and how a measured time is shown."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 WORD_BITS = 64  # p: the precision of the xor in the sequence distance
 
@@ -31,3 +32,11 @@ def baseline_ops(dim: int, n_ref: int, L: int, n_r: float) -> dict[str, float]:
     }
     ops["total"] = sum(ops.values())
     return ops
+
+
+def time_cell(row: Any) -> str:
+    """µs per query as a report shows it: the median of the repeats, with their range when there is one."""
+    lo, hi = getattr(row, "us_per_query_lo", None), getattr(row, "us_per_query_hi", None)
+    if lo is None or hi is None or lo != lo or hi != hi:
+        return f"{row.us_per_query:,.2f}"
+    return f"{row.us_per_query:,.2f} ({lo:,.2f}–{hi:,.2f})"

@@ -14,6 +14,8 @@ import matplotlib.pyplot as plt
 import pandas as pd
 from matplotlib.ticker import FuncFormatter
 
+from vprscale.evaluation.accounting import time_cell
+
 MARKERS = {1: "o", 50: "s", 100: "^"}
 RADIUS = 20
 
@@ -36,7 +38,8 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
     # CoarseHash at the width the FAISS methods were compared with (the index they share)
     shared = sub[sub.method.str.startswith("faiss:")].groupby("scale")["index"].first()
     sub = sub[sub.method.str.startswith("faiss:") | (sub["index"] == sub.scale.map(shared))]
-    cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries"]
+    cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries",
+            *(c for c in ("us_per_query_lo", "us_per_query_hi", "run") if c in res.columns)]
     return sub[cols].assign(mode=sub["mode"].fillna("single")).reset_index(drop=True)
 
 
@@ -63,6 +66,10 @@ def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> Non
                     hollow = row.mode == "aligned"
                     ax.scatter(getattr(row, xcol), 100 * row.recall, marker=MARKERS.get(row.L, "D"), s=36,
                                color="none" if hollow else colours[row.method], edgecolors=colours[row.method])
+                    if xcol == "us_per_query" and getattr(row, "us_per_query_lo", None) is not None:
+                        ax.errorbar(row.us_per_query, 100 * row.recall, fmt="none", ecolor=colours[row.method],
+                                    lw=0.8, xerr=[[row.us_per_query - row.us_per_query_lo],
+                                                  [row.us_per_query_hi - row.us_per_query]])
                 ax.set_xscale("log")
                 ax.xaxis.set_major_formatter(FuncFormatter(_plain))
                 ax.xaxis.set_minor_formatter(FuncFormatter(_plain if xcol == "bytes_per_place" else _blank))
@@ -101,12 +108,15 @@ def _words(points: pd.DataFrame, scales: list[str]) -> list[str]:
                 gap = 100 * (o.recall - t.recall)
                 verdict = "CoarseHash finds more" if gap > 1 else "FAISS finds more" if gap < -1 else "recall is level"
                 faster = t.us_per_query / max(o.us_per_query, 1e-9)
+                same_run = getattr(o, "run", None) == getattr(t, "run", None)
                 smaller = t.bytes_per_place / o.bytes_per_place
                 lines.append(
                     f"- {scale}, {noise.upper()}, L = {L}: {verdict} ({100 * o.recall:.1f} % for CoarseHash "
                     f"{o['mode']} against {100 * t.recall:.1f} % for {t.method.removeprefix('faiss:')} {t['mode']}, "
                     f"the best compared method); CoarseHash answers in {o.us_per_query:,.1f} µs against "
-                    f"{t.us_per_query:,.1f} µs ({_times(faster)} {'faster' if faster >= 1 else 'slower'}) and keeps "
+                    f"{t.us_per_query:,.1f} µs ("
+                    + (f"{_times(faster)} {'faster' if faster >= 1 else 'slower'}" if same_run else "different runs")
+                    + ") and keeps "
                     f"{o.bytes_per_place:.2f} bytes per place against {t.bytes_per_place:.2f} "
                     f"({_times(smaller)} {'less' if smaller >= 1 else 'more'}).")
     return lines
@@ -126,7 +136,7 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
     rows: list[list[Any]] = []
     for p in points.sort_values(["scale", "noise", "L", "method", "mode"], key=_scale_key(scales)).itertuples():
         rows.append([p.scale, p.noise.upper(), p.L, _label(p.method, p.mode, p.d), f"{p.bytes_per_place:.2f}",
-                     f"{p.us_per_query:,.1f}", f"{100 * p.recall:.1f}", int(p.n_queries)])
+                     time_cell(p), f"{100 * p.recall:.1f}", int(p.n_queries)])
     return ["## CoarseHash against FAISS compact codes", "",
             "The same centres, truths and window score (docs/protocol.md, \"Compact codes\"): a FAISS method's "
             "frame retrieves its top-k references (k = CoarseHash's mean list size, the same candidate budget), "

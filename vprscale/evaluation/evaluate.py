@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -21,11 +20,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import zarr
-from tqdm import tqdm
 
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.core.zarrio import rows_of
@@ -263,20 +262,19 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
         index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
         compared=compared, compare_queries=req.compare_queries))) for path, idx in indexes]
-    steps = len(req.noises) * sum(len(algos) for _, algos in methods) * (1 + len(req.lengths))
-    bar = tqdm(total=steps, desc="evaluate", unit="step", file=sys.stderr, disable=True if req.quiet else None,
-               leave=False)
+    steps = len(req.noises) * sum(sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths) for a in algos)
+                                  for _, algos in methods)
+    bar = StepProgress("evaluate", steps, req.quiet)
     for noise in req.noises:
         x_q = qs.rows(noise, frames)
         for path, algos in methods:
             prepared = []
             for alg in algos:  # the per-frame work of each method, on the frames of the centres it localises
-                bar.set_postfix_str(f"{noise} {alg.name}: per-frame work")
+                bar.step(f"{noise} {alg.name}: per-frame work")
                 alg.prepare(noise, frames, x_q, {L: centres[L].t for L in req.lengths})
                 sample = {L: spread(len(centres[L].t), alg.query_limit) for L in req.lengths}
                 held = window_frames([centres[L].t[sample[L]] for L in req.lengths], req.lengths)
                 prepared.append((alg, sample, held, *runner.frames(alg, x_q[np.searchsorted(frames, held)])))
-                bar.update()
             for L in req.lengths:
                 c = centres[L]
                 for alg, sample, held, state, frame_cost in prepared:
@@ -286,12 +284,11 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                     key = {"noise": noise, "L": L, "index": str(Path(path).resolve()), "fas_stride": c.fas_stride,
                            "method": alg.name, **alg.columns(), "bytes_per_place": alg.bytes_per_place}
                     for mode in alg.modes(L, req.modes):
-                        bar.set_postfix_str(f"{noise} {alg.name} L={L} {mode or ''}".rstrip())
+                        bar.step(f"{noise} {alg.name} L = {L}" + (f", {mode} mode" if mode else ""))
                         answer, timing = runner.localise(alg, state, pos, L, mode, frame_cost)
                         in_list = alg.in_list(state, pos, truth) if L == 1 else None
                         _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, answer, timing, in_list,
                               weights if c.fas_stride is not None else None)
-                    bar.update()
     bar.close()
     return rows, queries
 

@@ -229,15 +229,15 @@ class RandomizedPCA(TransformerMixin, BaseEstimator):
             return x.map_blocks(_gram_product, b, chunks=((1,) * x.numblocks[0], (d,), (k,)), new_axis=2,
                                 dtype=np.float64).sum(axis=0)
 
-        total, g = compute(x.sum(axis=0, dtype=np.float64), gram(omega))
+        total, g = compute(x.sum(axis=0, dtype=np.float64), gram(omega), desc="randomized PCA: pass 1")
         mean = total / n
         basis = omega
         for it in range(self.n_iter + 1):
             v = orthonormal(g - n * np.outer(mean, mean @ basis))
             basis = v.astype(np.float32)
             if it < self.n_iter:
-                (g,) = compute(gram(basis))
-        p, *rest = compute(x @ basis, *(o @ basis for o in others), desc="project")
+                (g,) = compute(gram(basis), desc=f"randomized PCA: power iteration {it + 1}")
+        p, *rest = compute(x @ basis, *(o @ basis for o in others), desc="randomized PCA: projection")
         shift = mean @ basis
         p = p.astype(np.float64) - shift
         # The right singular vectors of the (n × k) projections from their k × k Gram: the

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import Any
@@ -10,9 +9,9 @@ from typing import Any
 import dask.array as da
 import numpy as np
 from threadpoolctl import threadpool_limits
-from tqdm import tqdm
 
 from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
@@ -31,21 +30,23 @@ def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> 
     if not methods:
         return
     n_ref = ref.shape[0]
-    sample = ref[training_rows(n_ref)].compute()
-    with threadpool_limits(limits=1, user_api="blas"), ThreadPoolExecutor(methods[0].threads) as pool:
-        list(pool.map(partial(FaissCodes.train, sample=sample), methods))  # each on one thread of its own
-    bar = tqdm(total=n_ref, desc="encode references", unit="row", unit_scale=True, file=sys.stderr,
-               disable=True if quiet else None, leave=False)
-    for m in methods:
-        m.start(n_ref)
-    for i in range(ref.numblocks[0]):
-        x = np.asarray(ref.blocks[i].compute(), np.float32)
+    timings = Timings(quiet)
+    with timings.stage(f"train {len(methods)} FAISS method(s) on {min(n_ref, len(training_rows(n_ref))):,} references"):
+        sample = ref[training_rows(n_ref)].compute()
+        with threadpool_limits(limits=1, user_api="blas"), ThreadPoolExecutor(methods[0].threads) as pool:
+            list(pool.map(partial(FaissCodes.train, sample=sample), methods))  # each on one thread of its own
+    with timings.stage(f"encode {n_ref:,} references"):
+        progress = None if quiet else ChunkProgress("encode references", ref.numblocks[0])
         for m in methods:
-            m.encode(x)
-        bar.update(len(x))
-    for m in methods:
-        m.finish()
-    bar.close()
+            m.start(n_ref)
+        for i in range(ref.numblocks[0]):
+            x = np.asarray(ref.blocks[i].compute(), np.float32)
+            for m in methods:
+                m.encode(x)
+            if progress:
+                progress.update(1)
+        for m in methods:
+            m.finish()
 
 
 class FaissMethod(Algorithm):
