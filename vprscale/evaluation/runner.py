@@ -32,6 +32,9 @@ from vprscale.evaluation.algorithms.base import Algorithm, Answer
 TIMED_QUERIES = 1024  # centres a timing repeat localises (evenly spaced; all when there are fewer)
 TIMED_FRAMES = 256  # frames a timing repeat works on
 DEFAULT_REPEATS = 3
+# The results columns that measure the machine rather than the method's answers: everything
+# else in an evaluation's tables is the same bytes for the same inputs, whatever the workers.
+TIMING_COLUMNS = ("us_per_query", "us_per_query_lo", "us_per_query_hi", "us_per_frame", "queries_per_s")
 
 
 def spread(n: int, limit: int | None) -> np.ndarray:
