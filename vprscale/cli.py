@@ -15,6 +15,8 @@ from vprscale.core.provenance import set_command
 
 EXIT_USAGE = 2  # bad input
 EXIT_FAILURE = 1  # vprscale itself failed
+MAX_FAS_DIM = 16_384  # a synthetic FAS row of more features is drawn in memory, a chunk at a time
+MAX_SQL_THREADS = 256
 
 
 def _positive_int(text: str) -> int:
@@ -37,6 +39,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _bounded_int(upper: int, why: str):
+    """A positive whole number of at most ``upper`` (``why`` says where the bound comes from)."""
+    def parse(text: str) -> int:
+        value = _positive_int(text)
+        if value > upper:
+            raise argparse.ArgumentTypeError(f"{text!r} is more than {upper:,} ({why})")
+        return value
+    return parse
+
+
 def _write_summary(args: argparse.Namespace, data: dict) -> None:
     """``--summary FILE``: the command's summary as JSON (what pipelines read back), written whole."""
     if getattr(args, "summary", None):
@@ -46,8 +58,52 @@ def _write_summary(args: argparse.Namespace, data: dict) -> None:
         tmp.replace(path)
 
 
+# The flags that name what a command reads, and what it writes.
+INPUT_FLAGS = {"build": ("deep1b", "fas", "scale"), "index": ("store",), "eval": ("store", "index"),
+               "localise": ("index", "queries"), "report": ("results", "index")}
+OUTPUT_FLAGS = ("out", "summary")
+
+
+def _flag_paths(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[str, Path]]:
+    found = []
+    for name in names:
+        value = getattr(args, name, None)
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str) and v and (name != "scale" or Path(v).suffix == ".toml"):
+                found.append((name, Path(v)))
+    return found
+
+
+def _owner(path: Path) -> Path | None:
+    """The vprscale store or index that ``path`` lies inside (symlinks followed), if any."""
+    for parent in path.resolve().parents:
+        if (parent / "index.json").is_file() or (parent / "zarr.json").is_file():
+            return parent
+    return None
+
+
+def _check_not_over_inputs(args: argparse.Namespace) -> None:
+    """No output flag may name one of the command's inputs, lie inside one, or lie inside a
+    store or index the command does not own (paths resolved, symlinks followed)."""
+    inputs = _flag_paths(args, INPUT_FLAGS.get(args.command, ()))
+    for out_flag, out in _flag_paths(args, OUTPUT_FLAGS):
+        target = out.resolve()
+        for in_flag, src in inputs:
+            where = src.resolve()
+            if target == where or where in target.parents:
+                raise InputError(f"--{out_flag} {out}: would write {'over' if target == where else 'into'} the "
+                                 f"input {src} (--{in_flag})")
+        owner = _owner(out)
+        own_eval = (args.command == "eval" and out_flag == "out" and getattr(args, "index", None)
+                    and target == (Path(args.index) / "eval").resolve())
+        if owner is not None and not own_eval:
+            raise InputError(f"--{out_flag} {out}: lies inside {owner}, a vprscale store or index this command does "
+                             "not own; write elsewhere")
+
+
 def _check_outputs(args: argparse.Namespace) -> None:
     """Refuse unusable output paths before any work (a bad --summary must not fail after publishing)."""
+    _check_not_over_inputs(args)
     summary = getattr(args, "summary", None)
     if summary:
         path = Path(summary)
@@ -167,6 +223,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_verify(args: argparse.Namespace) -> int:
+    from vprscale.core.manifest import check_manifest, read_manifest
+
+    path = Path(args.path)
+    kinds = {"zarr.json": "dataset store", "index.json": "index", "eval.json": "evaluation"}
+    kind = next((k for f, k in kinds.items() if (path / f).is_file()), None)
+    if kind is None:
+        raise InputError(f"{path}: not a vprscale store, index or evaluation")
+    if read_manifest(path) is None:
+        raise InputError(f"{path}: this {kind} has no manifest (written before vprscale 0.3); rebuild it to verify")
+    n = check_manifest(path, full=True)
+    print(f"{path}: {kind} verified, {n:,} files with their sizes and checksums")
+    return 0
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from vprscale.evaluation.report import write_report
 
@@ -234,7 +305,8 @@ def parser() -> argparse.ArgumentParser:
                        help="write synthetic Deep1B (fvecs, fbin) and FAS100K (npz) files")
     p.add_argument("--out", required=True, help="directory to write into")
     p.add_argument("--deep1b-rows", type=_positive_int, default=1_000_000)
-    p.add_argument("--fas-dim", type=_positive_int, default=4096, help="FAS descriptor width (real: 4096)")
+    p.add_argument("--fas-dim", type=_bounded_int(MAX_FAS_DIM, "the real FAS100K has 4,096"), default=4096,
+                   help="FAS descriptor width (real: 4096)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rows-per-file", type=_positive_int, default=None,
                    help="split the fvecs output into base_NN files of this many rows")
@@ -246,7 +318,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--deep1b", help="fvecs file, directory of fvecs chunks, or .fbin (default: synthetic)")
     p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")
     p.add_argument("--out", default="data", help="output directory (default: data)")
-    p.add_argument("--fas-dim", type=_positive_int, default=4096,
+    p.add_argument("--fas-dim", type=_bounded_int(MAX_FAS_DIM, "the real FAS100K has 4,096"), default=4096,
                    help="width of the synthetic FAS descriptors when --fas is not given")
     p.add_argument("--dry-run", action="store_true", help="print what would be read, written and needed")
     p.add_argument("--force", action="store_true", help="rebuild a complete store (replaced only when done)")
@@ -306,6 +378,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--index", action="append", default=[], help="an extra index (e.g. the no-rescale ablation)")
     p.set_defaults(func=cmd_report)
 
+    p = sub.add_parser("verify", help="check a store, index or evaluation against its manifest (sizes and checksums)")
+    p.add_argument("path", help="a dataset store, an index or an evaluation folder")
+    p.set_defaults(func=cmd_verify)
+
     p = sub.add_parser("run", help="run a pipeline (pipelines/*.toml), skipping stages that are up to date")
     p.add_argument("pipeline", help="a pipeline TOML file")
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler")
@@ -336,7 +412,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=_positive_float, default=30.0,
                    help="seconds before a query is stopped (default 30)")
     p.add_argument("--memory-limit", default="2GB", help="DuckDB's memory cap (default 2GB)")
-    p.add_argument("--threads", type=_positive_int, default=2, help="DuckDB's threads (default 2)")
+    p.add_argument("--threads", type=_bounded_int(MAX_SQL_THREADS, "DuckDB starts every thread it is given"),
+                   default=2, help="DuckDB's threads (default 2)")
     p.set_defaults(func=cmd_sql, format="table")
 
     p = sub.add_parser("localise", parents=[summary],

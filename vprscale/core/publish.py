@@ -19,6 +19,7 @@ from typing import Any
 from filelock import FileLock, Timeout
 
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import write_manifest
 
 
 @contextmanager
@@ -60,8 +61,18 @@ class PartialOutput:
         self.sealed = final.with_name(f".{final.name}.sealed")
         self.old = final.with_name(f".{final.name}.old")
 
+    def _check_links(self) -> None:
+        """Refuse symbolic links where publishing renames and removes whole directories: following
+        one would publish through it or remove what it points to."""
+        for path in (self.final, self.path, self.sealed, self.old):
+            if path.is_symlink():
+                raise InputError(f"{path}: a symbolic link{' (dangling)' if not path.exists() else ''}; vprscale "
+                                 "replaces whole outputs and does not follow links: give the real directory, or "
+                                 "remove the link")
+
     def recover(self) -> bool:
         """Finish a publish that a killed run sealed; True if there was one (the output is then published)."""
+        self._check_links()
         if not self.sealed.is_file():
             if self.old.exists() and self.final.exists():
                 shutil.rmtree(self.old)  # an old output the last publish did not get to remove
@@ -71,14 +82,26 @@ class PartialOutput:
 
     def open(self) -> bool:
         """Create the work copy, or keep it if it belongs to the same job; True if resumed."""
+        self._check_links()
         key_file = self.path / ".job.json"
-        if key_file.is_file() and json.loads(key_file.read_text()) == self.key:
+        if self._job_key(key_file) == self.key:
             return True
         if self.path.exists():
             shutil.rmtree(self.path)
         self._markers.mkdir(parents=True)
-        key_file.write_text(json.dumps(self.key, sort_keys=True, indent=1))
+        tmp = key_file.with_name(".job.json.tmp")
+        tmp.write_text(json.dumps(self.key, sort_keys=True, indent=1))
+        tmp.replace(key_file)
         return False
+
+    @staticmethod
+    def _job_key(key_file: Path) -> Any:
+        """The key of the job that owns a work copy; None if unreadable (a kill while it was written):
+        the work copy is then started over, which is always safe."""
+        try:
+            return json.loads(key_file.read_text())
+        except (OSError, ValueError):
+            return None
 
     def done(self, unit: str) -> bool:
         return (self._markers / unit).exists()
@@ -89,7 +112,15 @@ class PartialOutput:
         tmp.replace(self._markers / unit)
 
     def publish(self) -> None:
-        """Seal the finished work copy, then move it to the final path, replacing an older output last."""
+        """Seal the finished work copy, then move it to the final path, replacing an older output last.
+
+        Before sealing, temporary files a killed writer left (``.*.tmp``) are removed and the
+        manifest of every file is written (:mod:`vprscale.core.manifest`).
+        """
+        for leftover in self.path.rglob(".*.tmp"):
+            if leftover.is_file():
+                leftover.unlink()
+        write_manifest(self.path)
         tmp = self.sealed.with_name(self.sealed.name + ".tmp")
         tmp.write_text(json.dumps(self.key, sort_keys=True))
         tmp.replace(self.sealed)

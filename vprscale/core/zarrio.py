@@ -28,6 +28,9 @@ from zarr.codecs import BytesCodec
 from zarr.core.chunk_grids import RegularChunkGrid
 from zarr.storage import LocalStore
 
+from vprscale.core.errors import InputError
+from vprscale.core.manifest import listed
+
 
 def raw_chunk_dir(array: zarr.Array) -> Path | None:
     """The directory of the chunk files if ``array`` is 2-D, row-chunked and stored raw on disk."""
@@ -41,11 +44,13 @@ def raw_chunk_dir(array: zarr.Array) -> Path | None:
     endian = meta.codecs[0].endian
     if array.dtype.itemsize > 1 and (endian is None or endian.value != "little" or sys.byteorder != "little"):
         return None  # the buffer is read as native little-endian bytes
-    return Path(array.store.root) / array.path / "c"
+    return Path(array.store.root).resolve() / array.path / "c"
 
 
 def _read_chunk(directory: str, rows: int, n_rows: int, cols: int, dtype: str, fill: float,
-                block_id: tuple[int, int] | None = None) -> np.ndarray:
+                expected: frozenset[int] | None, block_id: tuple[int, int] | None = None) -> np.ndarray:
+    """Chunk ``i`` of a raw array; a missing file is the fill value only where the array's
+    manifest (``expected``: the chunks it lists) says no file was written."""
     i = block_id[0]
     n = min(rows, n_rows - i * rows)
     out = np.empty((rows, cols), dtype)
@@ -56,15 +61,22 @@ def _read_chunk(directory: str, rows: int, n_rows: int, cols: int, dtype: str, f
             if size == n * cols * out.itemsize and n < rows:  # an edge chunk stored unpadded (other writers)
                 out = out[:n]
             elif size != out.nbytes:
-                raise OSError(f"{path}: chunk file holds {size} bytes, expected {out.nbytes}")
+                raise InputError(f"{path}: chunk file holds {size:,} bytes, expected {out.nbytes:,}; "
+                                 "the store is damaged, rebuild it")
             view, got = memoryview(out).cast("B"), 0
             while got < size:  # a regular file may still return a short read
                 step = fh.readinto(view[got:])
                 if not step:
-                    raise OSError(f"{path}: chunk file ended after {got} of {size} bytes")
+                    raise InputError(f"{path}: chunk file ended after {got:,} of {size:,} bytes")
                 got += step
-    except FileNotFoundError:  # zarr leaves out chunks that hold only the fill value
-        out.fill(fill)
+    except FileNotFoundError:
+        if not Path(directory).is_dir():
+            raise InputError(f"{directory}: the array's chunk directory is not there (on a cluster, a worker "
+                             "must see the store at the same absolute path)") from None
+        if expected is not None and i in expected:
+            raise InputError(f"{path}: a chunk of a complete array is missing; the store is damaged, "
+                             "rebuild it") from None
+        out.fill(fill)  # zarr leaves out chunks that hold only the fill value (stores without a manifest: trusted)
     return out[:n]
 
 
@@ -76,7 +88,11 @@ def rows_of(array: zarr.Array) -> da.Array:
     n_rows, cols = array.shape
     rows = array.chunks[0]
     chunks = (tuple(min(rows, n_rows - s) for s in range(0, n_rows, rows)), (cols,))
-    read = partial(_read_chunk, str(directory), rows, n_rows, cols, array.dtype.str, float(array.fill_value or 0))
+    root = Path(array.store.root)
+    names = listed(root, f"{array.path}/c/")
+    expected = None if names is None else frozenset(int(n.split("/")[0]) for n in names)
+    read = partial(_read_chunk, str(directory), rows, n_rows, cols, array.dtype.str, float(array.fill_value or 0),
+                   expected)
     return da.map_blocks(read, chunks=chunks, dtype=array.dtype, meta=np.empty((0, 0), array.dtype),
                          name=f"rows-{tokenize(str(directory), array.shape, array.dtype.str)}")
 

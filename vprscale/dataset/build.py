@@ -89,6 +89,11 @@ def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
                              f"{src.name} holds {src.n_rows:,}")
     if traverse.ref.dim < recipe.dim:
         raise InputError(f"{traverse.ref.name}: {traverse.ref.dim} dimensions, fewer than {recipe.dim}")
+    for src in (traverse.ref, traverse.query):  # all zeros (or one row repeated) would build a store of zeros
+        head = src.read(0, min(src.n_rows, 4096))
+        if len(head) > 1 and not np.ptp(head, axis=0).any():
+            raise InputError(f"{src.name}: its first {len(head):,} descriptors are all equal (every value "
+                             f"{head[0, 0]:g}…): blank or damaged data")
     return deep, traverse
 
 
@@ -212,9 +217,20 @@ def build(req: BuildRequest) -> dict[str, Any]:
         if (final / "zarr.json").exists() and not req.force:
             meta = zarr.open_group(final, mode="r").attrs.get(ATTR, {})
             if meta.get("complete"):
+                wanted = _identity(recipe, deep, traverse, req)
+                differ = [k for k in wanted if json.loads(json.dumps(wanted[k], default=str)) != meta.get(k)]
+                if differ:
+                    raise InputError(f"--out {out}: {final} is a complete store of other {' and '.join(differ)}; "
+                                     "--force replaces it (or give another --out)")
                 print(f"{final} is complete; use --force to rebuild it", file=sys.stderr)
                 return {"skipped": True, "store": str(final)}
         return _build(recipe, deep, traverse, final, req)
+
+
+def _identity(recipe: Recipe, deep: RowSource, traverse: Traverse, req: BuildRequest) -> dict[str, Any]:
+    """What defines a store's data: the recipe (with its layout), the rescaling and the sources."""
+    return {"recipe": {**recipe.as_dict(), "layout": req.layout or recipe.layout}, "rescale": req.rescale,
+            "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
 
 
 class DeepMoments:
@@ -230,6 +246,9 @@ class DeepMoments:
             i, half = a + int(big[0]), self.recipe.window // 2
             raise InputError(f"{self.source.name}: rows {max(0, i - half):,}–{i + half - 1:,} average to values beyond "
                              f"±{MAX_MAGNITUDE:.0e} (dataset row {i:,}); their squares overflow the float32 recipe")
+        if len(h) > self.recipe.window and not np.ptp(h, axis=0).any():
+            raise InputError(f"{self.source.name}: dataset rows {a:,}–{b - 1:,} are all equal after homogenising "
+                             f"(every value {h[0, 0]:g}…): a blank or damaged block of descriptors")
         return block_moments(h, a)
 
 
@@ -252,8 +271,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
                  recipe.fas_rows("query", traverse.query.n_rows))
     layout = req.layout or recipe.layout
-    provenance_key = {"recipe": {**recipe.as_dict(), "layout": layout}, "rescale": req.rescale,
-                      "sources": {"deep1b": deep.fingerprint(), "fas": traverse.fingerprint()}}
+    provenance_key = _identity(recipe, deep, traverse, req)
     partial = PartialOutput(final, provenance_key)
     resumed = partial.open()
     if resumed and not req.quiet:

@@ -17,6 +17,7 @@ import numpy as np
 import zarr
 
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import check_manifest
 from vprscale.method.coarsehash import CoarseHasher
 
 ATTR = "vprscale"
@@ -28,10 +29,14 @@ def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.
     p = Path(path)
     if not (p / "zarr.json").is_file():
         raise InputError(f"{p}: not a vprscale {kind} store (no zarr.json)")
-    group = zarr.open_group(p, mode="r")
-    meta = group.attrs.get(ATTR, {})
+    try:
+        group = zarr.open_group(p.resolve(), mode="r")  # absolute: Dask workers may run in another directory
+        meta = group.attrs.get(ATTR, {})
+    except (ValueError, TypeError, KeyError) as exc:  # zarr's errors for a broken zarr.json
+        raise InputError(f"{p / 'zarr.json'}: not readable Zarr metadata ({str(exc).splitlines()[0][:200]})") from None
     if not meta.get("complete"):
         raise InputError(f"{p}: the {kind} store is incomplete (its build did not finish)")
+    check_manifest(p)
     return group
 
 

@@ -47,6 +47,7 @@ from vprscale.protocol import (
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
 RADII = np.arange(21)
+MAX_FAISS_K = 1 << 14  # references a FAISS frame may retrieve (the lists of every held frame stay in memory)
 
 
 @dataclass
@@ -245,8 +246,16 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
     if not req.compare:
         return []
     idx = indexes[0][1]
+    if req.faiss_k is not None and req.faiss_k > min(idx.n_ref, MAX_FAISS_K):
+        raise InputError(f"--faiss-k {req.faiss_k:,}: at most {min(idx.n_ref, MAX_FAISS_K):,} (the references, and "
+                         f"{MAX_FAISS_K:,} per frame: each frame's list is held for every window)")
     k = req.faiss_k or max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))
-    return [FaissCodes(factory, dim, k, req.faiss_nprobe, req.workers) for factory in req.compare]
+    methods = [FaissCodes(factory, dim, k, req.faiss_nprobe, req.workers) for factory in req.compare]
+    for m in methods:
+        if m.ivf is not None and m.ivf.nlist > idx.n_ref:
+            raise InputError(f"--compare {m.factory}: {m.ivf.nlist:,} inverted lists for {idx.n_ref:,} references; "
+                             "FAISS needs at least one reference per list to train")
+    return methods
 
 
 def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,

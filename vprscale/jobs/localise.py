@@ -71,6 +71,8 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
             raise InputError(f"--out {out}: is a directory; give a file name")
         if not out.parent.is_dir():
             raise InputError(f"--out {out}: the folder {out.parent} does not exist")
+    if isinstance(L, int) and L > rows:
+        raise InputError(f"--L {L}: longer than the {rows:,} frames of {path}")
     try:
         matcher = OnlineMatcher(Index.load(index), L, mode)
     except ValueError as exc:
@@ -82,6 +84,9 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     t0 = time.perf_counter()
     u = 0
     for block in blocks:
+        bad = np.flatnonzero(~np.isfinite(block).all(axis=1))
+        if len(bad):  # a NaN frame would hash to an arbitrary address and be matched
+            raise InputError(f"{path}: frame {u + int(bad[0]):,} holds NaN or Inf")
         for row in block:
             m = matcher.push(row)
             if m is not None:

@@ -30,6 +30,7 @@ from typing import Any
 
 import vprscale
 from vprscale.core.errors import InputError, JobFailed
+from vprscale.core.manifest import check_manifest
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml
@@ -331,6 +332,12 @@ def _reasons(stage: Stage, parts: dict[str, Any], prev: dict[str, Any], ran: set
             reasons.append(f"output {out} changed")
     if not prev.get("signatures"):
         reasons.append("no outputs recorded")
+    for out in prev.get("signatures", {}):
+        if Path(out).is_dir() and out in now:
+            try:
+                check_manifest(Path(out))
+            except InputError as exc:
+                reasons.append(f"output damaged ({exc})")
     return reasons
 
 

@@ -35,6 +35,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import check_manifest
 from vprscale.core.progress import ChunkProgress
 from vprscale.method.coarsehash import CoarseHasher
 from vprscale.method.lists import (
@@ -246,6 +247,7 @@ def load_index_meta(index: str | Path) -> dict[str, Any]:
         raise InputError(f"{p}: the index is incomplete or of another kind")
     if meta.get("format", 1) < INDEX_FORMAT:
         raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")
+    check_manifest(p)
     return meta
 
 
@@ -254,7 +256,11 @@ def read_arrays(path: str | Path) -> tuple[CoarseHasher, dict[str, np.ndarray], 
     memory-mapped (a query touches only the pages it reads)."""
     path = Path(path)
     meta = load_index_meta(path)
-    model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
+    try:
+        model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
+        arrays = {name: np.load(path / f"{name}.npy", mmap_mode="r") for name in (*LIST_FILES, "ref_hash")}
+    except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file of an index without a manifest
+        raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
+                         "re-run vprscale index") from None
     hasher = CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), int(meta["n_ref"]), **model)
-    arrays = {name: np.load(path / f"{name}.npy", mmap_mode="r") for name in (*LIST_FILES, "ref_hash")}
     return hasher, arrays, meta
