@@ -24,6 +24,7 @@ def _bytes(path: Path) -> dict[str, bytes]:
     return {k: g[k][:].tobytes() for k in ARRAYS}
 
 
+@pytest.mark.slow
 def test_killed_build_resumes_to_identical_bytes(tmp_path, sources):
     recipe = write_recipe(tmp_path / "tiny.toml", deep1b_rows_read=600_000, deep1b_rows_kept=600_000)
     cmd = [sys.executable, "-m", "vprscale.cli", "build", "--scale", str(recipe), "--fas",
@@ -113,6 +114,7 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, sources, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_distributed_build_equals_local_build(tmp_path, sources):
     from distributed import LocalCluster
 

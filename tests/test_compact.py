@@ -97,6 +97,7 @@ def _compact_bytes(path: Path) -> dict[str, bytes]:
     return {k: g[k][:].tobytes() for k in COMPACT_ARRAYS} | {"model": g["transforms/coarsehash/centres"][:].tobytes()}
 
 
+@pytest.mark.slow
 def test_killed_compact_build_resumes_from_its_checkpoints_to_identical_bytes(tmp_path, sources):
     """Killed in the middle of the moments pass, then of the hashing pass: same bytes as one run."""
     import os
@@ -127,6 +128,7 @@ def test_killed_compact_build_resumes_from_its_checkpoints_to_identical_bytes(tm
     assert _compact_bytes(tmp_path / "a" / "tiny.zarr") == _compact_bytes(tmp_path / "b" / "tiny.zarr")
 
 
+@pytest.mark.slow
 def test_distributed_compact_build_equals_local(compact_store, sources, tmp_path, monkeypatch):
     """On a cluster of worker processes, with a relative --out (the workers do not share our directory)."""
     from distributed import LocalCluster

@@ -128,6 +128,7 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
     assert per_method["coarsehash"][0] == pytest.approx(12 / 8 + lists / len(ids))
 
 
+@pytest.mark.slow
 def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch):
     """A run whose frames would visit more codes than the budget localises an evenly spaced
     sample of the centres (the same ones for every flat method); IVF visits few and does all."""
@@ -161,6 +162,7 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
 
 
 
+@pytest.mark.slow
 def test_same_matches_whatever_the_workers(tiny_store, tiny_index, compared, tmp_path):
     """FAISS trains on one thread and encodes and searches fixed blocks each on one thread, so
     one worker gives the lists and matches two gave (FAISS's own threading changes its OPQ and

@@ -135,6 +135,7 @@ def test_eval_never_overwrites_an_evaluation_without_force(tiny_store, tiny_inde
     assert pq.read_table(out / "queries.parquet").num_rows < pq.read_table(kept / "queries.parquet").num_rows
 
 
+@pytest.mark.slow
 def test_cost_per_query_holds_under_load_and_workers(tiny_store, tiny_index, tmp_path):
     """Per-query cost is CPU time of one thread: with two busy loops on the machine, one
     worker or two give the same figure within 35 % (wall time × threads moved 6-18× here)."""

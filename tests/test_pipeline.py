@@ -70,6 +70,7 @@ def quickstart_run(tmp_path_factory):
     return tmp, path, run_pipeline(path)
 
 
+@pytest.mark.slow
 def test_quickstart_runs_end_to_end(quickstart_run):
     tmp, _, summary = quickstart_run
     assert summary["status"] == "ok"
@@ -107,6 +108,7 @@ def _dry_run(path: Path, pythonpath: Path | None = None) -> dict[str, dict]:
     return found
 
 
+@pytest.mark.slow
 def test_a_changed_report_module_reruns_only_the_report(quickstart_run, tmp_path):
     """The code a stage depends on is the modules its job imports: a change to the report code
     re-runs the report stage, not the builds, indexes or evaluations."""
@@ -123,6 +125,7 @@ def test_a_changed_report_module_reruns_only_the_report(quickstart_run, tmp_path
     assert "code changed (vprscale.evaluation.report)" in plan["report"]["why"]
 
 
+@pytest.mark.slow
 def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp_path):
     tmp, path, summary = quickstart_run
     figure = next(Path(f) for f in summary["figures"] if f.endswith("fig3_recall.png"))
@@ -143,6 +146,7 @@ def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp
     assert not any(s["run"] for s in _dry_run(path).values())
 
 
+@pytest.mark.slow
 def test_rerun_does_no_work_and_a_changed_stage_reruns_with_dependants(quickstart_run):
     tmp, path, _ = quickstart_run
     again = run_pipeline(path)

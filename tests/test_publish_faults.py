@@ -96,6 +96,7 @@ def small(sources, tmp_path_factory) -> dict[str, Path]:
     return {"recipe": recipe, "root": root}
 
 
+@pytest.mark.slow
 def test_forced_rebuild_survives_a_kill_at_every_publish_step(small, sources, tmp_path):
     """--force replaces a complete store (every step of a first publish, and moving the old store aside)."""
     out = tmp_path / "out"
@@ -112,6 +113,7 @@ def test_forced_rebuild_survives_a_kill_at_every_publish_step(small, sources, tm
     _kill_at_each_step([*base, "--force"], out / "tiny.zarr", reset, tmp_path)
 
 
+@pytest.mark.slow
 def test_index_and_eval_survive_a_kill_at_every_publish_step(small, sources, tmp_path):
     out = tmp_path / "out"
     subprocess.run(_cli("build", "--scale", str(small["recipe"]), "--deep1b", str(sources["fbin"]), "--fas",
