@@ -10,115 +10,35 @@ SQL); its only allowed directory is a fresh, empty spill directory of its own (D
 would otherwise allow ``<cwd>/.tmp``), removed afterwards; memory, threads and spill size
 are capped; exactly one SELECT (or WITH … SELECT) statement runs, after the configuration
 is locked; and a timeout interrupts it, and abandons it if it does not stop.
+
+The console's caps hold by the operating system, not only by DuckDB's settings: every query
+runs in a child process (:class:`Sandbox`) under an address-space limit, which the parent
+also watches (resident memory above ``--memory-limit`` + 1 GB) and kills at the timeout
+(+ 1 s), so any statement ends in time with one line, and the spill directory, made and
+removed by the parent, is never left behind.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import multiprocessing
+import os
+import re
 import shutil
 import sys
 import tempfile
-import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-import duckdb
 import pyarrow.csv as pacsv
-import pyarrow.dataset as pads
 
 from vprscale.core.errors import InputError
+from vprscale.evaluation.sqlchild import serve, views
 from vprscale.method.indexfile import load_index_meta
-
-GRACE_S = 5.0  # how long an interrupted query may take to stop before it is abandoned
-
-
-def _views(index: Path) -> dict[str, Path]:
-    views = {"lists": index / "lists.parquet", "buckets": index / "buckets.parquet",
-             "model": index / "components.parquet"}
-    for name in ("results", "queries"):
-        f = index / "eval" / f"{name}.parquet"
-        if f.is_file():
-            views[name] = f
-    return views
-
-
-@contextmanager
-def connect(index: str | Path, memory_limit: str = "2GB", threads: int = 2,
-            spill_limit: str = "2GB") -> Iterator[duckdb.DuckDBPyConnection]:
-    """An in-memory connection with the index views, locked down (see the module's docstring)."""
-    root = Path(index).resolve()
-    load_index_meta(root)
-    spill = tempfile.mkdtemp(prefix="vprscale-sql-")
-    con = duckdb.connect(":memory:")
-    try:
-        for name, path in _views(root).items():
-            try:
-                con.register(name, pads.dataset(path, format="parquet"))
-            except (OSError, ValueError) as exc:  # pyarrow's errors for missing or damaged files
-                raise InputError(f"{path}: cannot be read as Parquet ({str(exc).splitlines()[0]})") from None
-        settings = [("temp_directory", spill), ("memory_limit", memory_limit), ("threads", threads),
-                    ("max_temp_directory_size", spill_limit), ("enable_external_access", False),
-                    ("autoinstall_known_extensions", False), ("autoload_known_extensions", False),
-                    ("allow_community_extensions", False), ("lock_configuration", True)]
-        for name, value in settings:  # the names are ours; the values go in as bound parameters
-            try:
-                con.execute(f"SET {name} = ?", [value])
-            except duckdb.Error as exc:
-                raise InputError(f"--{name.replace('_', '-')} {value}: {str(exc).splitlines()[0]}") from None
-        yield con
-    finally:
-        con.close()
-        shutil.rmtree(spill, ignore_errors=True)
-
-
-def check_statement(con: duckdb.DuckDBPyConnection, query: str) -> None:
-    """Refuse anything but a single SELECT statement."""
-    try:
-        statements = con.extract_statements(query)
-    except duckdb.Error as exc:
-        raise InputError(f"query: cannot parse: {exc}") from None
-    if len(statements) != 1:
-        raise InputError(f"query: exactly one statement is allowed, got {len(statements)}")
-    kind = statements[0].type
-    if kind != duckdb.StatementType.SELECT:
-        raise InputError(f"query: only SELECT statements are allowed, got {kind.name}")
-
-
-def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
-    """Run a checked statement with a timeout; returns a pyarrow table.
-
-    The statement runs on a daemon thread; at the timeout it is interrupted, and if it has
-    not stopped ``GRACE_S`` later it is abandoned (the error is raised and the process may
-    exit while DuckDB still unwinds).
-    """
-    if not timeout > 0:
-        raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
-    check_statement(con, query)
-    box: dict = {}
-
-    def run() -> None:
-        try:
-            box["table"] = con.sql(query).to_arrow_table()
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-            box["error"] = exc
-
-    worker = threading.Thread(target=run, daemon=True)
-    worker.start()
-    worker.join(timeout)
-    if worker.is_alive():
-        con.interrupt()
-        worker.join(GRACE_S)
-        raise InputError(f"query: stopped at the {timeout:g} s timeout")
-    exc = box.get("error")
-    if isinstance(exc, duckdb.InterruptException):
-        raise InputError(f"query: stopped at the {timeout:g} s timeout")
-    if isinstance(exc, duckdb.Error):
-        raise InputError(f"query: {str(exc).splitlines()[0]}") from None
-    if exc is not None:
-        raise exc
-    return box["table"]
 
 
 def format_table(table, fmt: str) -> str:
@@ -136,17 +56,144 @@ def format_table(table, fmt: str) -> str:
     return "\n".join([line, "  ".join("-" * w for w in widths), *body, f"({len(rows)} rows)"]) + "\n"
 
 
+UNITS = {"": 1, "B": 1, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12, "KIB": 2**10, "MIB": 2**20,
+         "GIB": 2**30, "TIB": 2**40}
+HEADROOM = 1 << 30  # what the process may hold beyond DuckDB's own memory limit
+KILL_AFTER_S = 1.0  # beyond the timeout, before the child is killed
+WATCH_S = 0.05
+
+
+def memory_bytes(text: str) -> int:
+    """DuckDB's memory-limit syntax (``2GB``, ``300MB``, ``1.5GiB``) as bytes."""
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([A-Za-z]*)\s*", str(text))
+    if not m or m.group(2).upper() not in UNITS or float(m.group(1)) <= 0:
+        raise InputError(f"--memory-limit {text}: not a size such as 2GB or 300MB")
+    return int(float(m.group(1)) * UNITS[m.group(2).upper()])
+
+
+def _spill_dir() -> str:
+    """A fresh spill directory for this process, after removing those of processes that are gone
+    (a killed console cannot remove its own)."""
+    import psutil
+
+    base = Path(tempfile.gettempdir()) / "vprscale-sql"
+    base.mkdir(exist_ok=True)
+    for old in base.iterdir():
+        pid = old.name.split("-")[0]
+        if pid.isdigit() and not psutil.pid_exists(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    return tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base)
+
+
+class Sandbox:
+    """A child process holding one locked-down connection; each query runs there under OS caps.
+
+    The child limits its own address space (its size after start-up + ``--memory-limit`` +
+    1 GB); the parent watches its resident memory against the same bound and its time
+    against the timeout, and kills it past either. The spill directory is the parent's.
+    """
+
+    def __init__(self, index: str | Path, memory_limit: str = "2GB", threads: int = 2) -> None:
+        load_index_meta(Path(index))  # a bad index is one line before any child starts
+        self.limit_text = memory_limit
+        self.cap = memory_bytes(memory_limit) + HEADROOM
+        self.args = (str(Path(index).resolve()), memory_limit, threads)
+        self.spill = _spill_dir()
+        self.proc = None
+        self._start()
+
+    def _start(self) -> None:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["duckdb", "pyarrow", "pyarrow.dataset", "vprscale.evaluation.sqlchild"])
+        self.pipe, child = ctx.Pipe()
+        self.proc = ctx.Process(target=serve, args=(child, *self.args, self.spill, self.cap), daemon=True)
+        self.proc.start()
+        child.close()
+        kind, value = self._receive(60.0, "start-up")
+        if kind != "ready":
+            self.close()
+            raise InputError(value)
+
+    def _receive(self, seconds: float, what: str) -> tuple[str, Any]:
+        """The child's answer, or an error once it is killed past ``seconds`` or its memory bound."""
+        import psutil
+
+        deadline = time.monotonic() + seconds
+        child = psutil.Process(self.proc.pid)
+        while not self.pipe.poll(WATCH_S):
+            try:
+                rss = child.memory_info().rss
+            except psutil.Error:
+                rss = 0
+            if not self.proc.is_alive():
+                self._kill()
+                raise InputError(f"query: the SQL process died during the {what} (exit {self.proc.exitcode}); "
+                                 f"a query past the memory limit ({self.limit_text} + 1 GB) ends so")
+            if rss > self.cap:
+                self._kill()
+                raise InputError(f"query: stopped at the memory limit ({self.limit_text} + 1 GB)")
+            if time.monotonic() > deadline:
+                self._kill()
+                raise InputError(f"query: stopped at the {seconds - KILL_AFTER_S:g} s timeout")
+        try:
+            return self.pipe.recv()
+        except EOFError:
+            self._kill()
+            raise InputError(f"query: the SQL process died during the {what}") from None
+
+    def query(self, query: str, timeout: float):
+        """One checked statement's result as a pyarrow table (the child is restarted after a kill)."""
+        if not timeout > 0:
+            raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
+        if self.proc is None:
+            self._start()
+        self.pipe.send((query, timeout))
+        kind, value = self._receive(timeout + KILL_AFTER_S, "query")
+        if kind == "input":
+            raise InputError(value)
+        import pyarrow as pa
+
+        return pa.ipc.open_stream(value).read_all()
+
+    def _kill(self) -> None:
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.join()
+            self.proc = None
+
+    def close(self) -> None:
+        if self.proc is not None:
+            try:
+                self.pipe.send(None)
+                self.proc.join(5.0)
+            except (OSError, ValueError):
+                pass
+            self._kill()
+        shutil.rmtree(self.spill, ignore_errors=True)
+
+
+@contextmanager
+def sandbox(index: str | Path, memory_limit: str = "2GB", threads: int = 2) -> Iterator[Sandbox]:
+    box = Sandbox(index, memory_limit, threads)
+    try:
+        yield box
+    finally:
+        box.close()
+
+
 def run_sql(index: str | Path, query: str, fmt: str = "table", timeout: float = 30.0, memory_limit: str = "2GB",
             threads: int = 2) -> str:
     """One read-only query over an index, formatted as a table, CSV or JSON lines."""
-    with connect(index, memory_limit, threads) as con:
-        return format_table(query_table(con, query, timeout), fmt)
+    if not timeout > 0:
+        raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
+    with sandbox(index, memory_limit, threads) as box:
+        return format_table(box.query(query, timeout), fmt)
 
 
 def shell(index: str | Path, timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:
     """An interactive console: statements end with ';', an empty line or EOF quits."""
-    with connect(index, memory_limit, threads) as con:
-        print(f"vprscale sql on {index}: views {', '.join(_views(Path(index).resolve()))}; end with ';'",
+    with sandbox(index, memory_limit, threads) as box:
+        print(f"vprscale sql on {index}: views {', '.join(views(Path(index).resolve()))}; end with ';'",
               file=sys.stderr)
         buf: list[str] = []
         while True:
@@ -160,6 +207,6 @@ def shell(index: str | Path, timeout: float = 30.0, memory_limit: str = "2GB", t
             if line.rstrip().endswith(";"):
                 query, buf = "\n".join(buf), []
                 try:
-                    print(format_table(query_table(con, query, timeout), "table"), end="")
+                    print(format_table(box.query(query, timeout), "table"), end="")
                 except InputError as exc:
                     print(f"error: {exc}", file=sys.stderr)

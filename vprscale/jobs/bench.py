@@ -95,7 +95,7 @@ def bench_lookup(index: str, n: int = 50) -> str:
     """Latency of one-address look-ups through the sandboxed DuckDB console."""
     import pyarrow.parquet as pq
 
-    from vprscale.evaluation.sql import connect, query_table
+    from vprscale.evaluation.sqlchild import connect, query_table
 
     addresses = pq.read_table(Path(index) / "buckets.parquet", columns=["hash"])["hash"].to_numpy()
     picks = np.random.default_rng(0).choice(addresses, n)
