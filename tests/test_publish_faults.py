@@ -65,9 +65,17 @@ def _killed(cmd: list[str], output: Path, name: str, n: int) -> subprocess.Compl
 
 
 def _tree(path: Path) -> dict[str, bytes]:
+    """Every file's bytes, but for the run's timings and provenance (and their manifest entries)."""
+    import json
+
     skip = ("build.json", "eval.json", "index.json")  # run timings: they differ from run to run
-    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
+    tree = {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*"))
             if p.is_file() and p.name not in skip}
+    if "manifest.json" in tree:
+        files = json.loads(tree["manifest.json"])["files"]
+        tree["manifest.json"] = json.dumps({k: v for k, v in files.items() if Path(k).name not in skip},
+                                           sort_keys=True).encode()
+    return tree
 
 
 def _kill_at_each_step(cmd: list[str], output: Path, reset, tmp_path: Path) -> None:
