@@ -241,3 +241,13 @@ def test_relative_paths_on_a_cluster_whose_worker_runs_elsewhere(tiny_store, tin
         for p in (worker, sched):
             p.terminate()
             p.wait(timeout=30)
+
+
+def test_one_line_where_a_traceback_was(tiny_store, tiny_index, tmp_path, capsys):
+    recipe = tmp_path / "bad.toml"
+    recipe.write_bytes(b'scale = "x\xff"\n')
+    fails(capsys, ["build", "--scale", str(recipe), "--out", str(tmp_path / "o")], "bad.toml", "not UTF-8")
+    fails(capsys, ["index", str(tiny_store), "--out", "/"], "--out /", "names no directory")
+    fails(capsys, ["sql", str(tiny_index), "UPDATE EXTENSIONS"], "only SELECT")
+    assert main(["sql", str(tiny_index), "SELECT [1, 2] AS l, map([1], [2]) AS m, 3 AS n", "--csv"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == '"[1, 2]","[[1, 2]]",3'

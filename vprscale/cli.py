@@ -216,6 +216,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         check_request(req)
         req.indexes = sweep_indexes(args.store, args.d, scheduler=args.scheduler, workers=args.workers)
     summary = evaluate(req)
+    if summary.get("recovered"):
+        _write_summary(args, summary)
+        return 0
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
           f"({summary['queries']:,} rows); z = {summary['z']}")

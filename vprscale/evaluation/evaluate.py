@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -47,6 +48,8 @@ from vprscale.protocol import (
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
 RADII = np.arange(21)
+_HOLDS = ("{out}: already holds an evaluation; --force replaces it and keeps it beside, in {out.name}.previous/ "
+          "(or give another --out)")
 MAX_FAISS_K = 1 << 14  # references a FAISS frame may retrieve (the lists of every held frame stay in memory)
 
 
@@ -195,9 +198,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(f"--out {out}: is a file, not a directory for the evaluation")
         if out.is_dir() and any(out.iterdir()) and not (out / "eval.json").is_file():
             raise InputError(f"--out {out}: exists and holds something other than an evaluation; not replaced")
-        if (out / "eval.json").is_file() and not req.force:
-            raise InputError(f"{out}: already holds an evaluation; --force replaces it and keeps it beside, "
-                             f"in {out.name}.previous/ (or give another --out)")
+        partial = PartialOutput(out, {"eval": time.time_ns()})
+        if (out / "eval.json").is_file() and not req.force and not partial.sealed.exists():
+            raise InputError(_HOLDS.format(out=out))
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
         base = load_baseline_map(group, layout) if req.baseline else None
@@ -205,8 +208,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             for path in index_paths:  # re-indexing waits for (is refused during) an evaluation of the index
                 locks.enter_context(exclusive(path))
             locks.enter_context(exclusive(out))
-            partial = PartialOutput(out, {"eval": time.time_ns()})
-            partial.recover()
+            if partial.recover():  # a killed run had sealed this evaluation: its publishing is finished, not redone
+                print(f"{out}: finished publishing the evaluation a killed run had completed", file=sys.stderr)
+                return {"out": str(out), "rows": 0, "queries": 0, "z": z, "table": "", "recovered": True}
+            if (out / "eval.json").is_file() and not req.force:
+                raise InputError(_HOLDS.format(out=out))
             partial.open()
             t_fit = time.perf_counter()
             fit_codes(compared, rows_of(group["ref"]), req.quiet) if compared else None

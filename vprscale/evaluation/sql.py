@@ -41,10 +41,22 @@ from vprscale.evaluation.sqlchild import serve, views
 from vprscale.method.indexfile import load_index_meta
 
 
+def _flat(table):
+    """Nested columns (lists, maps, structs) as JSON text, which CSV can hold."""
+    import pyarrow as pa
+
+    columns = []
+    for name, col in zip(table.column_names, table.columns, strict=True):
+        if pa.types.is_nested(col.type):
+            col = pa.array([None if v is None else json.dumps(v, default=str) for v in col.to_pylist()], pa.string())
+        columns.append((name, col))
+    return pa.table(dict(columns)) if columns else table
+
+
 def format_table(table, fmt: str) -> str:
     if fmt == "csv":
         buf = io.BytesIO()
-        pacsv.write_csv(table, buf)
+        pacsv.write_csv(_flat(table), buf)
         return buf.getvalue().decode()
     if fmt == "json":
         return "".join(json.dumps(row, default=str) + "\n" for row in table.to_pylist())

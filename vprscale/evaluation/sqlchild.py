@@ -72,7 +72,10 @@ def check_statement(con: duckdb.DuckDBPyConnection, query: str) -> None:
         raise InputError(f"query: cannot parse: {exc}") from None
     if len(statements) != 1:
         raise InputError(f"query: exactly one statement is allowed, got {len(statements)}")
-    kind = statements[0].type
+    try:
+        kind = statements[0].type
+    except ValueError:  # a statement type newer than the Python binding knows (UPDATE EXTENSIONS …)
+        raise InputError("query: only SELECT statements are allowed") from None
     if kind != duckdb.StatementType.SELECT:
         raise InputError(f"query: only SELECT statements are allowed, got {kind.name}")
 
@@ -145,6 +148,8 @@ def serve(pipe, index: str, memory_limit: str, threads: int, spill: str, cap: in
                     pipe.send(("input", str(exc)))
                 except (MemoryError, duckdb.OutOfMemoryException):
                     pipe.send(("input", f"query: stopped at the memory limit ({memory_limit} + 1 GB)"))
+                except (duckdb.Error, pa.ArrowException) as exc:  # anything DuckDB or Arrow refuses is the query's
+                    pipe.send(("input", f"query: {str(exc).splitlines()[0][:300]}"))
     except InputError as exc:
         pipe.send(("input", str(exc)))
     except (MemoryError, duckdb.OutOfMemoryException):

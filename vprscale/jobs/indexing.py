@@ -68,6 +68,8 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         hasher = CoarseHasher(d=d, k=k)
         d_eff = hasher._check(n_ref, dim)
     final = Path(out) if out else default_index_dir(store, d_eff, k)
+    if not final.resolve().name:
+        raise InputError(f"--out {out}: names no directory to write the index into; give a new folder's path")
     check_writable(final.parent)
     identity = store_identity(store)
     timings = Timings(quiet)

@@ -30,7 +30,7 @@ from typing import Any
 
 import vprscale
 from vprscale.core.errors import InputError, JobFailed
-from vprscale.core.manifest import check_manifest
+from vprscale.core.manifest import check_manifest, read_manifest
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml
@@ -349,10 +349,20 @@ def _signatures(outputs: dict[str, Any]) -> dict[str, str]:
     for p in map(Path, paths):
         if not p.exists():
             continue
-        files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+        files = _own_files(p) if p.is_dir() else [p]
         body = [(str(f.relative_to(p)) if p.is_dir() else "", f.stat().st_size, f.stat().st_mtime_ns) for f in files]
         found[str(p)] = hashlib.sha256(json.dumps(body).encode()).hexdigest()[:16]
     return found
+
+
+def _own_files(directory: Path) -> list[Path]:
+    """The files an output directory holds of its own: those its manifest lists (an index's later
+    ``eval/`` folder is another stage's output), else every file in it."""
+    manifest = read_manifest(directory)
+    if manifest is None:
+        return sorted(f for f in directory.rglob("*") if f.is_file())
+    return [directory / rel for rel in sorted(manifest["files"]) if (directory / rel).is_file()] + [
+        directory / "manifest.json"]
 
 
 def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
