@@ -118,6 +118,7 @@ def test_a_changed_report_module_reruns_only_the_report(quickstart_run, tmp_path
 
     copy = tmp_path / "pkg"
     shutil.copytree(Path(vprscale.__file__).parent, copy / "vprscale", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "datasets", copy / "datasets")  # the recipes live beside the package
     with (copy / "vprscale" / "evaluation" / "report.py").open("a") as f:
         f.write("\n# a change to the report code\n")
     plan = _dry_run(path, pythonpath=copy)
