@@ -7,6 +7,7 @@ import pytest
 import zarr
 from zarr.codecs import ZstdCodec
 
+from vprscale.core.errors import InputError
 from vprscale.core.zarrio import raw_chunk_dir, rows_of
 
 
@@ -40,7 +41,7 @@ def test_a_chunk_left_out_as_fill_reads_as_fill_and_a_short_file_is_an_error(tmp
     np.testing.assert_array_equal(got[300:600], 0.0)
     np.testing.assert_array_equal(got[:300], x[:300])
     (directory / "2" / "0").write_bytes(b"\0" * 12)
-    with pytest.raises(OSError, match="2/0: chunk file holds 12 bytes"):
+    with pytest.raises(InputError, match="2/0: chunk file holds 12 bytes"):
         rows_of(a).compute()
 
 
@@ -67,7 +68,7 @@ def test_an_oversized_chunk_file_is_an_error(tmp_path):
     a, x = stored(tmp_path)
     f = raw_chunk_dir(a) / "0" / "0"
     f.write_bytes(f.read_bytes() + b"\0" * 4)
-    with pytest.raises(OSError, match="0/0: chunk file holds 8404 bytes, expected 8400"):
+    with pytest.raises(InputError, match="0/0: chunk file holds 8,404 bytes, expected 8,400"):
         rows_of(a).compute()
 
 
