@@ -251,3 +251,26 @@ def test_one_line_where_a_traceback_was(tiny_store, tiny_index, tmp_path, capsys
     fails(capsys, ["sql", str(tiny_index), "UPDATE EXTENSIONS"], "only SELECT")
     assert main(["sql", str(tiny_index), "SELECT [1, 2] AS l, map([1], [2]) AS m, 3 AS n", "--csv"]) == 0
     assert capsys.readouterr().out.splitlines()[1] == '"[1, 2]","[[1, 2]]",3'
+
+
+@pytest.fixture
+def small_filesystem(tmp_path):
+    """A 300 KB tmpfs (skipped where this test may not mount one)."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(mnt)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small filesystem here ({done.stderr.decode().strip()[:80]})")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_a_full_disk_is_one_line_and_the_rerun_finishes(small_filesystem, tiny_store, capsys):
+    out = small_filesystem / "t.index"
+    fails(capsys, ["index", str(tiny_store), "--d", "12", "--out", str(out)], "the disk is full", "run the same")
+    assert not out.exists()  # nothing half-published
+    subprocess.run(["mount", "-o", "remount,size=20m", str(small_filesystem)], check=True)
+    assert main(["index", str(tiny_store), "--d", "12", "--out", str(out)]) == 0
+    assert read_index(out).n_ref == 52_500

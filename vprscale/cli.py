@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import shlex
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -442,6 +444,20 @@ def _version() -> str:
     return f"vprscale {__version__}"
 
 
+def _disk_full(exc: OSError, args: argparse.Namespace) -> bool:
+    """Whether an I/O error is a full disk: ENOSPC/EDQUOT, or (numpy's short writes carry no errno)
+    the output's filesystem has less than a mebibyte left."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    out = getattr(args, "out", None)
+    if not out:
+        return False
+    path = Path(out).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return shutil.disk_usage(path).free < 1 << 20
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser().parse_args(argv)
@@ -456,6 +472,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except JobFailed as exc:
         print(f"vprscale {args.command}: failed: {exc}", file=sys.stderr)
         return EXIT_FAILURE
+    except OSError as exc:
+        if not _disk_full(exc, args):
+            raise
+        # Outputs are published whole, so nothing half-written is visible; checkpoints stay for the re-run.
+        where = f" writing {exc.filename}" if exc.filename else ""
+        print(f"vprscale {args.command}: error: the disk is full{where}; free space and run the same command "
+              "again (finished work is kept and resumed)", file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
