@@ -157,6 +157,10 @@ def test_fas_compressed_npz_is_read_through_a_cache(tmp_path, monkeypatch, sourc
     np.savez_compressed(tmp_path / "c.npz", **arrays)
     tr = open_fas(tmp_path / "c.npz")
     np.testing.assert_array_equal(tr.query.read(5, 50), arrays["arr_1"][5:50])
+    cached = next((tmp_path / "cache").rglob("arr_1.npy"))
+    cached.write_bytes(cached.read_bytes()[:1000])  # a kill or a full disk cut the cache file short
+    tr = open_fas(tmp_path / "c.npz")  # it is written again, not read short on every run
+    np.testing.assert_array_equal(tr.query.read(1990, 2000), arrays["arr_1"][1990:2000])
 
 
 def _npz(tmp_path, **changes):

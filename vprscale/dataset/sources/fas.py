@@ -106,11 +106,15 @@ def open_fas(path: str | os.PathLike) -> Traverse:
                 target = p
             else:
                 target = _cache_dir() / f"{fp['sha256_head_tail'][:16]}-{fp['bytes']}" / f"{key}.npy"
-                if not target.exists():
+                if not target.is_file() or target.stat().st_size != info.file_size:  # missing, or cut short
                     target.parent.mkdir(parents=True, exist_ok=True)
                     tmp = target.with_suffix(".tmp")
-                    with zf.open(info) as src, open(tmp, "wb") as dst:
-                        shutil.copyfileobj(src, dst, 1 << 24)
+                    try:
+                        with zf.open(info) as src, open(tmp, "wb") as dst:
+                            shutil.copyfileobj(src, dst, 1 << 24)
+                    except BaseException:
+                        tmp.unlink(missing_ok=True)  # a full cache leaves nothing half-written behind
+                        raise
                     tmp.replace(target)
                 with open(target, "rb") as cf:
                     shape, fortran, dtype = _npy_header(cf)
