@@ -37,6 +37,7 @@ BASE = 'name = "t"\nout = "{out}"\n'
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "eval"\n'
      'store = "a"\nL = [1, "fifty"]\n', "stage 'e': key 'L' must be a list of integers"),
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\ncolour = "red"\n', "unknown key 'colour'"),
+    ('[[stages]]\nname = 5\nkind = "build"\nscale = "20K"\n', "'name' and 'kind' must be non-empty strings, got 5"),
 ])
 def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
     out = tmp_path / "out"

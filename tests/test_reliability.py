@@ -274,3 +274,8 @@ def test_a_full_disk_is_one_line_and_the_rerun_finishes(small_filesystem, tiny_s
     subprocess.run(["mount", "-o", "remount,size=20m", str(small_filesystem)], check=True)
     assert main(["index", str(tiny_store), "--d", "12", "--out", str(out)]) == 0
     assert read_index(out).n_ref == 52_500
+
+
+def test_a_broken_zarr_json_is_one_line(store_copy, tmp_path, capsys):
+    (store_copy / "zarr.json").write_text('{"zarr_format": 3, "node_type": "gro')
+    fails(capsys, ["index", str(store_copy), "--out", str(tmp_path / "i")], "zarr.json")

@@ -101,13 +101,18 @@ def load_pipeline(path: str | Path) -> Pipeline:
         raise InputError(f"{path}: key 'workers' must be a positive integer")
     if not isinstance(data["stages"], list) or not data["stages"]:
         raise InputError(f"{path}: key 'stages' must be a non-empty array of tables ([[stages]])")
-    pipe = Pipeline(path, str(data["name"]), Path(data["out"]), workers)
+    for key in ("name", "out"):
+        if not isinstance(data[key], str) or not data[key]:
+            raise InputError(f"{path}: key '{key}' must be a non-empty string, got {data[key]!r}")
+    pipe = Pipeline(path, data["name"], Path(data["out"]), workers)
     kinds: dict[str, str] = {}
     for i, raw in enumerate(data["stages"]):
         where = f"{path}: stages[{i}]"
         if not isinstance(raw, dict) or "name" not in raw or "kind" not in raw:
             raise InputError(f"{where}: every stage needs the keys 'name' and 'kind'")
         name, kind = raw["name"], raw["kind"]
+        if not isinstance(name, str) or not name or not isinstance(kind, str):
+            raise InputError(f"{where}: 'name' and 'kind' must be non-empty strings, got {name!r} and {kind!r}")
         where = f"{path}: stage '{name}'"
         if kind not in SCHEMA:
             raise InputError(f"{where}: unknown stage kind '{kind}' (known: {', '.join(SCHEMA)})")
