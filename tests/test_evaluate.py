@@ -161,3 +161,29 @@ def test_cost_per_query_holds_under_load_and_workers(tiny_store, tiny_index, tmp
     assert abs(costs[2] - costs[1]) / costs[1] < 0.35, costs
     # apart from the timing columns, the results are the same whatever the workers
     assert tables[1].equals(tables[2])
+
+
+def test_many_evaluations_read_as_one_table(tiny_store, tiny_index, tmp_path, capsys):
+    """load_results, ``vprscale results --where`` and ``vprscale sql`` on evaluation folders."""
+    import vprscale
+
+    folders = []
+    for z in (100, 500):
+        out = tmp_path / f"z{z}"
+        assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline",
+                     "--z", str(z), "--repeats", "1", "--out", str(out)]) == 0
+        folders.append(out)
+    frame = vprscale.load_results(*folders)
+    sizes = frame.groupby("run").size()
+    assert sorted(sizes.index) == sorted(str(f.resolve()) for f in folders) and (sizes == 63).all()
+    assert frame.commit.notna().all() and frame.run_time.notna().all()
+    per_query = vprscale.load_results(*folders, queries=True)
+    assert per_query.groupby("run").size()[str(folders[0].resolve())] > per_query.groupby("run").size()[
+        str(folders[1].resolve())]
+    capsys.readouterr()
+    assert main(["results", *map(str, folders), "--where", "radius = 20 AND part = 'all'", "--csv"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1 + 2 and all(str(f.resolve()) in "".join(lines) for f in folders)
+    assert main(["sql", str(folders[0]), "SELECT count(*) AS n FROM results", "--csv"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == "63"
+    assert main(["results", str(tmp_path / "nothing")]) == 2

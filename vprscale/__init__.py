@@ -2,7 +2,7 @@
 
 The public Python API::
 
-    from vprscale import CoarseHasher, ExactPCA, RandomizedPCA, Index, OnlineMatcher
+    from vprscale import CoarseHasher, ExactPCA, RandomizedPCA, Index, OnlineMatcher, load_results
 
 (imported on first use, so that ``import vprscale`` and the command line start fast).
 """
@@ -11,7 +11,7 @@ __version__ = "0.3.0"
 
 _PUBLIC = {"CoarseHasher": "vprscale.method.coarsehash", "ExactPCA": "vprscale.method.pca",
            "RandomizedPCA": "vprscale.method.pca", "Index": "vprscale.method.index",
-           "OnlineMatcher": "vprscale.method.online"}
+           "OnlineMatcher": "vprscale.method.online", "load_results": "vprscale.evaluation.results"}
 __all__ = [*_PUBLIC, "__version__"]
 
 

@@ -37,6 +37,7 @@ from typing import Any
 import pyarrow.csv as pacsv
 
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import check_manifest
 from vprscale.evaluation.sqlchild import serve, views
 from vprscale.method.indexfile import load_index_meta
 
@@ -83,6 +84,22 @@ def memory_bytes(text: str) -> int:
     return int(float(m.group(1)) * UNITS[m.group(2).upper()])
 
 
+def check_sources(paths: list[Path]) -> None:
+    """Each path is a complete index or evaluation folder (checked against its manifest); one index at most."""
+    indexes = 0
+    for p in paths:
+        if (p / "index.json").is_file():
+            load_index_meta(p)
+            indexes += 1
+        elif (p / "results.parquet").is_file():
+            check_manifest(p)
+        else:
+            raise InputError(f"{p}: neither a vprscale index nor an evaluation folder (no index.json or "
+                             "results.parquet)")
+    if indexes > 1:
+        raise InputError("sql: one index at a time (any number of evaluation folders)")
+
+
 def _spill_dir() -> str:
     """A fresh spill directory for this process, after removing those of processes that are gone
     (a killed console cannot remove its own)."""
@@ -105,11 +122,12 @@ class Sandbox:
     against the timeout, and kills it past either. The spill directory is the parent's.
     """
 
-    def __init__(self, index: str | Path, memory_limit: str = "2GB", threads: int = 2) -> None:
-        load_index_meta(Path(index))  # a bad index is one line before any child starts
+    def __init__(self, paths: str | Path | list, memory_limit: str = "2GB", threads: int = 2) -> None:
+        roots = [Path(p) for p in (paths if isinstance(paths, list) else [paths])]
+        check_sources(roots)  # a bad index or evaluation is one line before any child starts
         self.limit_text = memory_limit
         self.cap = memory_bytes(memory_limit) + HEADROOM
-        self.args = (str(Path(index).resolve()), memory_limit, threads)
+        self.args = ([str(p.resolve()) for p in roots], memory_limit, threads)
         self.spill = _spill_dir()
         self.proc = None
         self._start()
@@ -205,7 +223,7 @@ def run_sql(index: str | Path, query: str, fmt: str = "table", timeout: float = 
 def shell(index: str | Path, timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:
     """An interactive console: statements end with ';', an empty line or EOF quits."""
     with sandbox(index, memory_limit, threads) as box:
-        print(f"vprscale sql on {index}: views {', '.join(views(Path(index).resolve()))}; end with ';'",
+        print(f"vprscale sql on {index}: views {', '.join(views([Path(index).resolve()]))}; end with ';'",
               file=sys.stderr)
         buf: list[str] = []
         while True:

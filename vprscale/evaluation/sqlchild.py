@@ -24,30 +24,53 @@ PR_SET_PDEATHSIG = 1
 GRACE_S = 5.0  # how long an interrupted query may take to stop before it is abandoned
 
 
-def views(index: Path) -> dict[str, Path]:
-    views = {"lists": index / "lists.parquet", "buckets": index / "buckets.parquet",
-             "model": index / "components.parquet"}
-    for name in ("results", "queries"):
-        f = index / "eval" / f"{name}.parquet"
-        if f.is_file():
-            views[name] = f
-    return views
+RUN_TABLES = ("results", "queries")  # views of every evaluation given, one table, a ``run`` column each
+
+
+def views(paths: list[Path]) -> dict[str, list[Path]]:
+    """The Parquet files behind each view: an index gives ``lists``, ``buckets``, ``model`` and
+    its ``eval/`` results; an evaluation folder gives ``results`` and ``queries``."""
+    found: dict[str, list[Path]] = {}
+    for root in paths:
+        if (root / "index.json").is_file():
+            for name, file in (("lists", "lists.parquet"), ("buckets", "buckets.parquet"),
+                               ("model", "components.parquet")):
+                found.setdefault(name, []).append(root / file)
+            root = root / "eval"
+        for name in RUN_TABLES:
+            if (root / f"{name}.parquet").is_file():
+                found.setdefault(name, []).append(root / f"{name}.parquet")
+    return found
+
+
+def _run_table(files: list[Path]):
+    """The rows of several evaluations as one table, each with the folder it came from as ``run``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    tables = [pq.read_table(f).append_column("run", pa.array([str(f.parent)] * pq.read_metadata(f).num_rows,
+                                                             pa.string())) for f in files]
+    return pa.concat_tables(tables, promote_options="permissive")
 
 
 @contextmanager
-def connect(index: str | Path, memory_limit: str = "2GB", threads: int = 2, spill_limit: str = "2GB",
+def connect(paths: str | Path | list, memory_limit: str = "2GB", threads: int = 2, spill_limit: str = "2GB",
             spill_dir: str | None = None) -> Iterator[duckdb.DuckDBPyConnection]:
-    """An in-memory connection with the index views, locked down (see the module's docstring);
-    in this process, without the OS caps of :class:`Sandbox` (benchmarks use it)."""
-    root = Path(index).resolve()
+    """An in-memory connection with the views of an index and/or evaluation folders, locked down
+    (see the module's docstring); in this process, without the OS caps of the parent's sandbox
+    (benchmarks use it)."""
+    roots = [Path(p).resolve() for p in (paths if isinstance(paths, list) else [paths])]
     spill = spill_dir or tempfile.mkdtemp(prefix="vprscale-sql-")
     con = duckdb.connect(":memory:")
     try:
-        for name, path in views(root).items():
+        for name, files in views(roots).items():
             try:
-                con.register(name, pads.dataset(path, format="parquet"))
+                if name in RUN_TABLES:
+                    con.register(name, _run_table(files))
+                else:
+                    con.register(name, pads.dataset(files[0], format="parquet"))
             except (OSError, ValueError) as exc:  # pyarrow's errors for missing or damaged files
-                raise InputError(f"{path}: cannot be read as Parquet ({str(exc).splitlines()[0]})") from None
+                raise InputError(f"{files[0]}: cannot be read as Parquet ({str(exc).splitlines()[0]})") from None
         settings = [("temp_directory", spill), ("memory_limit", memory_limit), ("threads", threads),
                     ("max_temp_directory_size", spill_limit), ("enable_external_access", False),
                     ("autoinstall_known_extensions", False), ("autoload_known_extensions", False),
@@ -115,7 +138,7 @@ def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
     return box["table"]
 
 
-def serve(pipe, index: str, memory_limit: str, threads: int, spill: str, cap: int) -> None:
+def serve(pipe, index: list[str], memory_limit: str, threads: int, spill: str, cap: int) -> None:
     """The child: connect, cap its own address space, then answer queries until told to stop.
 
     It dies with the process that started it (Linux's parent-death signal), so a killed

@@ -1,0 +1,47 @@
+"""Every evaluation as one table: ``vprscale.load_results`` and ``vprscale results``.
+
+An evaluation folder (``INDEX/eval`` or an ``eval --out`` folder) holds ``results.parquet``
+and ``queries.parquet``; any number of them load as one pandas DataFrame, each row with the
+folder it came from (``run``) and the commit and time its provenance records, so runs of
+different code or days sit side by side and can be told apart.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pandas as pd
+import pyarrow.parquet as pq
+
+from vprscale.core.errors import InputError
+from vprscale.core.manifest import check_manifest
+from vprscale.core.provenance import PARQUET_KEY
+
+
+def eval_folder(path: str | Path) -> Path:
+    """The evaluation folder a path names: itself, or an index's ``eval/``."""
+    p = Path(path)
+    folder = p / "eval" if (p / "index.json").is_file() else p
+    if not (folder / "results.parquet").is_file():
+        raise InputError(f"{path}: no evaluation here (no results.parquet); run vprscale eval first")
+    check_manifest(folder)
+    return folder
+
+
+def load_results(*paths: str | Path, queries: bool = False) -> pd.DataFrame:
+    """The results (or, with ``queries``, the per-query rows) of every evaluation given, as one
+    DataFrame with ``run`` (the folder), ``commit`` and ``run_time`` (from its provenance)."""
+    if not paths:
+        raise InputError("results: give at least one evaluation folder or index")
+    frames = []
+    for path in paths:
+        file = eval_folder(path) / ("queries.parquet" if queries else "results.parquet")
+        try:
+            table = pq.read_table(file)
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{file}: not a readable Parquet file ({str(exc).splitlines()[0]})") from None
+        record = json.loads((table.schema.metadata or {}).get(PARQUET_KEY, b"{}"))
+        frames.append(table.to_pandas().assign(run=str(file.parent.resolve()), commit=record.get("commit"),
+                                               run_time=record.get("time")))
+    return pd.concat(frames, ignore_index=True)
