@@ -139,3 +139,31 @@ def test_saving_over_something_else_is_refused(tmp_path):
     again = read_index(tmp_path / "y")
     np.testing.assert_array_equal(again.ids, idx.ids)
     shutil.rmtree(tmp_path / "y")
+
+
+CALLED: list = []
+
+
+def test_the_grid_asks_the_registry(tiny_store, tiny_index, tmp_path, capsys, monkeypatch):
+    """``vprscale methods`` lists the registry; an installed package's entry point joins it, and
+    the evaluation grid calls its factory like the built-in ones'."""
+    from importlib.metadata import EntryPoint
+
+    import vprscale.evaluation.algorithms.registry as registry
+    from vprscale.cli import main
+
+    plugin = EntryPoint("mine", "tests.test_architecture:_record_context", registry.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(registry, "entry_points", lambda group: [plugin] if group == registry.ENTRY_POINT_GROUP else [])
+    assert main(["methods"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in out] == ["coarsehash", "baseline", "faiss", "mine"]
+    assert "entry point" in out[-1]
+    CALLED.clear()
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline",
+                 "--repeats", "1", "--out", str(tmp_path / "e")]) == 0
+    assert [c.index_path for c in CALLED] == [tiny_index] and CALLED[0].baseline is None
+
+
+def _record_context(context) -> list:
+    CALLED.append(context)
+    return []

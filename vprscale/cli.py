@@ -244,6 +244,14 @@ def cmd_results(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_methods(args: argparse.Namespace) -> int:
+    from vprscale.evaluation.algorithms.registry import BUILTIN, factories
+
+    for name, target in factories().items():
+        print(f"{name:<12} {target}{'' if name in BUILTIN else '  (entry point vprscale.algorithms)'}")
+    return 0
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from vprscale.core.manifest import check_manifest, read_manifest
 
@@ -409,6 +417,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=_positive_float, default=30.0, help="seconds the --where query may run")
     p.add_argument("--memory-limit", default="2GB", help="memory cap of the --where query (default 2GB)")
     p.set_defaults(func=cmd_results)
+
+    p = sub.add_parser("methods", help="the evaluated methods' registry: built-in and installed (entry points)")
+    p.set_defaults(func=cmd_methods)
 
     p = sub.add_parser("verify", help="check a store, index or evaluation against its manifest (sizes and checksums)")
     p.add_argument("path", help="a dataset store, an index or an evaluation folder")
