@@ -57,7 +57,7 @@ def direct(tiny_store, compared):
 
 
 def _k(compared, factory: str) -> int:
-    return int(compared["meta"]["compare"][f"faiss:{factory}"]["params"].split()[0].removeprefix("k="))
+    return int(compared["meta"]["compare"][f"faiss:{factory}"]["k"][0])
 
 
 @pytest.mark.parametrize("factory", FACTORIES)
@@ -198,7 +198,31 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     row = res[(res.method == "faiss:PQ4") & (res.L == L_SEQ) & (res["mode"] == "aligned") & (res.part == "all")
               & (res.radius == 20)].iloc[0]
     time = f"{row.us_per_query:,.2f} ({row.us_per_query_lo:,.2f}–{row.us_per_query_hi:,.2f})"
-    assert f"| PQ4 (aligned) | 4.00 | {time} | {100 * row.recall:.1f} | {row.n_queries} |" in section
+    assert f"| PQ4 {row.params} (aligned) | 4.00 | {time} | {100 * row.recall:.1f} | {row.n_queries} |" in section
     # every ratio is of medians measured in the same run (one evaluation here)
     assert "different runs" not in section and "faster" in section or "slower" in section
     assert section.count("| tiny | QM1 |") == 3 * (1 + len(FACTORIES))  # L = 1: single; L = 9: two modes
+
+
+def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tmp_path):
+    """--faiss-k and --faiss-nprobe take lists: each (k, nprobe) of an IVF code, and each k of a
+    flat one, is its own method row with its params, answered as FAISS answers at that point."""
+    out = tmp_path / "points"
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline",
+                 "--compare", "IVF32,PQ4", "--compare", "PQ4", "--faiss-k", "3,6", "--faiss-nprobe", "1,4",
+                 "--repeats", "1", "--out", str(out)]) == 0
+    q = pq.read_table(out / "queries.parquet").to_pandas()
+    points = q.groupby(["method", "params"]).size()
+    assert sorted(points.index) == sorted([("faiss:IVF32,PQ4", f"k={k} nprobe={n}") for k in (3, 6) for n in (1, 4)]
+                                          + [("faiss:PQ4", "k=3"), ("faiss:PQ4", "k=6")])
+    _, query, indexes = direct
+    ivf = faiss.extract_index_ivf(indexes["IVF32,PQ4"])
+    try:
+        for k, n in ((3, 1), (6, 4)):
+            ivf.nprobe = n
+            rows = q[(q.method == "faiss:IVF32,PQ4") & (q.params == f"k={k} nprobe={n}")].sort_values("t")
+            _, ids = indexes["IVF32,PQ4"].search(query.get_orthogonal_selection((rows.t.to_numpy(), slice(None))), k)
+            np.testing.assert_array_equal(rows["match"].to_numpy(), ids[:, 0])
+            np.testing.assert_array_equal(rows.n_r.to_numpy(), (ids >= 0).sum(axis=1))
+    finally:
+        ivf.nprobe = 16

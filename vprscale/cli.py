@@ -385,11 +385,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--compare", metavar="FACTORY", action="append", default=[],
                    help="also evaluate a FAISS index_factory string as method faiss:FACTORY, e.g. PQ3, OPQ3,PQ3, "
                         "ITQ24,LSH, IVF4096,PQ3 (repeat for several; docs/protocol.md)")
-    p.add_argument("--faiss-k", type=_positive_int, default=None,
-                   help="references each query frame retrieves from a FAISS index (default: CoarseHash's mean "
-                        "list size on INDEX, the same candidate budget)")
-    p.add_argument("--faiss-nprobe", type=_positive_int, default=16,
-                   help="inverted lists an IVF index visits per frame (default 16)")
+    p.add_argument("--faiss-k", type=_csv(int), default=None,
+                   help="references each query frame retrieves from a FAISS index, e.g. 4,16,64: one operating "
+                        "point each (default: CoarseHash's mean list size on INDEX, the same candidate budget)")
+    p.add_argument("--faiss-nprobe", type=_csv(int), default=[16],
+                   help="inverted lists an IVF index visits per frame, e.g. 1,8,64: one operating point each, "
+                        "with every --faiss-k (default 16)")
     p.add_argument("--compare-queries", type=_positive_int, default=None,
                    help="centres per compared run (default: all while the run's frames visit at most 2^35 "
                         "codes; beyond, an evenly spaced sample that fits)")

@@ -39,13 +39,14 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
     shared = sub[sub.method.str.startswith("faiss:")].groupby("scale")["index"].first()
     sub = sub[sub.method.str.startswith("faiss:") | (sub["index"] == sub.scale.map(shared))]
     cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries",
-            *(c for c in ("us_per_query_lo", "us_per_query_hi", "run") if c in res.columns)]
+            *(c for c in ("us_per_query_lo", "us_per_query_hi", "run", "params") if c in res.columns)]
     return sub[cols].assign(mode=sub["mode"].fillna("single")).reset_index(drop=True)
 
 
-def _label(method: str, mode: str, d: Any) -> str:
+def _label(method: str, mode: str, d: Any, params: Any = None) -> str:
     name = f"CoarseHash d={int(d)}" if method == "coarsehash" else method.removeprefix("faiss:")
-    return f"{name} ({mode})"
+    at = f" {params}" if isinstance(params, str) and params and method != "coarsehash" else ""
+    return f"{name}{at} ({mode})"
 
 
 def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
@@ -135,7 +136,8 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
     fig_compare(points, scales, out, save)
     rows: list[list[Any]] = []
     for p in points.sort_values(["scale", "noise", "L", "method", "mode"], key=_scale_key(scales)).itertuples():
-        rows.append([p.scale, p.noise.upper(), p.L, _label(p.method, p.mode, p.d), f"{p.bytes_per_place:.2f}",
+        rows.append([p.scale, p.noise.upper(), p.L, _label(p.method, p.mode, p.d, getattr(p, "params", None)),
+                     f"{p.bytes_per_place:.2f}",
                      time_cell(p), f"{100 * p.recall:.1f}", int(p.n_queries)])
     return ["## CoarseHash against FAISS compact codes", "",
             "The same centres, truths and window score (docs/protocol.md, \"Compact codes\"): a FAISS method's "

@@ -66,8 +66,8 @@ class EvalRequest:
     z: int | None = None
     baseline_queries: int | None = None  # queries per baseline run; None: all below 10^8 query rows, else a sample
     compare: list[str] = field(default_factory=list)  # FAISS index_factory strings
-    faiss_k: int | None = None  # top-k per frame (None: CoarseHash's mean list size)
-    faiss_nprobe: int = DEFAULT_NPROBE
+    faiss_k: list[int] | None = None  # top-k per frame, one operating point each (None: CoarseHash's mean list size)
+    faiss_nprobe: list[int] = field(default_factory=lambda: [DEFAULT_NPROBE])  # lists an IVF frame visits, likewise
     compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
@@ -151,10 +151,15 @@ def check_request(req: EvalRequest) -> None:
         raise InputError("--L: sequence lengths must be at least 1")
     if req.z is not None and req.z < 1:
         raise InputError(f"--z {req.z}: must be at least 1")
-    for flag, value in (("--faiss-k", req.faiss_k), ("--faiss-nprobe", req.faiss_nprobe),
-                        ("--compare-queries", req.compare_queries)):
-        if value is not None and value < 1:
-            raise InputError(f"{flag} {value}: must be at least 1")
+    for flag, values in (("--faiss-k", req.faiss_k), ("--faiss-nprobe", req.faiss_nprobe),
+                         ("--compare-queries", [req.compare_queries])):
+        for value in values or []:
+            if value is not None and value < 1:
+                raise InputError(f"{flag} {value}: must be at least 1")
+        if values is not None and len(set(values)) != len(values):
+            raise InputError(f"{flag}: a value is given twice")
+    if req.faiss_nprobe is not None and not req.faiss_nprobe:
+        raise InputError("--faiss-nprobe: the list is empty")
     if len(set(req.compare)) != len(req.compare):
         raise InputError(f"--compare: {next(f for f in req.compare if req.compare.count(f) > 1)} given twice")
 
@@ -229,7 +234,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
-                       "compare": {c.name: {"params": c.params, "bytes_per_place": c.bytes_per_place}
+                       "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
+                                            "bytes_per_place": c.bytes_per_place}
                                    for c in compared}, "compare_fit_s": fit_s if compared else None, **columns,
                        "provenance": record}
             (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
@@ -252,11 +258,12 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
     if not req.compare:
         return []
     idx = indexes[0][1]
-    if req.faiss_k is not None and req.faiss_k > min(idx.n_ref, MAX_FAISS_K):
-        raise InputError(f"--faiss-k {req.faiss_k:,}: at most {min(idx.n_ref, MAX_FAISS_K):,} (the references, and "
-                         f"{MAX_FAISS_K:,} per frame: each frame's list is held for every window)")
-    k = req.faiss_k or max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))
-    methods = [FaissCodes(factory, dim, k, req.faiss_nprobe, req.workers) for factory in req.compare]
+    for k in req.faiss_k or []:
+        if k > min(idx.n_ref, MAX_FAISS_K):
+            raise InputError(f"--faiss-k {k:,}: at most {min(idx.n_ref, MAX_FAISS_K):,} (the references, and "
+                             f"{MAX_FAISS_K:,} per frame: each frame's list is held for every window)")
+    k = (req.faiss_k or [max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))])[0]
+    methods = [FaissCodes(factory, dim, k, req.faiss_nprobe[0], req.workers) for factory in req.compare]
     for m in methods:
         if m.ivf is not None and m.ivf.nlist > idx.n_ref:
             raise InputError(f"--compare {m.factory}: {m.ivf.nlist:,} inverted lists for {idx.n_ref:,} references; "
@@ -276,7 +283,8 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
     methods = [(path, registry.create(registry.Context(
         index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
-        compared=compared, compare_queries=req.compare_queries))) for path, idx in indexes]
+        compared=compared, compare_queries=req.compare_queries, faiss_k=req.faiss_k,
+        faiss_nprobe=req.faiss_nprobe))) for path, idx in indexes]
     steps = len(req.noises) * sum(sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths) for a in algos)
                                   for _, algos in methods)
     bar = StepProgress("evaluate", steps, req.quiet)

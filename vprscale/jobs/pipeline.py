@@ -46,7 +46,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "eval": {"store": ("stage", True), "index": ("stage", False), "d_sweep": ("list[int]", False),
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
-             "faiss_k": ("int", False), "compare_queries": ("int", False),
+             "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
              "repeats": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
@@ -400,8 +400,9 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
                                                              if "d_sweep" in p else [])
         for factory in p.get("compare", []):
             cmd += ["--compare", factory]
-        for key in ("faiss_k", "compare_queries", "repeats"):
-            cmd += ["--" + key.replace("_", "-"), str(p[key])] if key in p else []
+        for key in ("faiss_k", "faiss_nprobe", "compare_queries", "repeats"):
+            value = ",".join(map(str, p[key])) if isinstance(p.get(key), list) else str(p.get(key))
+            cmd += ["--" + key.replace("_", "-"), value] if key in p else []
         # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)
         return cmd + ["--force"] + cluster
     cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"]]

@@ -57,10 +57,13 @@ class FaissMethod(Algorithm):
     a scan budget (``SCAN_BUDGET`` codes per run) a run localises an evenly spaced sample.
     """
 
-    def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None) -> None:
+    def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None,
+                 k: int | None = None, nprobe: int | None = None) -> None:
         self.codes = codes
         self.name = codes.name
+        self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
         self.bytes_per_place = codes.bytes_per_place
+        self._apply()
         if query_limit is None:
             scan = codes.scan_per_frame() * max_L
             query_limit = None if n_centres * scan <= SCAN_BUDGET else max(MIN_SAMPLE, int(SCAN_BUDGET // scan))
@@ -74,7 +77,15 @@ class FaissMethod(Algorithm):
     def threads(self, n: int) -> None:
         self.codes.threads = n
 
+    def _apply(self) -> None:
+        """Set this operating point's k and nprobe on the codes (operating points share one trained index)."""
+        self.codes.k = self.k
+        self.codes.nprobe = self.nprobe
+        if self.codes.ivf is not None:
+            self.codes.ivf.nprobe = self.nprobe
+
     def columns(self) -> dict[str, Any]:
+        self._apply()
         return {"d": None, "K": None, "params": self.codes.params}
 
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
@@ -82,10 +93,12 @@ class FaissMethod(Algorithm):
 
     def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
+        self._apply()
         _, ids = self.codes.search(rows)
         return (ids, *self.codes.frame_terms(rows))
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+        self._apply()  # its counted operations depend on this point's nprobe
         ids, tables, q_vectors = state
         frame_ops = self.codes.frame_ops()
         if L == 1:
@@ -102,6 +115,12 @@ class FaissMethod(Algorithm):
 
 
 def create(context: Any) -> list[Algorithm]:
-    """The registry's factory: one method per FAISS code the evaluation compares (``--compare``)."""
-    return [FaissMethod(codes, context.n_centres, max(context.lengths), context.compare_queries)
-            for codes in context.compared]
+    """The registry's factory: one method per FAISS code the evaluation compares (``--compare``) and
+    operating point (every ``--faiss-k``, with every ``--faiss-nprobe`` for IVF codes), in that order."""
+    found: list[Algorithm] = []
+    for codes in context.compared:
+        nprobes = (context.faiss_nprobe or [codes.nprobe]) if codes.ivf is not None else [codes.nprobe]
+        for k in context.faiss_k or [codes.k]:
+            found += [FaissMethod(codes, context.n_centres, max(context.lengths), context.compare_queries, k, n)
+                      for n in nprobes]
+    return found

@@ -46,6 +46,8 @@ class Context:
     baseline_queries: int | None = None
     compared: list[Any] = field(default_factory=list)  # fitted FAISS codes (--compare)
     compare_queries: int | None = None
+    faiss_k: list[int] | None = None  # FAISS operating points: every k (None: the codes' own) …
+    faiss_nprobe: list[int] | None = None  # … with every nprobe (IVF codes only)
 
 
 def _load(target: str) -> Factory:
