@@ -40,9 +40,9 @@ def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.
     return group
 
 
-def store_identity(store: Path) -> str:
-    """A digest of a store's provenance: an index records it, an evaluation checks it."""
-    meta = open_complete_group(store).attrs[ATTR]
+def store_identity(group: zarr.Group) -> str:
+    """A digest of an opened store's provenance: an index records it, an evaluation checks it."""
+    meta = group.attrs[ATTR]
     core = {k: meta.get(k) for k in ("recipe", "sources", "layout", "seed", "rescale")}
     return hashlib.sha256(json.dumps(core, sort_keys=True, default=str).encode()).hexdigest()[:16]
 

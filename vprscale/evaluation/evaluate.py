@@ -175,7 +175,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     group = open_complete_group(req.store)
     meta = group.attrs[ATTR]
     layout = store_layout(group)
-    identity = store_identity(req.store)
+    identity = store_identity(group)
     qs = QuerySet(group, layout)
     too_long = [L for L in req.lengths if L > qs.n_query]
     if too_long:

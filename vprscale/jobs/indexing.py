@@ -71,7 +71,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
     if not final.resolve().name:
         raise InputError(f"--out {out}: names no directory to write the index into; give a new folder's path")
     check_writable(final.parent)
-    identity = store_identity(store)
+    identity = store_identity(group)
     timings = Timings(quiet)
     t0 = time.perf_counter()
     with exclusive(final), dask_client(scheduler, workers) as client:
@@ -143,7 +143,7 @@ def sweep_indexes(store: str | Path, widths: list[int], scheduler: str | None = 
                   quiet: bool = False) -> list[Path]:
     """The K = 2 indexes of ``store`` at each width of a d sweep (Fig. 4a), built where missing."""
     store = Path(store)
-    identity = store_identity(store)
+    identity = store_identity(open_complete_group(store))
     paths = []
     for d in widths:
         path = default_index_dir(store, d, 2)

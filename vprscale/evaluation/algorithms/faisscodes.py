@@ -31,8 +31,9 @@ def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> 
         return
     n_ref = ref.shape[0]
     timings = Timings(quiet)
-    with timings.stage(f"train {len(methods)} FAISS method(s) on {min(n_ref, len(training_rows(n_ref))):,} references"):
-        sample = ref[training_rows(n_ref)].compute()
+    rows = training_rows(n_ref)
+    with timings.stage(f"train {len(methods)} FAISS method(s) on {len(rows):,} references"):
+        sample = ref[rows].compute()
         with threadpool_limits(limits=1, user_api="blas"), ThreadPoolExecutor(methods[0].threads) as pool:
             list(pool.map(partial(FaissCodes.train, sample=sample), methods))  # each on one thread of its own
     with timings.stage(f"encode {n_ref:,} references"):
