@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vprscale.compared.baseline import baseline_batch, nearest
-from vprscale.evaluation.evaluate import recall_curve
+from vprscale.evaluation.metrics import recall_curve
 from vprscale.method.coarsehash import CoarseHasher
 from vprscale.method.index import Index
 from vprscale.method.kernels import match_batch
@@ -27,7 +27,8 @@ def hand_index(ref_hash, centres: np.ndarray = CENTRES, errors=None) -> Index:
 
 def run(idx: Index, q_hash, t, L, aligned=False):
     qf = idx.query_frames(np.asarray(q_hash, np.uint64))
-    return match_batch(np.asarray(t, np.int64), L, aligned, *qf.kernel_args(), *idx.kernel_args())
+    top, _, n_r = match_batch(np.asarray(t, np.int64), L, aligned, *qf.kernel_args(), *idx.kernel_args())
+    return top[:, 0], n_r
 
 
 def test_exact_and_fallback_addresses_with_ties_to_the_smaller():
@@ -122,7 +123,7 @@ def test_online_matches_index_match_on_every_centre_with_bounded_state(tiny_stor
             got.append(online.push(row))
             if i == 100:
                 held = online.state_bytes
-        match, n_r = idx.match(x, 50, mode=mode)
+        match = idx.match(x, 50, mode=mode).match
         np.testing.assert_array_equal(np.array(got[49:]), match)
         assert online.state_bytes == held
 
@@ -132,9 +133,10 @@ def test_baseline_nearest_and_candidate_count():
     np.testing.assert_array_equal(nearest(x, 1.2, 3), [2, 3, 5])
     np.testing.assert_array_equal(nearest(x, 1.0, 1), [2])  # ties: smaller id
     y = np.array([5.1, 0.9, 1.1])
-    match, counts = baseline_batch(np.array([1]), 3, 2, x, y, float(np.ptp(x)))
+    top, _, counts = baseline_batch(np.array([1]), 3, 2, x, y, float(np.ptp(x)))
+    match = top[:, 0]
     assert counts[0] == 2 and match[0] == 2  # candidates {2, 3}: centre 2 pairs (5,5.1),(1,0.9),(1,1.1)
-    m1, _ = baseline_batch(np.array([0]), 1, 1, x, y, float(np.ptp(x)))
+    m1 = baseline_batch(np.array([0]), 1, 1, x, y, float(np.ptp(x)))[0][:, 0]
     assert m1[0] == 1
 
 
@@ -174,7 +176,7 @@ def test_recall_at_each_radius():
 def test_baseline_respects_n_r(L):
     x = np.linspace(0, 1, 50)
     y = np.linspace(0, 1, 50)
-    _, counts = baseline_batch(np.array([10, 20]), L, 7, x, y, 1.0)
+    _, _, counts = baseline_batch(np.array([10, 20]), L, 7, x, y, 1.0)
     np.testing.assert_array_equal(counts, [7, 7])
 
 
@@ -292,7 +294,14 @@ def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
 def test_pairs_sorted_by_window_score_as_in_query_order():
     """The window-ordered pair sort (used for maps larger than the caches) is a stable
     bucket sort of the pairs, and scoring them in that order gives the query-order answer."""
-    from vprscale.method.kernels import _pairs_by_window, _query_words, _score_pairs, count_proposals, propose
+    from vprscale.method.kernels import (
+        _pairs_by_window,
+        _query_words,
+        _score_pairs,
+        count_proposals,
+        propose,
+        score_window,
+    )
 
     rng = np.random.default_rng(4)
     d, L = 10, 9
@@ -311,10 +320,18 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     np.testing.assert_array_equal(in_order, expected)
     np.testing.assert_array_equal(by_window, expected[np.argsort(expected >> 32, kind="stable")])
     words = _query_words(t, L, q_planes, d)
-    answers = [_score_pairs(p, t, L, hashes, words, ref_hash, planes, gaps, w, tables, d, k, dmax, True)
-               for p in (in_order, by_window)]
-    np.testing.assert_array_equal(answers[0], answers[1])
-    np.testing.assert_array_equal(answers[0], run(idx, q, t, L)[0])
+    answers = [_score_pairs(p, t, L, hashes, words, ref_hash, planes, gaps, w, tables, d, k, dmax, True, 5, runs)
+               for p, runs in ((in_order, 16), (by_window, 3))]
+    np.testing.assert_array_equal(answers[0][0], answers[1][0])
+    np.testing.assert_array_equal(answers[0][1], answers[1][1])
+    np.testing.assert_array_equal(answers[0][0][:, 0], run(idx, q, t, L)[0])
+    # the five best are every candidate's full score, sorted (ties to the smaller centre)
+    for i in range(0, len(t), 37):
+        c = cand[first[i]:first[i] + n_r[i]]
+        full = np.array([score_window(x, t[i], L, L // 2, ref_hash, hashes, w, tables, d, k, dmax, 2**62) for x in c])
+        order = np.lexsort((c, full))[:5]
+        np.testing.assert_array_equal(answers[0][0][i, : len(order)], c[order])
+        np.testing.assert_array_equal(answers[0][1][i, : len(order)], full[order])
 
 
 def test_query_frames_hold_only_the_frames_worked_on():
@@ -323,7 +340,7 @@ def test_query_frames_hold_only_the_frames_worked_on():
     frames = np.r_[100:105, 200:210]
     q = idx.query_frames(ref[np.r_[8:13, 0:10]], frames)
     np.testing.assert_array_equal(q.positions(np.array([102, 205]), 5), [2, 10])
-    match, _ = match_batch(q.positions(np.array([102]), 5), 5, False, *q.kernel_args(), *idx.kernel_args())
+    match = match_batch(q.positions(np.array([102]), 5), 5, False, *q.kernel_args(), *idx.kernel_args())[0][:, 0]
     assert match[0] == 10  # frames 100…104 repeat refs 8…12
     a = q.slot[0]
     np.testing.assert_array_equal(q.ids[q.start[0]:q.stop[0]], idx.ids[idx.offsets[a]:idx.offsets[a + 1]])
@@ -353,7 +370,9 @@ def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_inde
                  "--out", str(tmp_path / "m.parquet")]) == 0
     t = pq.read_table(tmp_path / "m.parquet").to_pandas()
     assert len(t) == 1000 and t["match"].isna().sum() == 49
-    match, n_r = Index.load(tiny_index).match(x, 50, mode="aligned")
+    found = Index.load(tiny_index).match(x, 50, mode="aligned")
+    match = found.match
+    np.testing.assert_array_equal(found.centres, np.arange(25, 1000 - 24))
     np.testing.assert_array_equal(t["match"].dropna().to_numpy(np.int64), match)
     np.testing.assert_array_equal(t["centre"].dropna().to_numpy(np.int64), np.arange(25, 1000 - 24))
     assert main(["localise", str(tiny_index), str(tiny_store / "query_qm2"), "--L", "5", "--out",

@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vprscale.method.kernels import NO_CANDIDATE, finish_best, keep_best
+
 
 @numba.njit(cache=True, nogil=True)
 def _sift_down(hd: np.ndarray, hi: np.ndarray, n: int) -> None:
@@ -43,25 +45,26 @@ def nearest(x: np.ndarray, y: float, n_r: int) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np.ndarray,
-                   x_range: float) -> tuple[np.ndarray, np.ndarray]:
-    """Match of every query centre (``y`` indexed by query frame); also the candidates' count."""
+                   x_range: float, n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(top, scores, n_r)`` of every query centre (``y`` indexed by query frame): its
+    ``n_best`` best candidates, best first (−1 where fewer), their scores, and the number
+    of candidates."""
     half = L // 2
     n_ref = x.shape[0]
-    out = np.empty(centres_t.shape[0], np.int64)
+    top = np.full((centres_t.shape[0], n_best), NO_CANDIDATE)
+    scores = np.full((centres_t.shape[0], n_best), np.inf)
     counts = np.empty(centres_t.shape[0], np.int64)
     for qi in numba.prange(centres_t.shape[0]):
         t = centres_t[qi]
         cand = nearest(x, y[t], min(n_r, n_ref))
-        best, best_s = -1, np.inf
         for c in cand:  # ascending
             s = 0.0
+            bound = scores[qi, n_best - 1]
             for i in range(L):
                 r = c + i - half
                 s += x_range if (r < 0 or r >= n_ref) else abs(x[r] - y[t + i - half])
-                if s >= best_s:  # terms are ≥ 0: this candidate can no longer win
+                if s > bound:  # terms are ≥ 0: this candidate can no longer enter the list
                     break
-            if s < best_s:
-                best_s, best = s, c
-        out[qi] = best
+            keep_best(scores[qi], top[qi], s, c)
         counts[qi] = cand.shape[0]
-    return out, counts
+    return finish_best(top), scores, counts

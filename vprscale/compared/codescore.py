@@ -12,13 +12,16 @@ compute it without decoding anything per pair:
 - *vectors*: the references' codes decoded once (``vectors[r]``) against the query frames.
 
 Reference frames outside the map cost the largest distance seen in the window (over every
-candidate); the match is the smallest score, ties to the smallest centre.
+candidate); the match is the smallest score, ties to the smallest centre, and the next best
+follow it.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+from vprscale.method.kernels import NO_CANDIDATE, finish_best, keep_best
 
 
 @numba.njit(cache=True, nogil=True)
@@ -41,13 +44,16 @@ def _vector_dist(q: np.ndarray, p: np.int64, x: np.ndarray, r: np.int64) -> np.f
 @numba.njit(cache=True, nogil=True, parallel=True)
 def score_windows(centres_t: np.ndarray, L: int, cand: np.ndarray, first: np.ndarray, n_r: np.ndarray,
                   n_ref: int, tables: np.ndarray, codes: np.ndarray, q_vectors: np.ndarray,
-                  vectors: np.ndarray) -> np.ndarray:
-    """Match of every query: candidates ``cand[first[qi]:first[qi] + n_r[qi]]`` of the window
-    centred at query-frame position ``centres_t[qi]``; tables form when ``tables`` is non-empty.
+                  vectors: np.ndarray, n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``(top, scores)``: the ``n_best`` best candidates of every query, best first (−1 where
+    fewer), and their scores. Query ``qi``'s candidates are ``cand[first[qi]:first[qi] +
+    n_r[qi]]``, for the window centred at query-frame position ``centres_t[qi]``; tables
+    form when ``tables`` is non-empty.
     """
     half = L // 2
     use_tables = tables.shape[0] > 0
-    match = np.empty(centres_t.shape[0], np.int64)
+    top = np.full((centres_t.shape[0], n_best), NO_CANDIDATE)
+    scores = np.full((centres_t.shape[0], n_best), np.inf)
     for qi in numba.prange(centres_t.shape[0]):
         t = centres_t[qi]
         m = n_r[qi]
@@ -66,11 +72,6 @@ def score_windows(centres_t: np.ndarray, L: int, cand: np.ndarray, first: np.nda
                 largest = max(largest, dist)
             sums[j] = s
             outside[j] = lo + L - hi
-        best, best_s = -1, np.inf
         for j in range(m):
-            c = cand[first[qi] + j]
-            s = sums[j] + outside[j] * largest
-            if s < best_s or (s == best_s and c < best):
-                best, best_s = c, s
-        match[qi] = best
-    return match
+            keep_best(scores[qi], top[qi], sums[j] + outside[j] * largest, cand[first[qi] + j])
+    return finish_best(top), scores

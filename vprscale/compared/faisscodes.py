@@ -204,8 +204,9 @@ class FaissCodes:
         return no_tables, y
 
     def match(self, positions: np.ndarray, L: int, aligned: bool, ids: np.ndarray, tables: np.ndarray,
-              q_vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sequence match of the windows centred at query-frame ``positions``: ``(match, n_r)``.
+              q_vectors: np.ndarray, n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sequence match of the windows centred at query-frame ``positions``: ``(top, scores,
+        n_r)``, the ``n_best`` best candidates best first (:func:`score_windows`).
 
         ``ids`` are the frames' top-k lists (rows, −1 for none). Candidates are the union of
         the window's lists (paper) or the centres their members imply (aligned), as for
@@ -219,5 +220,6 @@ class FaissCodes:
         proposals = count_proposals(positions, L, start, stop)
         cand, first, n_r, _ = propose(positions, L, aligned, start, stop, flat, self.n_ref, proposals, 62)
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
-        return score_windows(positions, L, cand, first, n_r, self.n_ref, tables, codes, q_vectors,
-                             self.vectors), n_r
+        top, scores = score_windows(positions, L, cand, first, n_r, self.n_ref, tables, codes, q_vectors,
+                                    self.vectors, n_best)
+        return top, scores, n_r

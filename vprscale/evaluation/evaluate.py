@@ -34,6 +34,7 @@ from vprscale.evaluation.algorithms import registry
 from vprscale.evaluation.algorithms.base import Answer
 from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit, load_baseline_map
 from vprscale.evaluation.algorithms.faisscodes import fit_codes
+from vprscale.evaluation.metrics import RADII, recall_curve, run_metrics, wilson
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
 from vprscale.method.index import Index
 from vprscale.protocol import (
@@ -47,7 +48,6 @@ from vprscale.protocol import (
 )
 
 NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
-RADII = np.arange(21)
 _HOLDS = ("{out}: already holds an evaluation; --force replaces it and keeps it beside, in {out.name}.previous/ "
           "(or give another --out)")
 MAX_FAISS_K = 1 << 14  # references a FAISS frame may retrieve (the lists of every held frame stay in memory)
@@ -127,13 +127,6 @@ class QuerySet:
         pos, held = self._pos(frames)
         assert held.all(), "frames outside the held windows"
         return self.group[NOISES[noise]].get_orthogonal_selection((pos, slice(None)))
-
-
-def recall_curve(error: np.ndarray) -> np.ndarray:
-    """Share of queries with ``|match − truth| ≤ r`` for r = 0 … 20."""
-    if len(error) == 0:
-        return np.full(len(RADII), np.nan)
-    return (error[:, None] <= RADII[None, :]).mean(axis=0)
 
 
 def check_request(req: EvalRequest) -> None:
@@ -320,32 +313,39 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
           answer: Answer, timing: Timing, in_list: np.ndarray | None, weights: dict[str, float] | None) -> None:
     """Rows of ``results`` and ``queries`` for one run of one method.
 
-    With ``weights`` (a stratified sample) the overall recall weights each part's recall by
-    its share of the query rows; without, it is the share of all queries localised.
+    With ``weights`` (a stratified sample) the overall figures weight each part by its
+    share of the query rows (each query by its part's share over its part's queries);
+    without, every query localised counts once.
     """
     match, n_r = answer.match, answer.n_r
     error = np.abs(np.asarray(match, np.int64) - truth)
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
-    curves = {name: (recall_curve(error[sel]), recall_curve(in_list[sel]) if in_list is not None else None)
-              for name, sel in select.items()}
     held = [p for p in ("deep1b", "fas") if select[p].any()]
-    if weights is not None and held:  # the overall curve from the parts' curves, each weighted by its row share
-        total = sum(weights[p] for p in held)
-        curves["all"] = tuple(None if curves[held[0]][i] is None else
-                              sum(weights[p] * curves[p][i] for p in held) / total for i in (0, 1))
+    per_query = None
+    if weights is not None and held:
+        per_query = np.zeros(len(t))
+        for p in held:
+            per_query[select[p]] = weights[p] / select[p].sum()
     for name, sel in select.items():
-        curve, in_curve = curves[name]
+        w = per_query[sel] if name == "all" and per_query is not None else None
+        figures = run_metrics(error[sel], answer.top[sel], truth[sel], answer.score[sel], w)
+        in_curve = recall_curve(in_list[sel], w) if in_list is not None else None
+        n = int(sel.sum())
+        lo, hi = wilson(figures["recall"], n)
         nr = n_r[sel]
-        stats = {"n_queries": int(sel.sum()),
+        stats = {"n_queries": n,
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
                  "nr_median": float(np.median(nr)) if len(nr) else np.nan,
                  "nr_p95": float(np.percentile(nr, 95)) if len(nr) else np.nan,
                  **timing.columns(), "ops_per_query": answer.ops_per_query}
         for r in RADII:
-            rows.append({**key, "part": name, "radius": int(r), "recall": float(curve[r]),
+            rows.append({**key, "part": name, "radius": int(r), "recall": float(figures["recall"][r]),
+                         "recall_lo": float(lo[r]), "recall_hi": float(hi[r]),
+                         **{f: float(v[r]) for f, v in figures.items() if f != "recall"},
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
     for i in range(len(t)):
         queries.append({**key, "t": int(t[i]), "gt": int(truth[i]), "match": int(match[i]), "error": int(error[i]),
+                        "score": float(answer.score[i]), "top": answer.top[i].tolist(),
                         "n_r": int(n_r[i]), "in_list": int(in_list[i]) if in_list is not None else None,
                         "part": "deep1b" if parts[i] == 0 else "fas"})
 

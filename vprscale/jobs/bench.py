@@ -171,7 +171,8 @@ def bench_online(store: str, index: str, L: int, frames: int = 3000) -> str:
         got = [online.push(row) for row in x]
         t_online = (time.perf_counter() - t0) / len(x)
         t0 = time.perf_counter()
-        match, n_r = idx.match(x, L)
+        found = idx.match(x, L)
+        match, n_r = found.match, found.n_r
         t_batch = (time.perf_counter() - t0) * numba.get_num_threads() / len(match)
         if not np.array_equal(np.array(got[L - 1 :], dtype=np.int64), match):
             raise SystemExit("bench online: the online matches differ from the batch")

@@ -10,6 +10,7 @@ from functools import cached_property
 from pathlib import Path
 
 import dask.array as da
+import numba
 import numpy as np
 
 from vprscale.core.publish import PartialOutput
@@ -17,9 +18,12 @@ from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
 from vprscale.method.indexfile import read_arrays, write_arrays
 from vprscale.method.kernels import (
     DELTA_MAX_UNITS,
+    N_BEST,
+    address_delta,
     bit_gaps,
     bit_planes,
     byte_tables,
+    list_top,
     match_batch,
     nearest_occupied,
     retrieve_lists,
@@ -53,6 +57,7 @@ class QueryFrames:
     stop: np.ndarray
     ids: np.ndarray
     planes: np.ndarray  # K = 2: bit b of positions 64·i … 64·i + 63 as word i·d + b
+    errors: np.ndarray | None = None  # each frame's quantisation error Σ_j min_k |y_j − c_kj| (None: unknown)
 
     def positions(self, t: np.ndarray, L: int = 1) -> np.ndarray:
         """Positions of frames ``t``, each with the whole window of ``L`` centred on it held."""
@@ -61,6 +66,28 @@ class QueryFrames:
     def kernel_args(self) -> tuple:
         """``(hashes, planes, start, stop, ids)``: the query frames' arguments of :func:`match_batch`."""
         return self.hashes, self.planes, self.start, self.stop, self.ids
+
+
+@dataclass
+class Matches:
+    """What :meth:`Index.match` answers for each centre (docs/method.md, "Scores").
+
+    ``score`` is the matched window's score in units of δ_max (the most two codes can
+    differ), lower meaning more confident: the sum of the window's frame distances for
+    L > 1; for L = 1 the frame's own quantisation error plus the distance from its own
+    address to the occupied one it took, both in the same units. ``top`` holds the
+    ``n_best`` best candidates, best first (−1 where there were fewer); ``top[:, 0]`` is
+    ``match``. For L = 1 it is the single best, then the rest of its list by id.
+    """
+
+    centres: np.ndarray  # frame index of each window's centre (default: L // 2 onwards)
+    match: np.ndarray
+    score: np.ndarray
+    n_r: np.ndarray  # candidates scored (L = 1: the length of the frame's list)
+    top: np.ndarray
+
+    def __repr__(self) -> str:
+        return f"Matches({len(self.centres):,} centres, top {self.top.shape[1]})"
 
 
 @dataclass(repr=False)
@@ -184,30 +211,56 @@ class Index:
         if x.ndim != 2 or x.shape[1] != self.components.shape[1]:
             raise ValueError(f"query rows have shape {x.shape}; this index hashes rows of "
                              f"{self.components.shape[1]} features")
-        return hash_descriptors(x, self.mean, self.components, self.centres)[1]
+        return self.hash_frames(x)[0]
 
-    def match(self, frames: np.ndarray, L: int, mode: str = "paper",
-              centres: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Localise a traverse: ``(match, n_r)`` for each centre, by sequences of ``L`` frames.
+    def hash_frames(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(addresses, quantisation errors)`` of query rows: what :meth:`query_frames` takes."""
+        x = np.asarray(x)
+        if x.ndim != 2 or x.shape[1] != self.components.shape[1]:
+            raise ValueError(f"query rows have shape {x.shape}; this index hashes rows of "
+                             f"{self.components.shape[1]} features")
+        _, h, err, _ = hash_descriptors(x, self.mean, self.components, self.centres)
+        return h, err
+
+    def match(self, frames: np.ndarray, L: int, mode: str = "paper", centres: np.ndarray | None = None,
+              n_best: int = N_BEST) -> Matches:
+        """Localise a traverse by sequences of ``L`` frames (:class:`Matches`).
 
         ``frames`` are query descriptors in traverse order (rows); ``centres`` index them
-        (default: every centre whose whole window lies inside ``frames``). ``mode`` is
-        ``"paper"`` (candidates: the union of the window's lists) or ``"aligned"`` (each
-        list member proposes the centre it implies). L = 1 gives each frame's single best,
-        with its list's length as N_r.
+        (default: every centre whose whole window lies inside ``frames``, that is
+        ``L // 2 … len(frames) − 1 − (L − 1 − L // 2)``). ``mode`` is ``"paper"``
+        (candidates: the union of the window's lists) or ``"aligned"`` (each list member
+        proposes the centre it implies). L = 1 gives each frame's single best, with its
+        list's length as N_r.
         """
         check_window(L, mode)
-        h = self.hash_queries(frames)
+        h, err = self.hash_frames(frames)
         if L > len(h):
             raise ValueError(f"L = {L}: longer than the {len(h)} frames given")
         t = np.arange(L // 2, len(h) - centre_lag(L)) if centres is None else np.asarray(centres, np.int64)
         if len(t) and (window_start(t.min(), L) < 0 or window_start(t.max(), L) + L > len(h)):
             raise ValueError(f"centres: each window of {L} frames must lie inside the {len(h)} frames given")
-        qf = self.query_frames(h)
+        qf = self.query_frames(h, errors=err)
+        top, score, n_r = self.answer(qf, qf.positions(t, L), L, mode, n_best)
+        return Matches(t, top[:, 0].copy(), score, n_r, top)
+
+    def answer(self, qf: QueryFrames, pos: np.ndarray, L: int, mode: str | None,
+               n_best: int = N_BEST) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(top, score, n_r)`` of the centres at positions ``pos`` of the query frames (see
+        :class:`Matches`; ``score`` of the best, in δ_max units)."""
+        pos = np.asarray(pos, np.int64)
+        w, tables, dmax = self.delta_tables()
         if L == 1:
-            a = qf.slot[t]
-            return self.best[a].astype(np.int64), (self.offsets[a + 1] - self.offsets[a]).astype(np.int64)
-        return match_batch(qf.positions(t, L), L, mode == "aligned", *qf.kernel_args(), *self.kernel_args())
+            a = qf.slot[pos]
+            span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
+            err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors, np.float64)[pos]
+            moved = address_delta(qf.hashes[pos], np.asarray(self.addresses, np.uint64)[a], w, tables, self.d, self.k)
+            score = err / span + moved / float(dmax)
+            return (list_top(a, self.offsets, self.ids, self.best, n_best), score,
+                    (self.offsets[a + 1] - self.offsets[a]).astype(np.int64))
+        top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *self.kernel_args(), n_best,
+                                       numba.get_num_threads())
+        return top, scores[:, 0] / float(dmax), n_r
 
     @cached_property
     def prefix_table(self) -> tuple[np.ndarray, int]:
@@ -239,10 +292,12 @@ class Index:
         _ = self.prefix_table, self.planes
         return self
 
-    def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None) -> QueryFrames:
+    def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None,
+                     errors: np.ndarray | None = None) -> QueryFrames:
         """The per-frame work on query frames with own addresses ``h`` (docs/method.md).
 
-        ``frames`` (ascending; default ``0 … len(h) − 1``) number them in their sequence.
+        ``frames`` (ascending; default ``0 … len(h) − 1``) number them in their sequence;
+        ``errors`` are their quantisation errors (:meth:`hash_frames`), for L = 1 scores.
         See :class:`QueryFrames`.
         """
         h = np.asarray(h, np.uint64)
@@ -254,7 +309,7 @@ class Index:
         else:  # long lists (a coarse index): read in place
             ids = self.ids
         planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
-        return QueryFrames(frames, h, a, start, stop, ids, planes)
+        return QueryFrames(frames, h, a, start, stop, ids, planes, errors)
 
     def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
         """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""

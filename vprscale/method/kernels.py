@@ -14,6 +14,34 @@ import numpy as np
 from vprscale.method.intrinsics import funnel_shift_right, popcount, prefetch
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
+N_BEST = 20  # candidates an answer keeps, best first: Recall@N for N up to 20 (docs/protocol.md)
+NO_CANDIDATE = np.iinfo(np.int64).max  # an empty place of a best-first list while it fills
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def keep_best(best_s: np.ndarray, best_c: np.ndarray, s, c: np.int64) -> None:
+    """Insert candidate ``c`` with score ``s`` into the best-first list ``(best_s, best_c)``
+    if it belongs there (ordered by score, ties to the smaller candidate; a total order, so
+    the list does not depend on the order candidates arrive in)."""
+    j = best_s.shape[0] - 1
+    if s > best_s[j] or (s == best_s[j] and c >= best_c[j]):
+        return
+    while j > 0 and (s < best_s[j - 1] or (s == best_s[j - 1] and c < best_c[j - 1])):
+        best_s[j] = best_s[j - 1]
+        best_c[j] = best_c[j - 1]
+        j -= 1
+    best_s[j] = s
+    best_c[j] = c
+
+
+@numba.njit(cache=True, nogil=True)
+def finish_best(best_c: np.ndarray) -> np.ndarray:
+    """Places of best-first lists that no candidate filled become −1."""
+    flat = best_c.ravel()
+    for i in range(flat.shape[0]):
+        if flat[i] == NO_CANDIDATE:
+            flat[i] = -1
+    return best_c
 
 
 @numba.njit(cache=True, nogil=True)
@@ -33,8 +61,6 @@ def retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple
             m += 1
         stop[i] = m
     return start, stop, out
-
-
 
 
 @numba.njit(cache=True, nogil=True)
@@ -344,23 +370,24 @@ def window_masks(L: int, d: int, bit_gap: np.ndarray) -> tuple[np.ndarray, np.nd
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
 def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
                  ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
-                 d: int, k: int, dmax: np.int64, fast: bool) -> np.ndarray:
-    """The centre of each query's best pair, ties to the smaller centre.
+                 d: int, k: int, dmax: np.int64, fast: bool, n_best: int, runs: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(centres, scores)``: each query's ``n_best`` best pairs, best first (ties to the smaller centre).
 
-    Runs of the sorted pairs are scored in parallel, each run keeping its own best per
-    query; the runs' bests are then merged. The minimum does not depend on the order, so
-    the answer does not depend on the thread count.
+    Runs of the sorted pairs are scored in parallel, each run keeping its own best-first
+    list per query; the runs' lists are then merged. The order is total, so the lists do
+    not depend on the number of runs or threads; there are two runs per thread (at most
+    ``SCORE_CHUNKS``), so that a single-threaded call does not fill sixteen lists per query.
     """
     n = centres_t.shape[0]
     half = L // 2
     n_ref = ref_hash.shape[0]
     masks, gaps = window_masks(L, d, bit_gap)
     m = pairs.shape[0]
-    run_s = np.full((SCORE_CHUNKS, n), np.int64(2**62))
-    run_c = np.full((SCORE_CHUNKS, n), np.int64(-1))
-    for run in numba.prange(SCORE_CHUNKS):
-        stop = m * (run + 1) // SCORE_CHUNKS
-        for j in range(m * run // SCORE_CHUNKS, stop):
+    run_s = np.full((runs, n, n_best), np.int64(2**62))
+    run_c = np.full((runs, n, n_best), NO_CANDIDATE)
+    for run in numba.prange(runs):
+        stop = m * (run + 1) // runs
+        for j in range(m * run // runs, stop):
             c = pairs[j] >> 20
             qi = pairs[j] & 0xFFFFF
             if fast and j + PREFETCH < stop:
@@ -368,26 +395,31 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
             if fast and c >= half and c - half + L <= n_ref:
                 s = score_planes(c - half, planes, d, q_words[qi], masks, gaps)
             else:
-                s = score_window(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax, run_s[run, qi] + 1)
-            if s < run_s[run, qi] or (s == run_s[run, qi] and c < run_c[run, qi]):
-                run_s[run, qi] = s
-                run_c[run, qi] = c
+                s = score_window(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax,
+                                 run_s[run, qi, n_best - 1] + 1)
+            keep_best(run_s[run, qi], run_c[run, qi], s, c)
     best_s = run_s[0].copy()
-    best = run_c[0].copy()
+    best_c = run_c[0].copy()
     for qi in numba.prange(n):
-        for run in range(1, SCORE_CHUNKS):
-            s, c = run_s[run, qi], run_c[run, qi]
-            if s < best_s[qi] or (s == best_s[qi] and c < best[qi]):
-                best_s[qi], best[qi] = s, c
-    return best
+        for run in range(1, runs):
+            for j in range(n_best):
+                if run_c[run, qi, j] == NO_CANDIDATE:
+                    break
+                keep_best(best_s[qi], best_c[qi], run_s[run, qi, j], run_c[run, qi, j])
+    return finish_best(best_c), best_s
 
 
 @numba.njit(cache=True, nogil=True)
 def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_planes: np.ndarray,
                 q_start: np.ndarray, q_stop: np.ndarray, q_ids: np.ndarray, ref_hash: np.ndarray,
                 planes: np.ndarray, gaps: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
-                dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
-    """Sequence match of every query centre; returns ``(match, number of candidates)``.
+                dmax: np.int64, n_best: int = 1, threads: int = SCORE_CHUNKS // 2
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sequence match of every query centre: ``(top, scores, n_r)``, its ``n_best`` best
+    candidates best first (``top[:, 0]`` is the match; −1 where there were fewer), their
+    fixed-point scores (``DELTA_MAX_UNITS`` per δ_max) and the number of candidates.
+    ``threads`` (numba's, from the caller: reading it here would keep numba from caching
+    the kernel) sets how many runs score pairs side by side; the answer does not depend on it.
 
     The query-frame arrays are those of :class:`QueryFrames` (the own address of the frame
     at position ``i``, its list ``q_ids[q_start[i]:q_stop[i]]``, the frames' bit planes),
@@ -406,7 +438,8 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     n_ref = ref_hash.shape[0]
     # the bit-plane score sums in float64: exact while L·δ_max < 2^53
     fast = k == 2 and planes.shape[0] > 0 and np.float64(L) * np.float64(dmax) < 2.0**53
-    match = np.empty(n, np.int64)
+    top = np.empty((n, n_best), np.int64)
+    scores = np.empty((n, n_best), np.int64)
     n_r = np.empty(n, np.int64)
     shift = _bucket_shift(n_ref, planes.shape[0] * 8)
     proposals = count_proposals(centres_t, L, q_start, q_stop)
@@ -420,10 +453,39 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
                                                   shift)
         pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
         q_words = _query_words(t, L, q_planes, d) if fast else np.zeros((t.shape[0], 0), np.uint64)
-        match[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables, d, k, dmax, fast)
+        top[lo:hi], scores[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables,
+                                                 d, k, dmax, fast, n_best,
+                                                 min(SCORE_CHUNKS, max(1, 2 * threads)))
         n_r[lo:hi] = block_n_r
         lo = hi
-    return match, n_r
+    return top, scores, n_r
+
+
+@numba.njit(cache=True, nogil=True)
+def address_delta(h1: np.ndarray, h2: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int) -> np.ndarray:
+    """Fixed-point δ between the codes of each pair of addresses ``h1[i]``, ``h2[i]``."""
+    out = np.empty(h1.shape[0], np.int64)
+    for i in range(h1.shape[0]):
+        out[i] = delta(h1[i], h2[i], w, tables, d, k)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def list_top(slot: np.ndarray, offsets: np.ndarray, ids: np.ndarray, best: np.ndarray, n_best: int) -> np.ndarray:
+    """L = 1's best-first candidates of frames that took occupied addresses ``slot``: the
+    address's single best, then the rest of its list by id (−1 where the list is shorter)."""
+    out = np.full((slot.shape[0], n_best), -1, np.int64)
+    for i in range(slot.shape[0]):
+        a = slot[i]
+        out[i, 0] = best[a]
+        j = 1
+        for q in range(offsets[a], offsets[a + 1]):
+            if j >= n_best:
+                break
+            if ids[q] != best[a]:
+                out[i, j] = ids[q]
+                j += 1
+    return out
 
 
 @numba.njit(cache=True, nogil=True)

@@ -21,16 +21,28 @@ from typing import Any
 
 import numpy as np
 
+from vprscale.method.kernels import N_BEST
 from vprscale.protocol import SEQUENCE_MODES
 
 
 @dataclass
 class Answer:
-    """One method's answers for the centres of one (noise, L, mode)."""
+    """One method's answers for the centres of one (noise, L, mode) (docs/protocol.md, "Scores").
 
-    match: np.ndarray  # matched reference id per centre
+    ``top`` holds each centre's best candidates, best first (``N_BEST`` columns, −1 where
+    there were fewer; ``top[:, 0]`` is the match), ``score`` the match's score in the
+    method's own units, lower meaning more confident.
+    """
+
+    top: np.ndarray  # (centres, N_BEST) int64
+    score: np.ndarray  # float64 per centre
     n_r: np.ndarray  # candidates scored per centre
     ops_per_query: float  # counted unitary operations per query (docs/accounting.md)
+
+    @property
+    def match(self) -> np.ndarray:
+        """The matched reference id of each centre."""
+        return self.top[:, 0]
 
 
 class Algorithm(ABC):
@@ -78,6 +90,17 @@ class Algorithm(ABC):
         """L = 1: each frame's distance from its truth to the nearest id it retrieved (the
         in-list bound); None for methods without lists. Untimed."""
         return None
+
+
+def top_columns(ids: np.ndarray, distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(top, score)`` of an L = 1 answer from a ranked search's ``(ids, distances)`` rows
+    (−1 padded): its first ``N_BEST`` ids, −1 padded to that width, and the first distance
+    (inf where nothing was found)."""
+    ids = np.asarray(ids, np.int64).reshape(len(ids), -1)
+    top = np.full((len(ids), N_BEST), -1, np.int64)
+    top[:, : min(N_BEST, ids.shape[1])] = ids[:, :N_BEST]
+    first = np.asarray(distances, np.float64).reshape(len(ids), -1)[:, 0] if ids.shape[1] else np.full(len(ids), np.inf)
+    return top, np.where(top[:, 0] >= 0, first, np.inf)
 
 
 def sequence_modes(L: int, requested: list[str]) -> list[str | None]:

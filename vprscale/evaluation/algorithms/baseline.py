@@ -15,6 +15,7 @@ from vprscale.dataset.store import ref_moments
 from vprscale.evaluation.accounting import baseline_ops
 from vprscale.evaluation.algorithms.base import Algorithm, Answer
 from vprscale.evaluation.algorithms.coarsehash import CoarseHash
+from vprscale.method.kernels import N_BEST
 from vprscale.method.pca import ExactPCA, moments_of
 from vprscale.protocol import window_positions
 
@@ -81,8 +82,8 @@ class Baseline(Algorithm):
 
     def localise(self, state: np.ndarray, pos: np.ndarray, L: int, mode: str | None) -> Answer:
         nr = self.budget[L]
-        match, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range)
-        return Answer(match, n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
+        top, scores, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range, N_BEST)
+        return Answer(top, scores[:, 0], n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
 
 
 def baseline_limit(requested: int | None, n_query: int) -> int | None:

@@ -9,7 +9,7 @@ import numpy as np
 from vprscale.evaluation.accounting import method_ops
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes
 from vprscale.method.index import Index, QueryFrames
-from vprscale.method.kernels import in_list_distance, match_batch
+from vprscale.method.kernels import N_BEST, in_list_distance
 
 
 class CoarseHash(Algorithm):
@@ -37,16 +37,12 @@ class CoarseHash(Algorithm):
 
     def frames(self, rows: np.ndarray) -> QueryFrames:
         """Hash, nearest occupied address, list retrieval and bit planes of every frame."""
-        return self.index.query_frames(self.index.hash_queries(rows))
+        h, errors = self.index.hash_frames(rows)
+        return self.index.query_frames(h, errors=errors)
 
     def localise(self, state: QueryFrames, pos: np.ndarray, L: int, mode: str | None) -> Answer:
-        idx = self.index
-        if L == 1:
-            a = state.slot[pos]
-            match, n_r = idx.best[a], idx.offsets[a + 1] - idx.offsets[a]
-        else:
-            match, n_r = match_batch(pos, L, mode == "aligned", *state.kernel_args(), *idx.kernel_args())
-        return Answer(np.asarray(match, np.int64), np.asarray(n_r, np.int64), self._ops(state, pos, L, n_r))
+        top, score, n_r = self.index.answer(state, pos, L, mode, N_BEST)
+        return Answer(top, score, np.asarray(n_r, np.int64), self._ops(state, pos, L, n_r))
 
     def _ops(self, state: QueryFrames, pos: np.ndarray, L: int, n_r: np.ndarray) -> float:
         """Counted operations per query, with the share of frames whose own address was unoccupied."""

@@ -12,7 +12,8 @@ from threadpoolctl import threadpool_limits
 
 from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.progress import ChunkProgress, Timings
-from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes
+from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
+from vprscale.method.kernels import N_BEST
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
 MIN_SAMPLE = 16  # centres per run at least
@@ -95,19 +96,18 @@ class FaissMethod(Algorithm):
     def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
         self._apply()
-        _, ids = self.codes.search(rows)
-        return (ids, *self.codes.frame_terms(rows))
+        dist, ids = self.codes.search(rows)
+        return (ids, dist, *self.codes.frame_terms(rows))
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None) -> Answer:
         self._apply()  # its counted operations depend on this point's nprobe
-        ids, tables, q_vectors = state
+        ids, dist, tables, q_vectors = state
         frame_ops = self.codes.frame_ops()
-        if L == 1:
-            found = ids[pos]
-            return Answer(found[:, 0], (found >= 0).sum(axis=1), frame_ops)
-        match, n_r = self.codes.match(pos, L, mode == "aligned", ids, tables, q_vectors)
+        if L == 1:  # FAISS's own ranking and distances
+            return Answer(*top_columns(ids[pos], dist[pos]), (ids[pos] >= 0).sum(axis=1), frame_ops)
+        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", ids, tables, q_vectors, N_BEST)
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
-        return Answer(match, n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
+        return Answer(top, scores[:, 0], n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
 
     def in_list(self, state: tuple, pos: np.ndarray, truth: np.ndarray) -> np.ndarray:
         ids = state[0][pos]

@@ -1,0 +1,101 @@
+"""The metrics of an evaluation (docs/protocol.md, "Recall" and "Scores"), apart from the
+methods and the datasets, as big-ann-benchmarks keeps them.
+
+Every function takes per-query arrays of one run and optional per-query ``weights`` (a
+stratified sample weights each part by its share of the query rows; None: every query
+counts once):
+
+- recall at radius r: share of queries whose match lies within r frames of the truth;
+- Recall@N at radius r: share with any of the N best candidates within r;
+- precision–recall: a match is accepted when its score ≤ θ; precision = correct accepted /
+  accepted, recall = correct accepted / queries, correct = within r; AUC-PR is the
+  trapezoid area under that curve over every distinct θ, and recall at 100 % precision
+  the largest recall before the first accepted mistake;
+- 95 % Wilson intervals for every recall.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+RADII = np.arange(21)  # recall radii, in frames (20 frames = 100 m on FAS)
+TOP_N = (1, 5, 10, 20)  # Recall@N columns
+Z95 = 1.959963984540054  # two-sided 95 % normal quantile
+
+
+def _weights(n: int, weights: np.ndarray | None) -> np.ndarray:
+    return np.ones(n) if weights is None else np.asarray(weights, np.float64)
+
+
+def recall_curve(error: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Recall at r = 0 … 20 from each query's ``|match − truth|`` (NaN without queries)."""
+    if len(error) == 0:
+        return np.full(len(RADII), np.nan)
+    w = _weights(len(error), weights)
+    return (w[:, None] * (np.asarray(error)[:, None] <= RADII[None, :])).sum(axis=0) / w.sum()
+
+
+def top_error(top: np.ndarray, truth: np.ndarray, n: int) -> np.ndarray:
+    """Each query's smallest ``|candidate − truth|`` over its ``n`` best candidates (−1
+    places, where there were fewer, never count)."""
+    top = np.asarray(top, np.int64)[:, :n]
+    err = np.where(top >= 0, np.abs(top - np.asarray(truth, np.int64)[:, None]), np.iinfo(np.int64).max)
+    return err.min(axis=1) if top.shape[1] else np.full(len(top), np.iinfo(np.int64).max)
+
+
+def wilson(p: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """95 % Wilson score interval ``(lo, hi)`` of proportions ``p`` observed on ``n`` queries."""
+    p = np.asarray(p, np.float64)
+    if n == 0:
+        return np.full_like(p, np.nan), np.full_like(p, np.nan)
+    z2 = Z95**2
+    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = Z95 * np.sqrt(np.maximum(p * (1 - p), 0) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return np.clip(centre - half, 0, 1), np.clip(centre + half, 0, 1)
+
+
+def pr_curve(score: np.ndarray, correct: np.ndarray,
+             weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(precision, recall)`` at every distinct score threshold, ascending θ."""
+    score = np.asarray(score, np.float64)
+    w = _weights(len(score), weights)
+    order = np.argsort(score, kind="stable")
+    s, ok, w = score[order], np.asarray(correct, bool)[order], w[order]
+    ends = np.r_[np.flatnonzero(np.diff(s) != 0), len(s) - 1] if len(s) else np.zeros(0, np.int64)
+    accepted = np.cumsum(w)[ends]
+    hits = np.cumsum(w * ok)[ends]
+    total = w.sum()
+    return (np.divide(hits, accepted, out=np.zeros_like(hits), where=accepted > 0),
+            hits / total if total > 0 else np.zeros_like(hits))
+
+
+def auc_pr(precision: np.ndarray, recall: np.ndarray) -> float:
+    """Trapezoid area under a precision–recall curve, from recall 0 at the first point's precision."""
+    if len(recall) == 0:
+        return float("nan")
+    r = np.r_[0.0, recall]
+    p = np.r_[precision[0], precision]
+    return float(np.sum(np.diff(r) * (p[1:] + p[:-1]) / 2))
+
+
+def recall_at_full_precision(precision: np.ndarray, recall: np.ndarray) -> float:
+    """The largest recall reached while every accepted match is correct (0 if the first is not)."""
+    perfect = np.flatnonzero(precision < 1)
+    upto = perfect[0] if len(perfect) else len(precision)
+    return float(recall[upto - 1]) if upto > 0 else 0.0
+
+
+def run_metrics(error: np.ndarray, top: np.ndarray, truth: np.ndarray, score: np.ndarray,
+                weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Every metric of one run's queries, per radius: ``recall``, ``recall_at_N`` (N of
+    ``TOP_N`` above 1), ``auc_pr`` and ``recall_at_p100`` (arrays over ``RADII``)."""
+    out = {"recall": recall_curve(error, weights)}
+    for n in TOP_N[1:]:
+        out[f"recall_at_{n}"] = recall_curve(top_error(top, truth, n), weights)
+    auc, full = np.full(len(RADII), np.nan), np.full(len(RADII), np.nan)
+    if len(error):
+        for r in RADII:
+            precision, recall = pr_curve(score, np.asarray(error) <= r, weights)
+            auc[r], full[r] = auc_pr(precision, recall), recall_at_full_precision(precision, recall)
+    out["auc_pr"], out["recall_at_p100"] = auc, full
+    return out
