@@ -165,9 +165,12 @@ def cmd_index(args: argparse.Namespace) -> int:
 def cmd_sql(args: argparse.Namespace) -> int:
     from vprscale.evaluation.sql import run_sql, shell
 
-    if args.query is None:
-        return shell(args.index, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads)
-    print(run_sql(args.index, args.query, fmt=args.format, timeout=args.timeout, memory_limit=args.memory_limit,
+    paths, query = args.paths, None
+    if len(paths) > 1 and not Path(paths[-1]).exists():  # the last word is the statement, not a folder
+        paths, query = paths[:-1], paths[-1]
+    if query is None:
+        return shell(paths, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads)
+    print(run_sql(paths, query, fmt=args.format, timeout=args.timeout, memory_limit=args.memory_limit,
                   threads=args.threads), end="")
     return 0
 
@@ -207,14 +210,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     req = EvalRequest(store=Path(args.store), indexes=[Path(args.index)] if args.index else [],
                       noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
                       z=args.z, baseline_queries=args.baseline_queries,
-                      compare=args.compare, faiss_k=args.faiss_k,
+                      compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,
                       faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
                       out=Path(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
                       force=args.force)
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
-        if args.compare:
-            raise InputError("--compare: compares with one index at a time, not with a --d sweep")
+        if args.compare or args.methods:
+            flag = "--compare" if args.compare else "--method"
+            raise InputError(f"{flag}: compares with one index at a time, not with a --d sweep")
         check_request(req)
         req.indexes = sweep_indexes(args.store, args.d, scheduler=args.scheduler, workers=args.workers)
     summary = evaluate(req)
@@ -245,10 +249,13 @@ def cmd_results(args: argparse.Namespace) -> int:
 
 
 def cmd_methods(args: argparse.Namespace) -> int:
-    from vprscale.evaluation.algorithms.registry import BUILTIN, factories
+    from vprscale.evaluation.algorithms.registry import registered
 
-    for name, target in factories().items():
-        print(f"{name:<12} {target}{'' if name in BUILTIN else '  (entry point vprscale.algorithms)'}")
+    notes = {"built-in": "", "factory": "  (entry point vprscale.algorithms: joins every evaluation)",
+             "method": "  (entry point vprscale.algorithms: eval --method NAME)"}
+    for name, (target, kind) in registered().items():
+        print(f"{name:<12} {target}{notes[kind]}")
+    print("any class of the contract in docs/bring-your-own.md: eval --method package.module:Class")
     return 0
 
 
@@ -391,9 +398,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--faiss-nprobe", type=_csv(int), default=[16],
                    help="inverted lists an IVF index visits per frame, e.g. 1,8,64: one operating point each, "
                         "with every --faiss-k (default 16)")
+    p.add_argument("--method", metavar="CLASS", action="append", default=[], dest="methods",
+                   help="also evaluate your own method: package.module:Class of the contract in "
+                        "docs/bring-your-own.md, or an installed method's name (repeat for several)")
+    p.add_argument("--method-k", type=_csv(int), default=None,
+                   help="references each query frame retrieves from a --method, e.g. 4,16,64: one operating point "
+                        "each (default: CoarseHash's mean list size on INDEX)")
     p.add_argument("--compare-queries", type=_positive_int, default=None,
-                   help="centres per compared run (default: all while the run's frames visit at most 2^35 "
-                        "codes; beyond, an evenly spaced sample that fits)")
+                   help="centres per compared (FAISS or --method) run (default: FAISS: all while the run's frames "
+                        "visit at most 2^35 codes, beyond, an evenly spaced sample that fits; --method: all)")
     p.add_argument("--force", action="store_true",
                    help="replace an evaluation already in the output; the old one is kept beside, as <out>.previous")
     p.add_argument("--repeats", type=_positive_int, default=3,
@@ -447,9 +460,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')
     p.set_defaults(func=cmd_bench)
 
-    p = sub.add_parser("sql", help="read-only SQL over an index (views lists, buckets, model, results, queries)")
-    p.add_argument("index", help="an index directory")
-    p.add_argument("query", nargs="?", help="one SELECT statement; without it, an interactive shell")
+    p = sub.add_parser("sql", help="read-only SQL over an index and evaluations (views lists, buckets, model, "
+                                   "results, queries)")
+    p.add_argument("paths", nargs="+", metavar="PATH [QUERY]",
+                   help="an index directory and/or evaluation folders (viewed together, with a run column), then "
+                        "one SELECT statement; without it, an interactive shell")
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--csv", dest="format", action="store_const", const="csv")
     fmt.add_argument("--json", dest="format", action="store_const", const="json")

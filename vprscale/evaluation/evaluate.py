@@ -34,6 +34,7 @@ from vprscale.evaluation.algorithms import registry
 from vprscale.evaluation.algorithms.base import Answer
 from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit, load_baseline_map
 from vprscale.evaluation.algorithms.faisscodes import fit_codes
+from vprscale.evaluation.algorithms.plugged import load_method
 from vprscale.evaluation.metrics import RADII, recall_curve, run_metrics, wilson
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
 from vprscale.method.index import Index
@@ -68,6 +69,8 @@ class EvalRequest:
     compare: list[str] = field(default_factory=list)  # FAISS index_factory strings
     faiss_k: list[int] | None = None  # top-k per frame, one operating point each (None: CoarseHash's mean list size)
     faiss_nprobe: list[int] = field(default_factory=lambda: [DEFAULT_NPROBE])  # lists an IVF frame visits, likewise
+    methods: list[str] = field(default_factory=list)  # your own methods: package.module:Class or installed names
+    method_k: list[int] | None = None  # their k per frame, one operating point each (None: as faiss_k's default)
     compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
@@ -144,7 +147,7 @@ def check_request(req: EvalRequest) -> None:
         raise InputError("--L: sequence lengths must be at least 1")
     if req.z is not None and req.z < 1:
         raise InputError(f"--z {req.z}: must be at least 1")
-    for flag, values in (("--faiss-k", req.faiss_k), ("--faiss-nprobe", req.faiss_nprobe),
+    for flag, values in (("--faiss-k", req.faiss_k), ("--faiss-nprobe", req.faiss_nprobe), ("--method-k", req.method_k),
                          ("--compare-queries", [req.compare_queries])):
         for value in values or []:
             if value is not None and value < 1:
@@ -153,8 +156,9 @@ def check_request(req: EvalRequest) -> None:
             raise InputError(f"{flag}: a value is given twice")
     if req.faiss_nprobe is not None and not req.faiss_nprobe:
         raise InputError("--faiss-nprobe: the list is empty")
-    if len(set(req.compare)) != len(req.compare):
-        raise InputError(f"--compare: {next(f for f in req.compare if req.compare.count(f) > 1)} given twice")
+    for flag, given in (("--compare", req.compare), ("--method", req.methods)):
+        if len(set(given)) != len(given):
+            raise InputError(f"{flag}: {next(f for f in given if given.count(f) > 1)} given twice")
 
 
 def evaluate(req: EvalRequest) -> dict[str, Any]:
@@ -162,8 +166,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     check_request(req)
     if not req.indexes:
         raise InputError("eval: give an INDEX, or --d to index the store at several widths")
-    if req.compare and len(req.indexes) > 1:
-        raise InputError("--compare: compares with one index at a time, not with a --d sweep")
+    if (req.compare or req.methods) and len(req.indexes) > 1:
+        flag = "--compare" if req.compare else "--method"
+        raise InputError(f"{flag}: compares with one index at a time, not with a --d sweep")
     t_start = time.perf_counter()
     group = open_complete_group(req.store)
     meta = group.attrs[ATTR]
@@ -175,9 +180,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
     dim = int(meta["recipe"]["dim"])
-    if req.compare and layout["kind"] == "compact":
-        raise InputError(f"--compare: {req.store} is a compact store and keeps no reference descriptors to "
-                         "encode; build it with --layout full")
+    if (req.compare or req.methods) and layout["kind"] == "compact":
+        flag = "--compare" if req.compare else "--method"
+        raise InputError(f"{flag}: {req.store} is a compact store and keeps no reference descriptors to "
+                         "fit on; build it with --layout full")
+    plugged = [load_method(spec, registry.installed_methods()) for spec in req.methods]
     with dask_client(req.scheduler, req.workers) as client:
         index_paths = req.indexes
         indexes = []
@@ -201,6 +208,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(_HOLDS.format(out=out))
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
+        _check_methods(req, plugged, indexes[0][1])
         base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
             for path in index_paths:  # re-indexing waits for (is refused during) an evaluation of the index
@@ -215,7 +223,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             t_fit = time.perf_counter()
             fit_codes(compared, rows_of(group["ref"]), req.quiet) if compared else None
             fit_s = time.perf_counter() - t_fit
-            rows, queries = _grid(req, qs, z, dim, indexes, base, compared)
+            method_fit_s = _fit_methods(plugged, rows_of(group["ref"]), req.quiet)
+            rows, queries = _grid(req, qs, z, dim, indexes, base, compared, plugged)
             columns = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                        "store_identity": identity}
             record = provenance(inputs={"store_identity": identity, "indexes": [
@@ -229,7 +238,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
                        "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
                                             "bytes_per_place": c.bytes_per_place}
-                                   for c in compared}, "compare_fit_s": fit_s if compared else None, **columns,
+                                   for c in compared}, "compare_fit_s": fit_s if compared else None,
+                       "methods": {label: {"k": _method_k(req, indexes[0][1]), "fit_s": method_fit_s[label]}
+                                   for label, _ in plugged}, **columns,
                        "provenance": record}
             (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
             if req.force and (out / "eval.json").is_file():  # the previous evaluation is kept, not replaced
@@ -240,6 +251,38 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
+
+
+def _default_k(idx: Index) -> int:
+    """References a compared method's frame retrieves by default: CoarseHash's mean list size."""
+    return max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))
+
+
+def _method_k(req: EvalRequest, idx: Index) -> list[int]:
+    return req.method_k or [_default_k(idx)]
+
+
+def _check_methods(req: EvalRequest, plugged: list[tuple[str, Any]], idx: Index) -> None:
+    labels = [label for label, _ in plugged]
+    if len(set(labels)) != len(labels):
+        raise InputError(f"--method: two methods are named {next(x for x in labels if labels.count(x) > 1)}; "
+                         "give each class its own name attribute")
+    for k in req.method_k or []:
+        if k > min(idx.n_ref, MAX_FAISS_K):
+            raise InputError(f"--method-k {k:,}: at most {min(idx.n_ref, MAX_FAISS_K):,} (the references, and "
+                             f"{MAX_FAISS_K:,} per frame: each frame's list is held for every window)")
+
+
+def _fit_methods(plugged: list[tuple[str, Any]], ref: Any, quiet: bool) -> dict[str, float]:
+    """Fit every ``--method`` on the reference rows (a Dask array); seconds each took."""
+    took = {}
+    for label, method in plugged:
+        if not quiet:
+            print(f"… fit {label} on {ref.shape[0]:,} references", file=sys.stderr)
+        t0 = time.perf_counter()
+        method.fit(ref)
+        took[label] = time.perf_counter() - t0
+    return took
 
 
 def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[FaissCodes]:
@@ -255,7 +298,7 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
         if k > min(idx.n_ref, MAX_FAISS_K):
             raise InputError(f"--faiss-k {k:,}: at most {min(idx.n_ref, MAX_FAISS_K):,} (the references, and "
                              f"{MAX_FAISS_K:,} per frame: each frame's list is held for every window)")
-    k = (req.faiss_k or [max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))])[0]
+    k = (req.faiss_k or [_default_k(idx)])[0]
     methods = [FaissCodes(factory, dim, k, req.faiss_nprobe[0], req.workers) for factory in req.compare]
     for m in methods:
         if m.ivf is not None and m.ivf.nlist > idx.n_ref:
@@ -265,7 +308,7 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
 
 
 def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
-          compared: list[FaissCodes]) -> tuple[list[dict], list[dict]]:
+          compared: list[FaissCodes], plugged: list[tuple[str, Any]]) -> tuple[list[dict], list[dict]]:
     """Every method of every index on every noise, L and mode; the methods come from the registry."""
     rows: list[dict] = []
     queries: list[dict] = []
@@ -277,7 +320,8 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
         index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
         compared=compared, compare_queries=req.compare_queries, faiss_k=req.faiss_k,
-        faiss_nprobe=req.faiss_nprobe))) for path, idx in indexes]
+        faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx))))
+        for path, idx in indexes]
     steps = len(req.noises) * sum(sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths) for a in algos)
                                   for _, algos in methods)
     bar = StepProgress("evaluate", steps, req.quiet)

@@ -203,7 +203,7 @@ class Sandbox:
 
 
 @contextmanager
-def sandbox(index: str | Path, memory_limit: str = "2GB", threads: int = 2) -> Iterator[Sandbox]:
+def sandbox(index: str | Path | list, memory_limit: str = "2GB", threads: int = 2) -> Iterator[Sandbox]:
     box = Sandbox(index, memory_limit, threads)
     try:
         yield box
@@ -211,19 +211,20 @@ def sandbox(index: str | Path, memory_limit: str = "2GB", threads: int = 2) -> I
         box.close()
 
 
-def run_sql(index: str | Path, query: str, fmt: str = "table", timeout: float = 30.0, memory_limit: str = "2GB",
+def run_sql(index: str | Path | list, query: str, fmt: str = "table", timeout: float = 30.0, memory_limit: str = "2GB",
             threads: int = 2) -> str:
-    """One read-only query over an index, formatted as a table, CSV or JSON lines."""
+    """One read-only query over an index and/or evaluation folders, formatted as a table, CSV or JSON lines."""
     if not timeout > 0:
         raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
     with sandbox(index, memory_limit, threads) as box:
         return format_table(box.query(query, timeout), fmt)
 
 
-def shell(index: str | Path, timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:
+def shell(index: str | Path | list, timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:
     """An interactive console: statements end with ';', an empty line or EOF quits."""
     with sandbox(index, memory_limit, threads) as box:
-        print(f"vprscale sql on {index}: views {', '.join(views([Path(index).resolve()]))}; end with ';'",
+        roots = [Path(p).resolve() for p in (index if isinstance(index, list) else [index])]
+        print(f"vprscale sql on {', '.join(map(str, roots))}: views {', '.join(views(roots))}; end with ';'",
               file=sys.stderr)
         buf: list[str] = []
         while True:

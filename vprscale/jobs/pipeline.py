@@ -16,6 +16,7 @@ Relative paths are taken from the current directory (run pipelines from the repo
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import io
 import json
 import shlex
@@ -47,7 +48,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
              "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
-             "repeats": ("int", False)},
+             "methods": ("list[str]", False), "method_k": ("list[int]", False), "repeats": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
 PRODUCERS = {"source": {"synth"}, "store": {"build"}, "index": {"index"}, "results": {"eval"},
@@ -270,8 +271,28 @@ def stage_code(kind: str, graph: Any) -> dict[str, str]:
     return code
 
 
+def _method_source(spec: str) -> str:
+    """Digest of the source file of a ``--method`` (its module, outside vprscale): an
+    evaluation re-runs when the user's method changes, as when vprscale's own code does."""
+    from vprscale.evaluation.algorithms.plugged import with_working_directory
+    from vprscale.evaluation.algorithms.registry import installed_methods
+
+    with_working_directory()
+    module = installed_methods().get(spec, spec).partition(":")[0]
+    try:
+        found = importlib.util.find_spec(module)
+    except (ImportError, ValueError):
+        found = None
+    if found is None or not found.origin or not Path(found.origin).is_file():
+        raise InputError(f"methods: {spec}: no module {module} to import")
+    return hashlib.sha256(Path(found.origin).read_bytes()).hexdigest()
+
+
 def _inputs(stage: Stage) -> dict[str, Any]:
-    """What a stage reads besides its parameters: a build's recipe file and source files."""
+    """What a stage reads besides its parameters: a build's recipe file and source files, an
+    evaluation's own methods' source files."""
+    if stage.kind == "eval":
+        return {f"method:{m}": _method_source(m) for m in stage.params.get("methods", [])}
     if stage.kind != "build":
         return {}
     from vprscale.dataset.recipe import recipe_path
@@ -400,7 +421,9 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
                                                              if "d_sweep" in p else [])
         for factory in p.get("compare", []):
             cmd += ["--compare", factory]
-        for key in ("faiss_k", "faiss_nprobe", "compare_queries", "repeats"):
+        for method in p.get("methods", []):
+            cmd += ["--method", method]
+        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats"):
             value = ",".join(map(str, p[key])) if isinstance(p.get(key), list) else str(p.get(key))
             cmd += ["--" + key.replace("_", "-"), value] if key in p else []
         # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)

@@ -3,9 +3,13 @@
 Every entry is a factory ``create(context) -> list[Algorithm]``: given what one evaluation
 of one index has at hand (:class:`Context`), it returns the methods it contributes (none
 when the evaluation did not ask for it). The built-in methods are registered here by
-module path, and installed packages add theirs under the entry-point group
-``vprscale.algorithms`` (``name = "package.module:create"``); every factory is imported
-only when an evaluation runs.
+module path: CoarseHash, the baseline, FAISS codes (``--compare``) and the methods of the
+small contract (``--method``, :mod:`.plugged`).
+
+Installed packages add theirs under the entry-point group ``vprscale.algorithms``: a
+factory (``name = "package.module:create"``) joins every evaluation, as the built-in ones
+do; a class of the small contract (``name = "package.module:Class"``) becomes a method an
+evaluation can ask for by name (``--method name``). Everything is imported only when used.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ BUILTIN = {  # in this order: the grid reports methods in the order they are cre
     "coarsehash": "vprscale.evaluation.algorithms.coarsehash:create",
     "baseline": "vprscale.evaluation.algorithms.baseline:create",
     "faiss": "vprscale.evaluation.algorithms.faisscodes:create",
+    "methods": "vprscale.evaluation.algorithms.plugged:create",
 }
 
 Factory = Callable[["Context"], list[Algorithm]]
@@ -48,9 +53,11 @@ class Context:
     compare_queries: int | None = None
     faiss_k: list[int] | None = None  # FAISS operating points: every k (None: the codes' own) …
     faiss_nprobe: list[int] | None = None  # … with every nprobe (IVF codes only)
+    plugged: list[tuple[str, Any]] = field(default_factory=list)  # fitted --method methods, with their labels
+    method_k: list[int] = field(default_factory=list)  # the k of each of their operating points
 
 
-def _load(target: str) -> Factory:
+def _load(target: str) -> Any:
     module, _, attr = target.partition(":")
     try:
         return getattr(importlib.import_module(module), attr)
@@ -58,14 +65,26 @@ def _load(target: str) -> Factory:
         raise InputError(f"method factory {target}: cannot be loaded ({exc})") from None
 
 
-def factories() -> dict[str, str]:
-    """Every registered factory by name: the built-in ones, then the installed packages' entry points."""
-    found = dict(BUILTIN)
+def is_method_class(obj: Any) -> bool:
+    """Whether an entry point names a class of the small contract (rather than a factory)."""
+    return isinstance(obj, type) and all(callable(getattr(obj, m, None)) for m in ("fit", "query"))
+
+
+def registered() -> dict[str, tuple[str, str]]:
+    """Every entry by name: ``(target, kind)``, kind ``built-in``, ``factory`` (an installed
+    one, joining every evaluation) or ``method`` (an installed class, for ``--method name``)."""
+    found = {name: (target, "built-in") for name, target in BUILTIN.items()}
     for ep in entry_points(group=ENTRY_POINT_GROUP):
-        found.setdefault(ep.name, ep.value)
+        if ep.name not in found:
+            found[ep.name] = (ep.value, "method" if is_method_class(_load(ep.value)) else "factory")
     return found
+
+
+def installed_methods() -> dict[str, str]:
+    """The installed classes of the small contract, by name: what ``--method name`` may ask for."""
+    return {name: target for name, (target, kind) in registered().items() if kind == "method"}
 
 
 def create(context: Context) -> list[Algorithm]:
     """The methods every registered factory contributes to one evaluation of one index."""
-    return [alg for target in factories().values() for alg in _load(target)(context)]
+    return [alg for target, kind in registered().values() if kind != "method" for alg in _load(target)(context)]
