@@ -135,12 +135,39 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_build(args: argparse.Namespace) -> int:
     from vprscale.dataset.build import BuildRequest, build, format_summary
 
+    if args.ref or args.query or args.gt:
+        return _build_own(args)
+    if not args.scale:
+        raise InputError("build: give --scale (a recipe), or --ref, --query and --gt (your own descriptors)")
     summary = build(BuildRequest(scale=args.scale, out=Path(args.out), deep1b=args.deep1b, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
                                  force=args.force, fas_dim=args.fas_dim, rescale=args.rescale,
                                  layout=args.layout))
     if not summary.get("dry_run") and not summary.get("skipped"):
         print(format_summary(summary))
+    _write_summary(args, summary)
+    return 0
+
+
+def _build_own(args: argparse.Namespace) -> int:
+    from vprscale.dataset.build import format_summary
+    from vprscale.dataset.own import OwnRequest, build_own, parse_query
+
+    for flag in ("scale", "deep1b", "fas", "layout"):
+        if getattr(args, flag):
+            raise InputError(f"--{flag}: a recipe's option; your own descriptors (--ref) are stored as given")
+    missing = [f for f, v in (("--ref", args.ref), ("--query", args.query), ("--gt", args.gt)) if not v]
+    if missing:
+        raise InputError(f"build: {' and '.join(missing)} missing (your own descriptors need --ref, --query, --gt)")
+    if args.dry_run:
+        raise InputError("--dry-run: plans a recipe's build; your own descriptors are copied as they are")
+    queries = dict(parse_query(q) for q in args.query)
+    if len(queries) != len(args.query):
+        raise InputError("--query: a name is given twice")
+    summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=args.gt, part=args.part, out=Path(args.out),
+                                   name=args.name, stride=args.stride, force=args.force, workers=args.workers,
+                                   scheduler=args.scheduler))
+    print(format_summary(summary))
     _write_summary(args, summary)
     return 0
 
@@ -350,7 +377,16 @@ def parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("build", parents=[cluster, summary],
                        help="build a localisation dataset (docs/dataset.md) into <out>/<scale>.zarr")
-    p.add_argument("--scale", required=True, help="20K, 1M, 10M, 100M, 1B or a recipe .toml")
+    p.add_argument("--scale", help="20K, 1M, 10M, 100M, 1B or a recipe .toml")
+    own = p.add_argument_group("your own descriptors (docs/bring-your-own.md), instead of --scale")
+    own.add_argument("--ref", help="reference rows: .npy, .fbin or fvecs")
+    own.add_argument("--query", action="append", default=[], metavar="NAME=PATH",
+                     help="a query set (rows aligned with the other sets'), evaluated as --noise NAME; repeatable")
+    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth")
+    own.add_argument("--part", help=".npy of 0/1 per query row (0s first): two parts reported apart (optional)")
+    own.add_argument("--name", help="the store's name, <out>/<name>.zarr (default: the --ref file's stem)")
+    own.add_argument("--stride", type=_positive_int, default=1,
+                     help="the evaluation's default query stride z (default 1: every centre)")
     p.add_argument("--deep1b", help="fvecs file, directory of fvecs chunks, or .fbin (default: synthetic)")
     p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")
     p.add_argument("--out", default="data", help="output directory (default: data)")
@@ -379,7 +415,8 @@ def parser() -> argparse.ArgumentParser:
                        help="localise query sequences and evaluate the grid of docs/protocol.md")
     p.add_argument("store", help="a complete <scale>.zarr dataset store")
     p.add_argument("index", nargs="?", help="an index of that store (or use --d to index several widths)")
-    p.add_argument("--noise", type=_csv(str), default=["qm1", "qm2"], help="qm1,qm2")
+    p.add_argument("--noise", type=_csv(str), default=None,
+                   help="the store's query sets to evaluate, e.g. qm1,qm2 (default: every one it holds)")
     p.add_argument("--L", type=_csv(int), default=[1, 50, 100], help="sequence lengths, e.g. 1,50,100")
     p.add_argument("--modes", type=_csv(str), default=["paper", "aligned"], help="paper,aligned")
     p.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True,

@@ -15,6 +15,7 @@ import pandas as pd
 from matplotlib.ticker import FuncFormatter
 
 from vprscale.evaluation.accounting import time_cell
+from vprscale.evaluation.results import noise_order
 
 MARKERS = {1: "o", 50: "s", 100: "^"}
 RADIUS = 20
@@ -51,7 +52,7 @@ def _label(method: str, mode: str, d: Any, params: Any = None) -> str:
 
 def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
     """Rows: QM1, QM2; columns: each compared scale against bytes, then against µs."""
-    noises = [n for n in ("qm1", "qm2") if n in set(points.noise)]
+    noises = noise_order(points.noise)
     scales = [s for s in scales if s in set(points.scale)]
     fig, axes = plt.subplots(len(noises), 2 * len(scales), figsize=(4.0 * 2 * len(scales), 3.6 * len(noises)),
                              squeeze=False, sharey=True, layout="constrained")
@@ -99,7 +100,7 @@ def _words(points: pd.DataFrame, scales: list[str]) -> list[str]:
     """Where CoarseHash wins and where it loses, per scale, noise and L, read from the points."""
     lines = []
     for scale in [s for s in scales if s in set(points.scale)]:
-        for noise in ("qm1", "qm2"):
+        for noise in noise_order(points.noise):
             for L in sorted(points.L.unique()):
                 sub = points[(points.scale == scale) & (points.noise == noise) & (points.L == L)]
                 ours, theirs = sub[sub.method == "coarsehash"], sub[sub.method != "coarsehash"]

@@ -48,7 +48,7 @@ from vprscale.protocol import (
     window_positions,
 )
 
-NOISES = {"qm1": "query_qm1", "qm2": "query_qm2"}
+DEFAULT_NOISES = ("qm1", "qm2")  # the query sets of a recipe-built store (own stores list theirs in the layout)
 _HOLDS = ("{out}: already holds an evaluation; --force replaces it and keeps it beside, in {out.name}.previous/ "
           "(or give another --out)")
 MAX_FAISS_K = 1 << 14  # references a FAISS frame may retrieve (the lists of every held frame stay in memory)
@@ -60,7 +60,7 @@ class EvalRequest:
 
     store: Path
     indexes: list[Path] = field(default_factory=list)  # one index, or one per width of a d sweep
-    noises: list[str] = field(default_factory=lambda: ["qm1", "qm2"])
+    noises: list[str] | None = None  # the store's query sets by name (None: every one the store holds)
     lengths: list[int] = field(default_factory=lambda: [1, 50, 100])
     modes: list[str] = field(default_factory=lambda: ["paper", "aligned"])
     baseline: bool = True
@@ -99,6 +99,7 @@ class QuerySet:
         else:
             self.n_query = int(group["gt"].shape[0])
             self.frames = None
+        self.noises = list(layout.get("noises", DEFAULT_NOISES))
         self._gt = group["gt"][:]
         self._part = group["query_part"][:]
 
@@ -129,17 +130,16 @@ class QuerySet:
     def rows(self, noise: str, frames: np.ndarray) -> np.ndarray:
         pos, held = self._pos(frames)
         assert held.all(), "frames outside the held windows"
-        return self.group[NOISES[noise]].get_orthogonal_selection((pos, slice(None)))
+        return self.group[f"query_{noise}"].get_orthogonal_selection((pos, slice(None)))
 
 
 def check_request(req: EvalRequest) -> None:
     """Refuse bad parameters before anything is read or built (the index list is checked by :func:`evaluate`)."""
     for flag, values in (("--noise", req.noises), ("--L", req.lengths), ("--modes", req.modes)):
-        if not values:
+        if values is not None and not values:
             raise InputError(f"{flag}: the list is empty; give at least one value")
-    unknown = [n for n in req.noises if n not in NOISES]
-    if unknown:
-        raise InputError(f"--noise {','.join(unknown)}: unknown noise; choose from {', '.join(NOISES)}")
+    if req.noises is not None and len(set(req.noises)) != len(req.noises):
+        raise InputError("--noise: a query set is given twice")
     bad = [m for m in req.modes if m not in SEQUENCE_MODES]
     if bad:
         raise InputError(f"--modes {','.join(bad)}: unknown mode; choose from {', '.join(SEQUENCE_MODES)}")
@@ -175,6 +175,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     layout = store_layout(group)
     identity = store_identity(group)
     qs = QuerySet(group, layout)
+    unknown = [n for n in req.noises or [] if n not in qs.noises]
+    if unknown:
+        raise InputError(f"--noise {','.join(unknown)}: {req.store} holds no such query set; choose from "
+                         f"{', '.join(qs.noises)}")
+    req.noises = req.noises or qs.noises
     too_long = [L for L in req.lengths if L > qs.n_query]
     if too_long:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")

@@ -22,6 +22,7 @@ from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
+from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
 
 PAPER = {"nr_L50": {"20K": 74, "1M": 57, "10M": 32}, "storage_mb": {"20K": 0.2, "1M": 8.4, "10M": 80.4},
          "ops_10M": 37_400, "baseline_ratio": 1300, "fas20K": (1, 98, 267)}
@@ -92,7 +93,7 @@ def _main_rows(res: pd.DataFrame, scale: str, d: int) -> pd.DataFrame:
 
 
 def fig_recall(res, scales, mains, out, figures) -> None:
-    noises = [n for n in ("qm1", "qm2") if n in set(res.noise)]
+    noises = noise_order(res.noise)
     fig, axes = plt.subplots(len(noises), len(scales), figsize=(4.2 * len(scales), 3.4 * len(noises)),
                              squeeze=False, sharey=True, layout="constrained")
     for r, noise in enumerate(noises):
@@ -118,7 +119,7 @@ def fig_recall(res, scales, mains, out, figures) -> None:
 
 
 def fig_dsweep(res, out, figures) -> bool:
-    sub = res[(res.method == "coarsehash") & (res.part == "all") & (res.radius == 20) & (res.noise == "qm1")]
+    sub = res[(res.method == "coarsehash") & (res.part == "all") & (res.radius == 20) & (res.noise == main_noise(res))]
     swept = [s for s, g in sub.groupby("scale") if g["d"].nunique() > 1]
     if not swept:
         return False
@@ -133,10 +134,11 @@ def fig_dsweep(res, out, figures) -> bool:
         a2.plot(g.d, g.nr_mean, STYLE.get(L, "-.") + "o", color=COLOURS[("coarsehash", mode)],
                 label=f"{_label('coarsehash', mode)}, L={L}")
     base = res[(res.method == "baseline") & (res.scale == scale) & (res.part == "all") & (res.radius == 20)
-               & (res.noise == "qm1")]
+               & (res.noise == main_noise(res))]
     for L, g in base.groupby("L"):
         a1.axhline(100 * g.recall.mean(), color="tab:red", ls=STYLE.get(L, "-."), label=f"baseline, L={L}")
-    a1.set(xlabel="hash length d (bits)", ylabel="recall within 20 frames (%)", title=f"{scale}, QM1: recall vs d")
+    a1.set(xlabel="hash length d (bits)", ylabel="recall within 20 frames (%)",
+           title=f"{scale}, {main_noise(res).upper()}: recall vs d")
     a2.set(xlabel="hash length d (bits)", ylabel="mean candidates N_r", yscale="log", title="N_r vs d")
     for a in (a1, a2):
         a.grid(alpha=0.3)
@@ -150,12 +152,12 @@ def fig_single(res, scales, mains, out, figures) -> None:
     fig, ax = plt.subplots(figsize=(5.5, 3.8), layout="constrained")
     for i, scale in enumerate(scales):
         g = res[(res.scale == scale) & (res.method == "coarsehash") & (res.L == 1) & (res.d == mains[scale])
-                & (res.part == "all") & (res.noise == "qm1")].sort_values("radius")
+                & (res.part == "all") & (res.noise == main_noise(res))].sort_values("radius")
         colour = f"C{i}"
         ax.plot(g.radius, 100 * g.recall, "-", color=colour, label=f"{scale}: selected best")
         ax.plot(g.radius, 100 * g.recall_in_list, "--", color=colour, label=f"{scale}: anywhere in list")
     ax.set(xlabel="localisation radius (frames)", ylabel="recall (%)",
-           title="Single frame: best match vs in-list bound, QM1 (paper Fig. 4b)")
+           title=f"Single frame: best match vs in-list bound, {main_noise(res).upper()} (paper Fig. 4b)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     _save(fig, out, "fig4b_single_frame", figures)
@@ -313,7 +315,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compar
     rows = []
     for scale in scales:
         sub = _main_rows(res, scale, mains[scale])
-        sub = sub[(sub.radius == 0) & (sub.noise == "qm1")]
+        sub = sub[(sub.radius == 0) & (sub.noise == main_noise(res))]
         for L, g in sub.groupby("L"):
             m = g[(g.method == "coarsehash") & (g["mode"].isna() | (g["mode"] == "paper"))]
             b = g[g.method == "baseline"]
@@ -326,7 +328,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compar
                          _ratio(b.ops_per_query / m.ops_per_query), time_cell(m),
                          "" if frame is None or frame != frame else f"{frame:.2f}", time_cell(b),
                          _ratio(b.us_per_query / max(m.us_per_query, 1e-9)) if same_run else "(different runs)"])
-    md += ["## Compute per query: CoarseHash (paper mode) vs baseline, QM1", "",
+    md += [f"## Compute per query: CoarseHash (paper mode) vs baseline, {main_noise(res).upper()}", "",
            "Operations by the formulas of docs/accounting.md. Times are µs per query per core: the CPU time of "
            "one thread running the method, the median of the repeats with their range, including the per-frame "
            "work of one new frame (hash, nearest occupied address, list retrieval) as in online use; the column "
@@ -407,7 +409,7 @@ def _paper_comparison(res, indexes, scales, mains) -> list[str]:
     lines = ["| figure | paper | ours | note |", "|---|---|---|---|"]
     for scale in scales:
         g = res[(res.scale == scale) & (res.method == "coarsehash") & (res["mode"] == "paper") & (res.L == 50)
-                & (res.d == mains[scale]) & (res.part == "all") & (res.radius == 0) & (res.noise == "qm1")]
+                & (res.d == mains[scale]) & (res.part == "all") & (res.radius == 0) & (res.noise == main_noise(res))]
         if not g.empty:
             lines.append(f"| N_r, L = 50, {scale} | {PAPER['nr_L50'].get(scale, '–')} | {g.nr_mean.iloc[0]:.1f} | "
                          "paper mode, QM1 |")
@@ -423,14 +425,14 @@ def _paper_comparison(res, indexes, scales, mains) -> list[str]:
                          + " | within 20 frames, paper mode |")
     for scale in scales:
         sub = _main_rows(res, scale, mains[scale])
-        sub = sub[(sub.radius == 0) & (sub.noise == "qm1") & (sub.L == 50)]
+        sub = sub[(sub.radius == 0) & (sub.noise == main_noise(res)) & (sub.L == 50)]
         m = sub[(sub.method == "coarsehash") & (sub["mode"] == "paper")]
         b = sub[sub.method == "baseline"]
         if not m.empty and not b.empty:
             lines.append(f"| baseline / method operations, {scale}, L = 50 | ≈ {PAPER['baseline_ratio']}× (10M) | "
                          f"{_ratio(b.ops_per_query.iloc[0] / m.ops_per_query.iloc[0])} | docs/accounting.md formulas |")
     if "20K" in scales:
-        sub = res[(res.scale == "20K") & (res.part == "fas") & (res.radius == 20) & (res.noise == "qm1")
+        sub = res[(res.scale == "20K") & (res.part == "fas") & (res.radius == 20) & (res.noise == main_noise(res))
                   & (res.L == 50)]
         m = sub[(sub.method == "coarsehash") & (sub["mode"] == "paper") & (sub.d == mains["20K"])]
         b = sub[sub.method == "baseline"]

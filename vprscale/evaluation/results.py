@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 import pyarrow.parquet as pq
@@ -45,3 +46,18 @@ def load_results(*paths: str | Path, queries: bool = False) -> pd.DataFrame:
         frames.append(table.to_pandas().assign(run=str(file.parent.resolve()), commit=record.get("commit"),
                                                run_time=record.get("time")))
     return pd.concat(frames, ignore_index=True)
+
+
+RECIPE_NOISES = ("qm1", "qm2")  # the query sets of recipe-built stores, shown first
+
+
+def noise_order(noises: Any) -> list[str]:
+    """The query sets present, the recipe's QM1 and QM2 first, then the others by name."""
+    found = set(noises)
+    return [n for n in RECIPE_NOISES if n in found] + sorted(found - set(RECIPE_NOISES))
+
+
+def main_noise(res: pd.DataFrame) -> str:
+    """The query set the report's single-noise tables and figures use: QM1, else the first present."""
+    order = noise_order(res.noise)
+    return order[0] if order else RECIPE_NOISES[0]

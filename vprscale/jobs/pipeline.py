@@ -413,7 +413,7 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         return cmd + (["--d", str(p["d"])] if "d" in p else []) + cluster
     if stage.kind == "eval":
         cmd = ["eval", outputs[p["store"]]["store"]] + ([outputs[p["index"]]["index"]] if "index" in p else [])
-        cmd += ["--noise", ",".join(p.get("noise", ["qm1", "qm2"])),
+        cmd += (["--noise", ",".join(p["noise"])] if "noise" in p else []) + [
                 "--L", ",".join(map(str, p.get("L", [1, 50, 100]))),
                 "--modes", ",".join(p.get("modes", ["paper", "aligned"])),
                 "--baseline" if p.get("baseline", True) else "--no-baseline"]

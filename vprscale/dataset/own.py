@@ -1,0 +1,171 @@
+"""``vprscale build --ref REF --query NAME=QUERY … --gt GT``: your own descriptors as a store
+(docs/bring-your-own.md).
+
+Writes the full layout of docs/dataset.md that ``index``, ``eval --noise NAME``, ``report``
+and the SQL console read: ``ref``, one ``query_<NAME>`` per query set (rows aligned with
+each other: the same traverse seen in different conditions), ``gt`` (the reference row of
+each query row, −1 for none) and the parts. Rows stream chunk by chunk, one task per
+chunk, checked for NaN and Inf, into a hidden work copy that is published whole; a killed
+build resumes where it stopped.
+
+Query rows may come in two parts (``--part``: 0 for every row of the first, then 1),
+reported as the ``deep1b`` and ``fas`` parts of the protocol; without it every row is part 0.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import dask
+import numpy as np
+import zarr
+
+from vprscale.core.blocks import BLOCK, chunk_bounds
+from vprscale.core.cluster import cluster_peak_rss, dask_client
+from vprscale.core.errors import InputError
+from vprscale.core.progress import Timings, run_tasks
+from vprscale.core.provenance import provenance
+from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.dataset.layout import codecs
+from vprscale.dataset.sources.base import RowSource
+from vprscale.dataset.sources.rows import open_rows, read_labels
+from vprscale.dataset.store import ATTR
+
+CHUNK_ROWS = 16 * BLOCK  # rows per Zarr chunk and per task
+NAME = re.compile(r"[a-z][a-z0-9_]{0,30}")
+
+
+@dataclass
+class OwnRequest:
+    """What ``vprscale build --ref`` was asked for."""
+
+    ref: str
+    queries: dict[str, str]  # noise name → file
+    gt: str
+    out: Path
+    part: str | None = None
+    name: str | None = None  # the store's (and results' scale column's) name; default: the ref file's stem
+    stride: int = 1  # the evaluation's default query stride z
+    force: bool = False
+    workers: int = 2
+    scheduler: str | None = None
+    quiet: bool = False
+
+
+def parse_query(text: str) -> tuple[str, str]:
+    """``NAME=PATH`` of ``--query``, the name checked (it names an array and the noise column)."""
+    name, sep, path = text.partition("=")
+    if not sep or not path:
+        raise InputError(f"--query {text}: give NAME=PATH, e.g. --query night=night.npy")
+    if not NAME.fullmatch(name):
+        raise InputError(f"--query {text}: the name must be lower-case letters, digits and _, starting with a letter")
+    return name, path
+
+
+def _digest(a: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
+
+
+def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource], np.ndarray, np.ndarray]:
+    """Open and check every input before anything is written: one line naming the file and what is wrong."""
+    if not req.queries:
+        raise InputError("--query: give at least one query set, NAME=PATH")
+    if req.stride < 1:
+        raise InputError(f"--stride {req.stride}: must be at least 1")
+    ref = open_rows(req.ref)
+    queries = {name: open_rows(path) for name, path in req.queries.items()}
+    n_query = None
+    for q in queries.values():
+        if q.dim != ref.dim:
+            raise InputError(f"{q.name}: query rows have {q.dim} dimensions, the references {ref.dim}")
+        if n_query is not None and q.n_rows != n_query:
+            raise InputError(f"{q.name}: {q.n_rows:,} rows, but the other query sets have {n_query:,}: query sets "
+                             "are the same traverse in other conditions, row for row")
+        n_query = q.n_rows
+    gt = read_labels(req.gt, n_query, "ground truth")
+    bad = np.flatnonzero((gt < -1) | (gt >= ref.n_rows))
+    if len(bad):
+        raise InputError(f"{req.gt}: row {bad[0]:,} holds {gt[bad[0]]}, not a reference row (0 … {ref.n_rows - 1:,}) "
+                         "or −1 (no truth)")
+    if not (gt >= 0).any():
+        raise InputError(f"{req.gt}: no query row has a truth (all −1): nothing could be evaluated")
+    part = np.zeros(n_query, np.int64) if req.part is None else read_labels(req.part, n_query, "part")
+    if not np.isin(part, (0, 1)).all() or (np.diff(part) < 0).any():
+        raise InputError(f"{req.part}: parts must be 0 for the first query rows, then 1 for the rest")
+    return ref, queries, gt, part
+
+
+def build_own(req: OwnRequest) -> dict[str, Any]:
+    """Write the store ``<out>/<name>.zarr``; returns the summary the CLI prints."""
+    ref, queries, gt, part = check_inputs(req)
+    name = req.name or Path(req.ref).stem
+    if not NAME.fullmatch(name.lower()) or name != name.lower():
+        raise InputError(f"--name {name}: lower-case letters, digits and _, starting with a letter")
+    out = Path(req.out).absolute()
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {req.out}: is a file, not a directory")
+    final = out / f"{name}.zarr"
+    n_deep = int((part == 0).sum())
+    identity = {"recipe": {"scale": name, "dim": ref.dim, "query_stride": req.stride, "own": True},
+                "sources": {"ref": ref.fingerprint(), **{f"query_{n}": q.fingerprint() for n, q in queries.items()},
+                            "gt": _digest(gt), "part": _digest(part)},
+                "rescale": None, "seed": None}
+    check_writable(out)
+    t0 = time.perf_counter()
+    with exclusive(final):
+        PartialOutput(final, {}).recover()
+        if final.exists() and not (final / "zarr.json").is_file():
+            raise InputError(f"--out {out}: {final} exists and is not a dataset store; not replaced")
+        if (final / "zarr.json").exists() and not req.force:
+            raise InputError(f"--out {out}: {final} already holds a store; --force replaces it (or give another "
+                             "--name or --out)")
+        partial = PartialOutput(final, json.loads(json.dumps(identity, default=str)))
+        resumed = partial.open()
+        timings = Timings(req.quiet)
+        group = zarr.open_group(str(partial.path), mode="a", zarr_format=3)
+        if not partial.done("arrays"):
+            for array, rows in (("ref", ref.n_rows), *((f"query_{n}", len(gt)) for n in queries)):
+                group.create_array(array, shape=(rows, ref.dim), chunks=(CHUNK_ROWS, ref.dim), dtype="f4",
+                                   overwrite=True, **codecs("descriptors"))
+            for array, data, dtype in (("gt", gt, "i8"), ("query_part", part, "u1"),
+                                       ("ref_part", np.zeros(ref.n_rows), "u1")):
+                group.create_array(array, shape=data.shape, chunks=(CHUNK_ROWS,), dtype=dtype, overwrite=True,
+                                   **codecs("labels"))
+                group[array][:] = data.astype(dtype)
+            partial.mark("arrays")
+        sources = {"ref": ref, **{f"query_{n}": q for n, q in queries.items()}}
+        tasks = [dask.delayed(_copy_chunk)(str(partial.path), array, src, a, b, partial, f"{array}-{c}")
+                 for array, src in sources.items()
+                 for c, (a, b) in enumerate(chunk_bounds(src.n_rows, CHUNK_ROWS))
+                 if not partial.done(f"{array}-{c}")]
+        with dask_client(req.scheduler, req.workers) as client, timings.stage(f"copy {len(tasks)} chunks"):
+            run_tasks(tasks, "copy chunks")
+            peak = cluster_peak_rss(client)
+        layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(gt) - n_deep,
+                  "noises": sorted(queries)}
+        summary = {"store": str(final), "scale": name, "layout": "full", "ref_rows": ref.n_rows,
+                   "query_rows": len(gt), "resumed": resumed, "stages_s": timings.stages,
+                   "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
+                   "provenance": provenance(inputs={"sources": identity["sources"]})}
+        group.attrs[ATTR] = {**json.loads(json.dumps(identity, default=str)), "complete": True, "layout": layout}
+        (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},
+                                                            indent=1, default=str))
+        partial.publish()
+    if resumed and not req.quiet:
+        print(f"resumed the unfinished build of {final}", file=sys.stderr)
+    summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
+    return summary
+
+
+def _copy_chunk(store: str, array: str, source: RowSource, a: int, b: int, partial: PartialOutput,
+                unit: str) -> None:
+    """One chunk of one array, read (and checked for NaN and Inf) and written whole."""
+    zarr.open_array(f"{store}/{array}", mode="r+")[a:b] = source.read(a, b)
+    partial.mark(unit)
