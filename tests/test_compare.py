@@ -11,6 +11,7 @@ import json
 
 import faiss
 import numpy as np
+import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 import zarr
@@ -190,18 +191,29 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     method, mode and L, with the recall, bytes and times of the results."""
     assert main(["report", str(compared["out"]), "--out", str(tmp_path / "r")]) == 0
     text = (tmp_path / "r" / "report.md").read_text()
-    section = text.split("## CoarseHash against FAISS compact codes")[1].split("\n## ")[0]
-    assert (tmp_path / "r" / "fig_compare.png").stat().st_size > 10_000
+    section = text.split("## CoarseHash against the other methods")[1].split("\n## ")[0]
+    for fig in ("fig_compare", "fig_compare_bytes", "fig_compare_trends", "fig_pr"):
+        assert (tmp_path / "r" / f"{fig}.png").stat().st_size > 10_000
+    assert "## Scores: precision–recall, AUC-PR and Recall@N" in text
     words = [line for line in section.splitlines() if line.startswith("- tiny, QM1, L = ")]
     assert len(words) == 2
     res = compared["results"]
     row = res[(res.method == "faiss:PQ4") & (res.L == L_SEQ) & (res["mode"] == "aligned") & (res.part == "all")
               & (res.radius == 20)].iloc[0]
     time = f"{row.us_per_query:,.2f} ({row.us_per_query_lo:,.2f}–{row.us_per_query_hi:,.2f})"
-    assert f"| PQ4 {row.params} (aligned) | 4.00 | {time} | {100 * row.recall:.1f} | {row.n_queries} |" in section
+    recall = f"{100 * row.recall:.1f} ({100 * row.recall_lo:.1f}–{100 * row.recall_hi:.1f})"
+    assert f"| PQ4 {row.params} (aligned) | 4.00 | {time} | {recall} | {row.n_queries} |" in section
     # every ratio is of medians measured in the same run (one evaluation here)
     assert "different runs" not in section and "faster" in section or "slower" in section
     assert section.count("| tiny | QM1 |") == 3 * (1 + len(FACTORIES))  # L = 1: single; L = 9: two modes
+
+
+def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():
+    from vprscale.evaluation.comparison import pareto_front
+
+    points = pd.DataFrame({"qps": [100, 90, 80, 50, 40, 10], "recall": [0.5, 0.4, 0.7, 0.7, 0.9, 0.85]})
+    front = pareto_front(points)
+    assert list(front.index) == [0, 2, 4]  # 1 is beaten by 0; 3 by 2 (as good, slower); 5 by 4
 
 
 def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tmp_path):

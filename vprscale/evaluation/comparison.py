@@ -1,7 +1,16 @@
-"""The compact-code comparison of a report: recall within 20 frames against bytes per place and
-against time per query, for CoarseHash and every FAISS method evaluated beside it
-(``vprscale eval --compare``), with its table and what it says in words.
+"""The comparison section of a report: CoarseHash against every other method evaluated beside
+it (FAISS codes with ``--compare``, your own with ``--method``), as ann-benchmarks and
+big-ann-benchmarks draw it.
 
+Each method family (a method in one mode) has one point per operating point (its
+``params``: k, nprobe). The figures:
+
+- ``fig_compare``: recall within 20 frames against queries per second per core (log axis),
+  per scale (columns) and L (rows), with each family's Pareto front drawn and labelled;
+- ``fig_compare_bytes``: recall against bytes per place, on an axis that spans the data;
+- ``fig_compare_trends``: each family's best recall against L, and against scale.
+
+Colour is the only encoding of the family; every recall carries its 95 % Wilson interval.
 Everything here is read from the results; nothing is written in advance of the data.
 """
 
@@ -11,84 +20,209 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib.pyplot as plt
+import numpy as np
 import pandas as pd
-from matplotlib.ticker import FuncFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator
 
 from vprscale.evaluation.accounting import time_cell
-from vprscale.evaluation.results import noise_order
+from vprscale.evaluation.results import main_noise, noise_order
 
-MARKERS = {1: "o", 50: "s", 100: "^"}
 RADIUS = 20
+OURS = "coarsehash"
+NOT_COMPARED = {OURS, "baseline"}
 
 
 def _plain(v: float, _pos: int) -> str:
     return f"{v:g}"
 
 
-def _blank(v: float, _pos: int) -> str:
-    return ""
+def _si(v: float, _pos: int) -> str:
+    for unit, scale in (("M", 1e6), ("k", 1e3)):
+        if v >= scale:
+            return f"{v / scale:g}{unit}"
+    return f"{v:g}"
+
+
+def shared_legend(fig, axes) -> None:
+    """One legend below the panels: every family any panel drew, once."""
+    handles: dict[str, Any] = {}
+    for ax in np.ravel(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(lab, h)
+    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=4, fontsize=7)
 
 
 def _points(res: pd.DataFrame) -> pd.DataFrame:
-    """One row per (scale, noise, method, mode, L): R@20 over all queries, bytes, µs, queries."""
+    """One row per (scale, noise, method, mode, L, params): R@20 over all queries with its
+    interval, bytes, µs and queries per second per core, at scales where a method was compared."""
     sub = res[(res.part == "all") & (res.radius == RADIUS) & res.method.ne("baseline")]
     if "bytes_per_place" not in sub:
         return sub.iloc[:0]
-    compared = set(sub.loc[sub.method.str.startswith("faiss:"), "scale"])
-    sub = sub[sub.scale.isin(compared) & sub.bytes_per_place.notna()]
-    # CoarseHash at the width the FAISS methods were compared with (the index they share)
-    shared = sub[sub.method.str.startswith("faiss:")].groupby("scale")["index"].first()
-    sub = sub[sub.method.str.startswith("faiss:") | (sub["index"] == sub.scale.map(shared))]
+    others = sub[~sub.method.isin(NOT_COMPARED)]
+    sub = sub[sub.scale.isin(set(others.scale))]
+    # CoarseHash at the width the other methods were compared with (the index they share)
+    shared = others.groupby("scale")["index"].first()
+    sub = sub[sub.method.ne(OURS) | (sub["index"] == sub.scale.map(shared))]
     cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries",
-            *(c for c in ("us_per_query_lo", "us_per_query_hi", "run", "params") if c in res.columns)]
-    return sub[cols].assign(mode=sub["mode"].fillna("single")).reset_index(drop=True)
+            *(c for c in ("us_per_query_lo", "us_per_query_hi", "recall_lo", "recall_hi", "run", "params")
+              if c in res.columns)]
+    out = sub[cols].assign(mode=sub["mode"].fillna("single")).reset_index(drop=True)
+    out["family"] = [family_label(m, mode, d) for m, mode, d in zip(out.method, out["mode"], out.d, strict=True)]
+    out["qps"] = 1e6 / out.us_per_query.clip(lower=1e-9)
+    return out
+
+
+def family_label(method: str, mode: str, d: Any) -> str:
+    name = f"CoarseHash d={int(d)}" if method == OURS else method.removeprefix("faiss:")
+    return f"{name} ({mode})"
 
 
 def _label(method: str, mode: str, d: Any, params: Any = None) -> str:
-    name = f"CoarseHash d={int(d)}" if method == "coarsehash" else method.removeprefix("faiss:")
-    at = f" {params}" if isinstance(params, str) and params and method != "coarsehash" else ""
-    return f"{name}{at} ({mode})"
+    at = f" {params}" if isinstance(params, str) and params and method != OURS else ""
+    return family_label(method, mode, d).replace(" (", f"{at} (", 1)
+
+
+def pareto_front(points: pd.DataFrame, x: str = "qps", y: str = "recall") -> pd.DataFrame:
+    """The points no other point beats on both ``x`` and ``y`` (higher is better on both),
+    by ``x`` descending: a point joins when its ``y`` exceeds that of every faster point."""
+    ordered = points.sort_values([x, y], ascending=[False, False])
+    best = -np.inf
+    keep = []
+    for i, v in zip(ordered.index, ordered[y], strict=True):
+        if v > best:
+            keep.append(i)
+            best = v
+    return ordered.loc[keep]
+
+
+def family_colours(families: list[str]) -> dict[str, Any]:
+    """A distinct colour per family, CoarseHash's first, the others by name (the same family
+    gets the same colour in every figure of a report); no greys (the grid's colour)."""
+    families = sorted(set(families), key=lambda f: (not f.startswith("CoarseHash"), f))
+    tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
+    palette = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
+    return {f: palette[i % len(palette)] for i, f in enumerate(families)}
+
+
+def _families(points: pd.DataFrame) -> list[str]:
+    first = points.sort_values(["method"], key=lambda c: c.ne(OURS)).family
+    return list(dict.fromkeys(first))
+
+
+def _recall_bars(ax, g: pd.DataFrame, x: str, colour: Any) -> None:
+    if "recall_lo" in g and g.recall_lo.notna().any():
+        ax.errorbar(g[x], 100 * g.recall, yerr=[100 * (g.recall - g.recall_lo), 100 * (g.recall_hi - g.recall)],
+                    fmt="none", ecolor=colour, lw=0.7, alpha=0.7)
+
+
+def _grid(points: pd.DataFrame, scales: list[str]) -> tuple[str, list[str], list[int]]:
+    noise = main_noise(points)
+    return noise, [s for s in scales if s in set(points.scale)], sorted(points[points.noise == noise].L.unique())
 
 
 def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
-    """Rows: QM1, QM2; columns: each compared scale against bytes, then against µs."""
-    noises = noise_order(points.noise)
-    scales = [s for s in scales if s in set(points.scale)]
-    fig, axes = plt.subplots(len(noises), 2 * len(scales), figsize=(4.0 * 2 * len(scales), 3.6 * len(noises)),
+    """Recall against queries per second per core, each family's Pareto front drawn and labelled."""
+    noise, scales, lengths = _grid(points, scales)
+    families = _families(points)
+    colours = family_colours(families)
+    fig, axes = plt.subplots(len(lengths), len(scales), figsize=(5.2 * len(scales), 3.8 * len(lengths)),
                              squeeze=False, sharey=True, layout="constrained")
-    methods = sorted(points.method.unique(), key=lambda m: (m != "coarsehash", m))
-    colours = {m: plt.get_cmap("tab10")(i) for i, m in enumerate(methods)}
-    for r, noise in enumerate(noises):
+    for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
-            sub = points[(points.noise == noise) & (points.scale == scale)]
-            for k, (xcol, xlabel) in enumerate((("bytes_per_place", "bytes per place"),
-                                                 ("us_per_query", "µs per query per core"))):
-                ax = axes[r][2 * c + k]
-                for row in sub.itertuples():
-                    hollow = row.mode == "aligned"
-                    ax.scatter(getattr(row, xcol), 100 * row.recall, marker=MARKERS.get(row.L, "D"), s=36,
-                               color="none" if hollow else colours[row.method], edgecolors=colours[row.method])
-                    if xcol == "us_per_query" and getattr(row, "us_per_query_lo", None) is not None:
-                        ax.errorbar(row.us_per_query, 100 * row.recall, fmt="none", ecolor=colours[row.method],
-                                    lw=0.8, xerr=[[row.us_per_query - row.us_per_query_lo],
-                                                  [row.us_per_query_hi - row.us_per_query]])
-                ax.set_xscale("log")
-                ax.xaxis.set_major_formatter(FuncFormatter(_plain))
-                ax.xaxis.set_minor_formatter(FuncFormatter(_plain if xcol == "bytes_per_place" else _blank))
-                ax.set_ylim(0, 100)
-                ax.grid(alpha=0.3, which="both")
-                ax.set_xlabel(xlabel)
-                ax.set_title(f"{scale}, {noise.upper()}")
-                if 2 * c + k == 0:
-                    ax.set_ylabel(f"recall within {RADIUS} frames (%)")
-    handles = [plt.Line2D([], [], ls="", marker="o", color=colours[m], label=m.removeprefix("faiss:"))
-               for m in methods]
-    handles += [plt.Line2D([], [], ls="", marker=MARKERS[L], color="grey", label=f"L = {L}") for L in MARKERS]
-    handles += [plt.Line2D([], [], ls="", marker="o", color="grey", label="filled: paper mode / single"),
-                plt.Line2D([], [], ls="", marker="o", color="grey", markerfacecolor="none", label="hollow: aligned")]
-    fig.legend(handles=handles, loc="outside lower center", ncol=6, fontsize=8)
-    fig.suptitle("CoarseHash against FAISS compact codes: recall vs bytes per place and vs time per query")
+            ax = axes[r][c]
+            sub = points[(points.noise == noise) & (points.scale == scale) & (points.L == L)]
+            for fam, g in sub.groupby("family", sort=False):
+                front = pareto_front(g)
+                ax.scatter(g.qps, 100 * g.recall, s=14, color=colours[fam], alpha=0.35, lw=0)
+                ax.plot(front.qps, 100 * front.recall, "o-", ms=4, lw=1.3, color=colours[fam], label=fam)
+                _recall_bars(ax, front, "qps", colours[fam])
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(FuncFormatter(_si))
+            ax.set_ylim(0, 102)
+            ax.grid(alpha=0.3, which="both")
+            ax.set_title(f"{scale}, {noise.upper()}, L = {L}", fontsize=9)
+            ax.set_xlabel("queries per second per core")
+            if c == 0:
+                ax.set_ylabel(f"recall within {RADIUS} frames (%)")
+    shared_legend(fig, axes)
+    fig.suptitle("Recall against throughput: every operating point (dots), each method's Pareto front (lines)")
     save(fig, out, "fig_compare")
+
+
+def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
+    """Recall against bytes per place (each family's best operating point per L), axis spanning the data."""
+    noise, scales, lengths = _grid(points, scales)
+    colours = family_colours(_families(points))
+    best = _best_points(points[points.noise == noise])
+    lo, hi = best.bytes_per_place.min(), best.bytes_per_place.max()
+    fig, axes = plt.subplots(1, len(scales), figsize=(5.2 * len(scales), 3.8), squeeze=False, sharey=True,
+                             layout="constrained")
+    marker = dict(zip(lengths, "osD^v<>", strict=False))
+    for c, scale in enumerate(scales):
+        ax = axes[0][c]
+        for fam, g in best[best.scale == scale].groupby("family", sort=False):
+            g = g.sort_values("L")
+            for row in g.itertuples():
+                ax.scatter(row.bytes_per_place, 100 * row.recall, marker=marker.get(row.L, "o"), s=30,
+                           color=colours[fam], label=fam if row.L == g.L.iloc[0] else None)
+            _recall_bars(ax, g, "bytes_per_place", colours[fam])
+        ax.set_xscale("log")
+        ax.set_xlim(lo / 1.4, hi * 1.4)
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(_plain))
+        ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _p: ""))
+        ax.set_ylim(0, 102)
+        ax.grid(alpha=0.3, which="both")
+        ax.set_title(f"{scale}, {noise.upper()}: marker = L ({', '.join(f'{m} {L}' for L, m in marker.items())})",
+                     fontsize=8)
+        ax.set_xlabel("bytes per place")
+        if c == 0:
+            ax.set_ylabel(f"recall within {RADIUS} frames (%)")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=4, fontsize=7)
+    fig.suptitle("Recall against storage: each method's best operating point")
+    save(fig, out, "fig_compare_bytes")
+
+
+def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
+    """Each family's best recall against L (one panel per scale) and against scale (one per L)."""
+    noise, scales, lengths = _grid(points, scales)
+    colours = family_colours(_families(points))
+    best = _best_points(points[points.noise == noise])
+    order = {s: i for i, s in enumerate(scales)}
+    fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
+                             squeeze=False, sharey=True, layout="constrained")
+    for c, scale in enumerate(scales):
+        ax = axes[0][c]
+        for fam, g in best[best.scale == scale].groupby("family", sort=False):
+            g = g.sort_values("L")
+            ax.plot(g.L, 100 * g.recall, "o-", ms=4, color=colours[fam], label=fam)
+            _recall_bars(ax, g, "L", colours[fam])
+        ax.set(xlabel="sequence length L (frames)", title=f"{scale}, {noise.upper()}: recall vs L", ylim=(0, 102))
+        ax.grid(alpha=0.3)
+    for c, L in enumerate(lengths):
+        ax = axes[1][c]
+        for fam, g in best[best.L == L].groupby("family", sort=False):
+            g = g.assign(pos=g.scale.map(order)).sort_values("pos")
+            ax.plot(g.pos, 100 * g.recall, "o-", ms=4, color=colours[fam], label=fam)
+            _recall_bars(ax, g, "pos", colours[fam])
+        ax.set_xticks(range(len(scales)), scales)
+        ax.set(xlabel="scale (places)", title=f"L = {L}, {noise.upper()}: recall vs scale", ylim=(0, 102))
+        ax.grid(alpha=0.3)
+    for row in axes:
+        row[0].set_ylabel(f"recall within {RADIUS} frames (%)")
+        for ax in row:
+            if not ax.has_data():
+                ax.set_visible(False)
+    shared_legend(fig, axes)
+    fig.suptitle("Each method's best operating point against sequence length and against scale")
+    save(fig, out, "fig_compare_trends")
+
+
+def _best_points(points: pd.DataFrame) -> pd.DataFrame:
+    """Per (scale, L, family): the operating point of highest recall (ties: fewer bytes, then faster)."""
+    ordered = points.sort_values(["recall", "bytes_per_place", "us_per_query"], ascending=[False, True, True])
+    return ordered.groupby(["scale", "L", "family"], sort=False).head(1)
 
 
 def _best(sub: pd.DataFrame) -> pd.Series:
@@ -103,12 +237,13 @@ def _words(points: pd.DataFrame, scales: list[str]) -> list[str]:
         for noise in noise_order(points.noise):
             for L in sorted(points.L.unique()):
                 sub = points[(points.scale == scale) & (points.noise == noise) & (points.L == L)]
-                ours, theirs = sub[sub.method == "coarsehash"], sub[sub.method != "coarsehash"]
+                ours, theirs = sub[sub.method == OURS], sub[sub.method != OURS]
                 if ours.empty or theirs.empty:
                     continue
                 o, t = _best(ours), _best(theirs)
                 gap = 100 * (o.recall - t.recall)
-                verdict = "CoarseHash finds more" if gap > 1 else "FAISS finds more" if gap < -1 else "recall is level"
+                verdict = ("CoarseHash finds more" if gap > 1 else f"{t.method.removeprefix('faiss:')} finds more"
+                           if gap < -1 else "recall is level")
                 faster = t.us_per_query / max(o.us_per_query, 1e-9)
                 same_run = getattr(o, "run", None) == getattr(t, "run", None)
                 smaller = t.bytes_per_place / o.bytes_per_place
@@ -124,6 +259,13 @@ def _words(points: pd.DataFrame, scales: list[str]) -> list[str]:
     return lines
 
 
+def _recall_cell(p: Any) -> str:
+    lo, hi = getattr(p, "recall_lo", None), getattr(p, "recall_hi", None)
+    if lo is None or lo != lo:
+        return f"{100 * p.recall:.1f}"
+    return f"{100 * p.recall:.1f} ({100 * lo:.1f}–{100 * hi:.1f})"
+
+
 def _times(ratio: float) -> str:
     ratio = ratio if ratio >= 1 else 1 / ratio
     return f"{ratio:,.0f}×" if ratio >= 10 else f"{ratio:.2f}×"
@@ -132,24 +274,30 @@ def _times(ratio: float) -> str:
 def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table) -> list[str]:
     """The report's comparison section (figure, words, table); empty when nothing was compared."""
     points = _points(res)
-    if points.empty or not points.method.str.startswith("faiss:").any():
+    if points.empty or not points.method.ne(OURS).any():
         return []
-    fig_compare(points, scales, out, save)
+    for draw in (fig_compare, fig_compare_bytes, fig_compare_trends):
+        draw(points, scales, out, save)
     rows: list[list[Any]] = []
     for p in points.sort_values(["scale", "noise", "L", "method", "mode"], key=_scale_key(scales)).itertuples():
         rows.append([p.scale, p.noise.upper(), p.L, _label(p.method, p.mode, p.d, getattr(p, "params", None)),
                      f"{p.bytes_per_place:.2f}",
-                     time_cell(p), f"{100 * p.recall:.1f}", int(p.n_queries)])
-    return ["## CoarseHash against FAISS compact codes", "",
-            "The same centres, truths and window score (docs/protocol.md, \"Compact codes\"): a FAISS method's "
-            "frame retrieves its top-k references (k = CoarseHash's mean list size, the same candidate budget), "
-            "and its windows are scored on its codes. Bytes per place count the code and whatever else the "
-            "method keeps per place to answer (CoarseHash: its bit planes and inverted lists; IVF: 64-bit ids "
-            "and the codes again in id order). Times are per query per core with the per-frame work included; "
-            "a flat FAISS index scans every code for every frame, so past a scan budget its runs localise an "
-            "evenly spaced sample of the centres (the queries column).", "",
-            "![compare](fig_compare.png)", "", *_words(points, scales), "",
-            table(["scale", "noise", "L", "method (mode)", "B/place", "µs/query", "R@20 %", "queries"], rows), ""]
+                     time_cell(p), _recall_cell(p), int(p.n_queries)])
+    return ["## CoarseHash against the other methods", "",
+            "The same centres, truths and window score (docs/protocol.md, \"Compact codes\"): another method's "
+            "frame retrieves its top-k references (by default k = CoarseHash's mean list size, the same "
+            "candidate budget; each k and nprobe evaluated is an operating point), and its windows are scored "
+            "on its own distances. Bytes per place count the code and whatever else the method keeps per "
+            "place to answer (CoarseHash: its bit planes and inverted lists; IVF: 64-bit ids and the codes "
+            "again in id order). Times are per query per core with the per-frame work included, so queries "
+            "per second per core is their inverse; a flat FAISS index scans every code for every frame, so "
+            "past a scan budget its runs localise an evenly spaced sample of the centres (the queries "
+            "column, and the recall intervals, say how many). Lines join each method's Pareto front: the "
+            "operating points no other point of the method beats on both recall and throughput.", "",
+            "![compare](fig_compare.png)", "", "![compare bytes](fig_compare_bytes.png)", "",
+            "![compare trends](fig_compare_trends.png)", "", *_words(points, scales), "",
+            table(["scale", "noise", "L", "method (mode)", "B/place", "µs/query", "R@20 % (95 % interval)",
+                   "queries"], rows), ""]
 
 
 def _scale_key(scales: list[str]):

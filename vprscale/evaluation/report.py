@@ -22,6 +22,7 @@ from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
+from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
 
 PAPER = {"nr_L50": {"20K": 74, "1M": 57, "10M": 32}, "storage_mb": {"20K": 0.2, "1M": 8.4, "10M": 80.4},
@@ -177,11 +178,25 @@ def fig_storage(indexes, out, figures) -> None:
     for k, (part, label) in enumerate(names.items()):
         ax.plot(n, [by_n[x]["storage"][part]["paper"] for x in n], "o-", color=f"C{k}", label=f"{label} (8 B)")
         ax.plot(n, [by_n[x]["storage"][part]["disk"] for x in n], "s:", color=f"C{k}", label=f"{label} on disk")
+    lists = [x for x in n if "lists" in by_n[x]]  # the paper leaves the inverted lists out; they cost the most
+    if lists:
+        ax.plot(lists, [by_n[x]["lists"]["bytes"] for x in lists], "D-", color="C4",
+                label="inverted lists (ids, directory) on disk")
+        tables = [(x, _sql_table_bytes(by_n[x])) for x in lists]
+        tables = [(x, b) for x, b in tables if b]
+        if tables:
+            ax.plot(*zip(*tables, strict=True), "D:", color="C5", label="SQL tables of the lists on disk")
     ax.set(xscale="log", yscale="log", xlabel="reference places N_ref", ylabel="bytes",
-           title="Storage growth (paper Fig. 4c)")
+           title="Storage growth (paper Fig. 4c, with the lists)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7, ncol=2)
     _save(fig, out, "fig4c_storage", figures)
+
+
+def _sql_table_bytes(index: dict) -> int:
+    """Bytes of the Parquet tables an index keeps for the SQL console (0 when its folder is gone)."""
+    path = Path(index.get("path", ""))
+    return sum((path / f).stat().st_size for f in ("lists.parquet", "buckets.parquet") if (path / f).is_file())
 
 
 def fig_balance(indexes, out, figures) -> bool:
@@ -271,7 +286,9 @@ def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] 
     fig_single(res, scales, mains, out, figures)
     fig_storage([i for i in indexes if i["store"].get("rescale", True)], out, figures)
     has_balance = fig_balance(indexes, out, figures)
-    compared = compare_section(res, scales, out, lambda fig, o, name: _save(fig, o, name, figures), _md_table)
+    save = lambda fig, o, name: _save(fig, o, name, figures)  # noqa: E731
+    compared = compare_section(res, scales, out, save, _md_table)
+    compared += pr_section(res, list(dict.fromkeys(res.run)), scales, out, save, _md_table)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compared)
     (out / "report.md").write_text(text)
     small = res[res.radius.isin([0, 5, 10, 20])].drop(columns=["store", "index"], errors="ignore")
@@ -342,15 +359,16 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compar
         rows.append([i["store"]["scale"] + ("" if i["store"].get("rescale", True) else " (no rescale)"), i["d"],
                      f"{i['n_ref']:,}", *(f"{st[p]['paper'] / 1e6:.3f}" for p in ("P1", "P2", "P3", "P4", "total")),
                      f"{st['total']['packed'] / 1e6:.3f}", f"{st['total']['disk'] / 1e6:.3f}", _num(lists, ".2f"),
-                     i["store"].get("layout", "full")])
+                     _num(_sql_table_bytes(i) / i["n_ref"] or None, ".2f"), i["store"].get("layout", "full")])
     md += ["## Storage (MB)", "",
            "P1–P4 counted the paper's way (8 bytes a number), packed (⌈d·log2 K / 8⌉ bytes an address, float32 "
            "model) and as the index directory holds them; the inverted lists (ids grouped by address, with "
-           "their offsets, addresses and single bests) are counted apart, in bytes per place. A compact store "
+           "their offsets, addresses and single bests) are counted apart, in bytes per place, and so are the "
+           "Parquet copies of the lists the SQL console reads. A compact store "
            "keeps 12 bytes per place (address, quantisation error, baseline value) and the evaluated query "
            "windows; a full one 1.15 KB per place.", "",
            _md_table(["scale", "d", "N_ref", "P1", "P2", "P3", "P4", "total (8 B)", "total packed", "on disk",
-                      "lists B/place", "store layout"], rows),
+                      "lists B/place", "SQL tables B/place", "store layout"], rows),
            ""]
     rows = []
     for i in sorted(indexes, key=lambda i: (i["n_ref"], i["d"])):
