@@ -228,7 +228,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             t_fit = time.perf_counter()
             fit_codes(compared, rows_of(group["ref"]), req.quiet) if compared else None
             fit_s = time.perf_counter() - t_fit
-            method_fit_s = _fit_methods(plugged, rows_of(group["ref"]), req.quiet)
+            method_fit_s = _fit_methods(plugged, rows_of(group["ref"]), req.quiet) if plugged else {}
             rows, queries = _grid(req, qs, z, dim, indexes, base, compared, plugged)
             columns = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                        "store_identity": identity}

@@ -34,6 +34,21 @@ def keep_best(best_s: np.ndarray, best_c: np.ndarray, s, c: np.int64) -> None:
     best_c[j] = c
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def keep_best_at(best_s: np.ndarray, best_c: np.ndarray, base: np.int64, n: int, s, c: np.int64) -> None:
+    """:func:`keep_best` on the list at ``base … base + n − 1`` of flat arrays: no array view
+    is made per candidate (two views per scored pair cost as much as the score)."""
+    j = base + n - 1
+    if s > best_s[j] or (s == best_s[j] and c >= best_c[j]):
+        return
+    while j > base and (s < best_s[j - 1] or (s == best_s[j - 1] and c < best_c[j - 1])):
+        best_s[j] = best_s[j - 1]
+        best_c[j] = best_c[j - 1]
+        j -= 1
+    best_s[j] = s
+    best_c[j] = c
+
+
 @numba.njit(cache=True, nogil=True)
 def finish_best(best_c: np.ndarray) -> np.ndarray:
     """Places of best-first lists that no candidate filled become −1."""
@@ -383,8 +398,8 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
     n_ref = ref_hash.shape[0]
     masks, gaps = window_masks(L, d, bit_gap)
     m = pairs.shape[0]
-    run_s = np.full((runs, n, n_best), np.int64(2**62))
-    run_c = np.full((runs, n, n_best), NO_CANDIDATE)
+    run_s = np.full(runs * n * n_best, np.int64(2**62))  # flat: (run, query, place)
+    run_c = np.full(runs * n * n_best, NO_CANDIDATE)
     for run in numba.prange(runs):
         stop = m * (run + 1) // runs
         for j in range(m * run // runs, stop):
@@ -392,21 +407,21 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
             qi = pairs[j] & 0xFFFFF
             if fast and j + PREFETCH < stop:
                 _prefetch_window(planes, d, (pairs[j + PREFETCH] >> 20) - half, L)
+            base = (run * n + qi) * n_best
             if fast and c >= half and c - half + L <= n_ref:
                 s = score_planes(c - half, planes, d, q_words[qi], masks, gaps)
             else:
                 s = score_window(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax,
-                                 run_s[run, qi, n_best - 1] + 1)
-            keep_best(run_s[run, qi], run_c[run, qi], s, c)
-    best_s = run_s[0].copy()
-    best_c = run_c[0].copy()
-    for qi in numba.prange(n):
+                                 run_s[base + n_best - 1] + 1)
+            keep_best_at(run_s, run_c, base, n_best, s, c)
+    for qi in numba.prange(n):  # every run's list merged into the first run's
         for run in range(1, runs):
-            for j in range(n_best):
-                if run_c[run, qi, j] == NO_CANDIDATE:
+            other = (run * n + qi) * n_best
+            for j in range(other, other + n_best):
+                if run_c[j] == NO_CANDIDATE:
                     break
-                keep_best(best_s[qi], best_c[qi], run_s[run, qi, j], run_c[run, qi, j])
-    return finish_best(best_c), best_s
+                keep_best_at(run_s, run_c, qi * n_best, n_best, run_s[j], run_c[j])
+    return finish_best(run_c[: n * n_best].reshape(n, n_best)), run_s[: n * n_best].reshape(n, n_best)
 
 
 @numba.njit(cache=True, nogil=True)

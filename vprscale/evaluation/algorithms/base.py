@@ -29,12 +29,12 @@ from vprscale.protocol import SEQUENCE_MODES
 class Answer:
     """One method's answers for the centres of one (noise, L, mode) (docs/protocol.md, "Scores").
 
-    ``top`` holds each centre's best candidates, best first (``N_BEST`` columns, −1 where
-    there were fewer; ``top[:, 0]`` is the match), ``score`` the match's score in the
-    method's own units, lower meaning more confident.
+    ``top`` holds each centre's best candidates, best first (as many columns as asked for,
+    ``N_BEST`` in the answers; −1 where there were fewer; ``top[:, 0]`` is the match),
+    ``score`` the match's score in the method's own units, lower meaning more confident.
     """
 
-    top: np.ndarray  # (centres, N_BEST) int64
+    top: np.ndarray  # (centres, n_best) int64
     score: np.ndarray  # float64 per centre
     n_r: np.ndarray  # candidates scored per centre
     ops_per_query: float  # counted unitary operations per query (docs/accounting.md)
@@ -82,9 +82,11 @@ class Algorithm(ABC):
         returns the frame state that :meth:`localise` reads."""
 
     @abstractmethod
-    def localise(self, state: Any, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+    def localise(self, state: Any, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         """Match the centres at positions ``pos`` of the frame state (each with its whole
-        window of ``L`` frames held, at consecutive positions) by sequences of ``L``."""
+        window of ``L`` frames held, at consecutive positions) by sequences of ``L``, with
+        each centre's ``n_best`` best candidates (the runner times ``n_best = 1``: the match
+        and its score, as a deployed localiser answers)."""
 
     def in_list(self, state: Any, pos: np.ndarray, truth: np.ndarray) -> np.ndarray | None:
         """L = 1: each frame's distance from its truth to the nearest id it retrieved (the
@@ -92,13 +94,13 @@ class Algorithm(ABC):
         return None
 
 
-def top_columns(ids: np.ndarray, distances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def top_columns(ids: np.ndarray, distances: np.ndarray, n_best: int = N_BEST) -> tuple[np.ndarray, np.ndarray]:
     """``(top, score)`` of an L = 1 answer from a ranked search's ``(ids, distances)`` rows
-    (−1 padded): its first ``N_BEST`` ids, −1 padded to that width, and the first distance
+    (−1 padded): its first ``n_best`` ids, −1 padded to that width, and the first distance
     (inf where nothing was found)."""
     ids = np.asarray(ids, np.int64).reshape(len(ids), -1)
-    top = np.full((len(ids), N_BEST), -1, np.int64)
-    top[:, : min(N_BEST, ids.shape[1])] = ids[:, :N_BEST]
+    top = np.full((len(ids), n_best), -1, np.int64)
+    top[:, : min(n_best, ids.shape[1])] = ids[:, :n_best]
     first = np.asarray(distances, np.float64).reshape(len(ids), -1)[:, 0] if ids.shape[1] else np.full(len(ids), np.inf)
     return top, np.where(top[:, 0] >= 0, first, np.inf)
 

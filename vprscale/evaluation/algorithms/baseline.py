@@ -80,9 +80,9 @@ class Baseline(Algorithm):
     def frames(self, rows: np.ndarray) -> np.ndarray:
         return self.base.project(rows)
 
-    def localise(self, state: np.ndarray, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+    def localise(self, state: np.ndarray, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         nr = self.budget[L]
-        top, scores, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range, N_BEST)
+        top, scores, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range, n_best)
         return Answer(top, scores[:, 0], n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
 
 

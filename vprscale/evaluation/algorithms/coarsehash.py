@@ -40,8 +40,9 @@ class CoarseHash(Algorithm):
         h, errors = self.index.hash_frames(rows)
         return self.index.query_frames(h, errors=errors)
 
-    def localise(self, state: QueryFrames, pos: np.ndarray, L: int, mode: str | None) -> Answer:
-        top, score, n_r = self.index.answer(state, pos, L, mode, N_BEST)
+    def localise(self, state: QueryFrames, pos: np.ndarray, L: int, mode: str | None,
+                 n_best: int = N_BEST) -> Answer:
+        top, score, n_r = self.index.answer(state, pos, L, mode, n_best)
         return Answer(top, score, np.asarray(n_r, np.int64), self._ops(state, pos, L, n_r))
 
     def _ops(self, state: QueryFrames, pos: np.ndarray, L: int, n_r: np.ndarray) -> float:

@@ -99,13 +99,13 @@ class FaissMethod(Algorithm):
         dist, ids = self.codes.search(rows)
         return (ids, dist, *self.codes.frame_terms(rows))
 
-    def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+    def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         self._apply()  # its counted operations depend on this point's nprobe
         ids, dist, tables, q_vectors = state
         frame_ops = self.codes.frame_ops()
         if L == 1:  # FAISS's own ranking and distances
-            return Answer(*top_columns(ids[pos], dist[pos]), (ids[pos] >= 0).sum(axis=1), frame_ops)
-        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", ids, tables, q_vectors, N_BEST)
+            return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), frame_ops)
+        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", ids, tables, q_vectors, n_best)
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
         return Answer(top, scores[:, 0], n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
 

@@ -104,11 +104,11 @@ class Plugged(Algorithm):
             ids, dist = self.method.query(np.ascontiguousarray(rows, np.float32), self.k)
         return (rows, *check_found(self.name, ids, dist, len(rows), self.k, self.n_ref))
 
-    def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None) -> Answer:
+    def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         rows, ids, dist = state
         pos = np.asarray(pos, np.int64)
         if L == 1:
-            return Answer(*top_columns(ids[pos], dist[pos]), (ids[pos] >= 0).sum(axis=1), float("nan"))
+            return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), float("nan"))
         found = ids >= 0
         stop = np.cumsum(found.sum(axis=1))
         start = stop - found.sum(axis=1)
@@ -116,13 +116,13 @@ class Plugged(Algorithm):
         cand, first, n_r, _ = propose(pos, L, mode == "aligned", start, stop, flat, self.n_ref,
                                       count_proposals(pos, L, start, stop), 62)
         with threadpool_limits(limits=self.threads):
-            top, score = self._score(rows, pos, L, cand, first, n_r)
+            top, score = self._score(rows, pos, L, cand, first, n_r, n_best)
         return Answer(top, score, n_r, float("nan"))
 
     def _score(self, rows: np.ndarray, pos: np.ndarray, L: int, cand: np.ndarray, first: np.ndarray,
-               n_r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               n_r: np.ndarray, n_best: int) -> tuple[np.ndarray, np.ndarray]:
         """Best-first candidates and the best score of each window, in blocks of queries."""
-        top = np.full((len(pos), N_BEST), -1, np.int64)
+        top = np.full((len(pos), n_best), -1, np.int64)
         score = np.full(len(pos), np.inf)
         offsets = np.arange(L) - L // 2
         ends = np.cumsum(n_r)  # each query's candidates, packed one after another
@@ -147,8 +147,8 @@ class Plugged(Algorithm):
             s = sums + (L - inside.sum(axis=1)) * largest[owner]
             order = np.lexsort((c, s, owner))  # per query: by score, ties to the smaller centre
             rank = np.arange(len(c)) - np.repeat(starts[lo:hi] - starts[lo], n_r[lo:hi])
-            keep = order[rank < N_BEST]
-            top[owner[keep], rank[rank < N_BEST]] = c[keep]
+            keep = order[rank < n_best]
+            top[owner[keep], rank[rank < n_best]] = c[keep]
             best = order[rank == 0]
             score[owner[best]] = s[best]
             lo = hi
