@@ -238,3 +238,10 @@ def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tm
             np.testing.assert_array_equal(rows.n_r.to_numpy(), (ids >= 0).sum(axis=1))
     finally:
         ivf.nprobe = 16
+    # the report keeps every operating point: one row each in its comparison table
+    assert main(["report", str(out), "--out", str(tmp_path / "r")]) == 0
+    text = (tmp_path / "r" / "report.md").read_text()
+    for k in (3, 6):
+        for n in (1, 4):
+            assert f"| IVF32,PQ4 k={k} nprobe={n} (single) |" in text
+        assert f"| PQ4 k={k} (single) |" in text

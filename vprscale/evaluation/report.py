@@ -62,7 +62,9 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
                 indexes[idx] = {**json.loads(meta_file.read_text()), "path": idx}
     res = pd.concat(frames, ignore_index=True)
     # A d sweep re-evaluates the main index width too: keep one row per key.
-    key = ["scale", "noise", "method", "mode", "L", "d", "K", "part", "radius"]
+    # (Operating points of one method differ in their params: each is kept.)
+    key = ["scale", "noise", "method", "mode", "L", "d", "K", "part", "radius",
+           *(["params"] if "params" in res.columns else [])]
     res = res.drop_duplicates(subset=key, keep="first").reset_index(drop=True)
     return res, evals, list(indexes.values())
 
