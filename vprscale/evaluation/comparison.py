@@ -115,6 +115,16 @@ def _recall_bars(ax, g: pd.DataFrame, x: str, colour: Any) -> None:
                     fmt="none", ecolor=colour, lw=0.7, alpha=0.7)
 
 
+def _recall_axis(ax, title: str, xlabel: str, first: bool) -> None:
+    """The common finish of a recall panel: 0–100 %, grid, title, labels (the y label on the first)."""
+    ax.set_ylim(0, 102)
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title(title, fontsize=8)
+    ax.set_xlabel(xlabel)
+    if first:
+        ax.set_ylabel(f"recall within {RADIUS} frames (%)")
+
+
 def _grid(points: pd.DataFrame, scales: list[str]) -> tuple[str, list[str], list[int]]:
     noise = main_noise(points)
     return noise, [s for s in scales if s in set(points.scale)], sorted(points[points.noise == noise].L.unique())
@@ -138,12 +148,7 @@ def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> Non
                 _recall_bars(ax, front, "qps", colours[fam])
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(FuncFormatter(_si))
-            ax.set_ylim(0, 102)
-            ax.grid(alpha=0.3, which="both")
-            ax.set_title(f"{scale}, {noise.upper()}, L = {L}", fontsize=9)
-            ax.set_xlabel("queries per second per core")
-            if c == 0:
-                ax.set_ylabel(f"recall within {RADIUS} frames (%)")
+            _recall_axis(ax, f"{scale}, {noise.upper()}, L = {L}", "queries per second per core", c == 0)
     shared_legend(fig, axes)
     fig.suptitle("Recall against throughput: every operating point (dots), each method's Pareto front (lines)")
     save(fig, out, "fig_compare")
@@ -151,9 +156,7 @@ def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> Non
 
 def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
     """Recall against bytes per place (each family's best operating point per L), axis spanning the data."""
-    noise, scales, lengths = _grid(points, scales)
-    colours = family_colours(_families(points))
-    best = _best_points(points[points.noise == noise])
+    noise, scales, lengths, colours, best = _setup(points, scales)
     lo, hi = best.bytes_per_place.min(), best.bytes_per_place.max()
     fig, axes = plt.subplots(1, len(scales), figsize=(5.2 * len(scales), 3.8), squeeze=False, sharey=True,
                              layout="constrained")
@@ -171,24 +174,16 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) 
         ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(FuncFormatter(_plain))
         ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _p: ""))
-        ax.set_ylim(0, 102)
-        ax.grid(alpha=0.3, which="both")
-        ax.set_title(f"{scale}, {noise.upper()}: marker = L ({', '.join(f'{m} {L}' for L, m in marker.items())})",
-                     fontsize=8)
-        ax.set_xlabel("bytes per place")
-        if c == 0:
-            ax.set_ylabel(f"recall within {RADIUS} frames (%)")
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=4, fontsize=7)
+        _recall_axis(ax, f"{scale}, {noise.upper()}: marker = L "
+                         f"({', '.join(f'{m} {L}' for L, m in marker.items())})", "bytes per place", c == 0)
+    shared_legend(fig, axes)
     fig.suptitle("Recall against storage: each method's best operating point")
     save(fig, out, "fig_compare_bytes")
 
 
 def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
     """Each family's best recall against L (one panel per scale) and against scale (one per L)."""
-    noise, scales, lengths = _grid(points, scales)
-    colours = family_colours(_families(points))
-    best = _best_points(points[points.noise == noise])
+    noise, scales, lengths, colours, best = _setup(points, scales)
     order = {s: i for i, s in enumerate(scales)}
     fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
                              squeeze=False, sharey=True, layout="constrained")
@@ -217,6 +212,13 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save)
     shared_legend(fig, axes)
     fig.suptitle("Each method's best operating point against sequence length and against scale")
     save(fig, out, "fig_compare_trends")
+
+
+def _setup(points: pd.DataFrame, scales: list[str]) -> tuple[str, list[str], list[int], dict[str, Any], pd.DataFrame]:
+    """What a best-point figure draws: the noise, scales and lengths, the colours, and each
+    family's best operating point per scale and L."""
+    noise, scales, lengths = _grid(points, scales)
+    return noise, scales, lengths, family_colours(_families(points)), _best_points(points[points.noise == noise])
 
 
 def _best_points(points: pd.DataFrame) -> pd.DataFrame:
