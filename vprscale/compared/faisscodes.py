@@ -24,7 +24,7 @@ import numpy as np
 
 from vprscale.compared.codescore import score_windows
 from vprscale.core.errors import InputError
-from vprscale.method.kernels import count_proposals, propose
+from vprscale.method.kernels import window_proposals
 
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
@@ -203,22 +203,16 @@ class FaissCodes:
             return np.maximum(tables, 0).astype(np.float32), no_vectors
         return no_tables, y
 
-    def match(self, positions: np.ndarray, L: int, aligned: bool, ids: np.ndarray, tables: np.ndarray,
+    def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, tables: np.ndarray,
               q_vectors: np.ndarray, n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sequence match of the windows centred at query-frame ``positions``: ``(top, scores,
         n_r)``, the ``n_best`` best candidates best first (:func:`score_windows`).
 
-        ``ids`` are the frames' top-k lists (rows, −1 for none). Candidates are the union of
-        the window's lists (paper) or the centres their members imply (aligned), as for
-        CoarseHash (:func:`vprscale.method.kernels.match_batch`).
+        ``lists`` are the frames' top-k lists (:func:`vprscale.method.kernels.ranked_lists`);
+        candidates come from :func:`vprscale.method.kernels.window_proposals`.
         """
-        counts = (ids >= 0).sum(axis=1)
-        stop = np.cumsum(counts)
-        start = stop - counts
-        flat = ids[ids >= 0].astype(np.int64)  # a row's found ids come first, in rank order
         positions = np.asarray(positions, np.int64)
-        proposals = count_proposals(positions, L, start, stop)
-        cand, first, n_r, _ = propose(positions, L, aligned, start, stop, flat, self.n_ref, proposals, 62)
+        cand, first, n_r = window_proposals(positions, L, aligned, lists, self.n_ref)
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
         top, scores = score_windows(positions, L, cand, first, n_r, self.n_ref, tables, codes, q_vectors,
                                     self.vectors, n_best)

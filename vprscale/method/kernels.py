@@ -503,6 +503,27 @@ def list_top(slot: np.ndarray, offsets: np.ndarray, ids: np.ndarray, best: np.nd
     return out
 
 
+def ranked_lists(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(start, stop, flat)``: top-k rows of a search (−1 padded) as lists one after another,
+    frame ``i``'s found ids ``flat[start[i]:stop[i]]`` in rank order, what :func:`propose`
+    reads. Built once per frame, with the per-frame work, not per window."""
+    found = np.asarray(ids) >= 0
+    stop = np.cumsum(found.sum(axis=1))
+    return stop - found.sum(axis=1), stop, np.asarray(ids)[found].astype(np.int64)
+
+
+def window_proposals(positions: np.ndarray, L: int, aligned: bool, lists: tuple, n_ref: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(cand, first, n_r)`` of the windows centred at ``positions`` from per-frame
+    :func:`ranked_lists`: the union of their lists (paper) or the centres their members imply
+    (aligned), as CoarseHash's windows take theirs."""
+    start, stop, flat = lists
+    positions = np.asarray(positions, np.int64)
+    cand, first, n_r, _ = propose(positions, L, aligned, start, stop, flat, n_ref,
+                                  count_proposals(positions, L, start, stop), 62)
+    return cand, first, n_r
+
+
 @numba.njit(cache=True, nogil=True)
 def in_list_distance(addr: np.ndarray, gt: np.ndarray, offsets: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """For single frames: the smallest ``|id − gt|`` over the address's whole list."""

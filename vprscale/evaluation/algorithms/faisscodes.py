@@ -13,7 +13,7 @@ from threadpoolctl import threadpool_limits
 from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
-from vprscale.method.kernels import N_BEST
+from vprscale.method.kernels import N_BEST, ranked_lists
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
 MIN_SAMPLE = 16  # centres per run at least
@@ -97,15 +97,15 @@ class FaissMethod(Algorithm):
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
         self._apply()
         dist, ids = self.codes.search(rows)
-        return (ids, dist, *self.codes.frame_terms(rows))
+        return (ids, dist, ranked_lists(ids), *self.codes.frame_terms(rows))
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         self._apply()  # its counted operations depend on this point's nprobe
-        ids, dist, tables, q_vectors = state
+        ids, dist, lists, tables, q_vectors = state
         frame_ops = self.codes.frame_ops()
         if L == 1:  # FAISS's own ranking and distances
             return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), frame_ops)
-        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", ids, tables, q_vectors, n_best)
+        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", lists, tables, q_vectors, n_best)
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
         return Answer(top, scores[:, 0], n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
 

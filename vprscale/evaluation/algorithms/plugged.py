@@ -34,7 +34,7 @@ from threadpoolctl import threadpool_limits
 
 from vprscale.core.errors import InputError
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
-from vprscale.method.kernels import N_BEST, count_proposals, propose
+from vprscale.method.kernels import N_BEST, ranked_lists, window_proposals
 
 PAIR_BLOCK = 1 << 18  # (frame, reference) pairs handed to pair_distances at a time (their rows: ~100 MB)
 
@@ -98,23 +98,19 @@ class Plugged(Algorithm):
             return []  # no pair distances: no window scores
         return sequence_modes(L, requested)
 
-    def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(rows, ids, distances)``: each frame's top-k by the method's ``query``."""
+    def frames(self, rows: np.ndarray) -> tuple:
+        """``(rows, ids, distances, lists)``: each frame's top-k by the method's ``query``."""
         with threadpool_limits(limits=self.threads):
             ids, dist = self.method.query(np.ascontiguousarray(rows, np.float32), self.k)
-        return (rows, *check_found(self.name, ids, dist, len(rows), self.k, self.n_ref))
+        ids, dist = check_found(self.name, ids, dist, len(rows), self.k, self.n_ref)
+        return rows, ids, dist, ranked_lists(ids)
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
-        rows, ids, dist = state
+        rows, ids, dist, lists = state
         pos = np.asarray(pos, np.int64)
         if L == 1:
             return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), float("nan"))
-        found = ids >= 0
-        stop = np.cumsum(found.sum(axis=1))
-        start = stop - found.sum(axis=1)
-        flat = ids[found]  # each row's found ids, in rank order
-        cand, first, n_r, _ = propose(pos, L, mode == "aligned", start, stop, flat, self.n_ref,
-                                      count_proposals(pos, L, start, stop), 62)
+        cand, first, n_r = window_proposals(pos, L, mode == "aligned", lists, self.n_ref)
         with threadpool_limits(limits=self.threads):
             top, score = self._score(rows, pos, L, cand, first, n_r, n_best)
         return Answer(top, score, n_r, float("nan"))
