@@ -249,8 +249,8 @@ class Index:
         """``(top, score, n_r)`` of the centres at positions ``pos`` of the query frames (see
         :class:`Matches`; ``score`` of the best, in δ_max units)."""
         pos = np.asarray(pos, np.int64)
-        w, tables, dmax = self.delta_tables()
         if L == 1:
+            w, tables, dmax = self.delta_tables()
             a = qf.slot[pos]
             span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
             err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors, np.float64)[pos]
@@ -258,9 +258,10 @@ class Index:
             score = err / span + moved / float(dmax)
             return (list_top(a, self.offsets, self.ids, self.best, n_best), score,
                     (self.offsets[a + 1] - self.offsets[a]).astype(np.int64))
-        top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *self.kernel_args(), n_best,
+        args = self.kernel_args()  # (…, δ_max) last
+        top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, n_best,
                                        numba.get_num_threads())
-        return top, scores[:, 0] / float(dmax), n_r
+        return top, scores[:, 0] / float(args[-1]), n_r
 
     @cached_property
     def prefix_table(self) -> tuple[np.ndarray, int]:
