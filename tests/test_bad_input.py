@@ -102,8 +102,8 @@ def test_sql_on_a_damaged_index(tiny_index, tmp_path, capsys):
     (broken / "index.json").write_text("{not json")
     _fails(capsys, ["sql", str(broken), "SELECT 1"], "index.json")
     (broken / "index.json").write_text((tiny_index / "index.json").read_text())
-    (broken / "lists.parquet").unlink()
-    _fails(capsys, ["sql", str(broken), "SELECT 1"], "lists.parquet")
+    (broken / "buckets.parquet").unlink()
+    _fails(capsys, ["sql", str(broken), "SELECT 1"], "buckets.parquet")
 
 
 def test_synth_out_a_file(tmp_path, capsys):

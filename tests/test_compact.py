@@ -14,7 +14,7 @@ from vprscale.core.errors import InputError
 
 from .conftest import write_recipe
 
-LISTS = ("ref_hash", "ids", "addresses", "offsets", "best")
+LISTS = ("codes", "ids", "occupied", "starts")
 
 
 @pytest.fixture(scope="module")

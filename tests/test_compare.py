@@ -124,9 +124,9 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
     assert per_method["faiss:OPQ4,PQ4x6"][0] == 3  # 24 bits
     assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5  # list entry, and the code in id order
     assert per_method["baseline"][0] == 4
-    ids = np.load(tiny_index / "ids.npy", mmap_mode="r")
-    lists = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("ids", "addresses", "offsets", "best"))
-    assert per_method["coarsehash"][0] == pytest.approx(12 / 8 + lists / len(ids))
+    engine = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("codes", "ids", "occupied", "starts"))
+    assert per_method["coarsehash"][0] == pytest.approx(engine / 52_500)  # codes, packed ids and directory
+    assert 12 / 8 + 16 / 8 < per_method["coarsehash"][0] < 12 / 8 + 16 / 8 + 1
 
 
 @pytest.mark.slow

@@ -25,6 +25,13 @@ def hand_index(ref_hash, centres: np.ndarray = CENTRES, errors=None) -> Index:
     return Index.from_addresses(ref_hash, hasher, np.zeros(len(ref_hash)) if errors is None else errors)
 
 
+def plain(idx: Index) -> dict[str, np.ndarray]:
+    """The index's succinct parts decoded to plain arrays: what the tests' definitions read."""
+    return {"addresses": idx.lists.occupied.decode().astype(np.uint64), "offsets": idx.lists.starts.decode(),
+            "ids": idx.lists.ids_range(0, idx.n_ref), "ref_hash": idx.ref_addresses(),
+            "best": idx.lists.best(np.arange(idx.occupied))}
+
+
 def run(idx: Index, q_hash, t, L, aligned=False):
     qf = idx.query_frames(np.asarray(q_hash, np.uint64))
     top, _, n_r = match_batch(np.asarray(t, np.int64), L, aligned, *qf.kernel_args(), *idx.kernel_args())
@@ -33,17 +40,20 @@ def run(idx: Index, q_hash, t, L, aligned=False):
 
 def test_exact_and_fallback_addresses_with_ties_to_the_smaller():
     idx = hand_index([2, 6, 6, 10])
-    got = idx.addresses[idx.nearest_occupied(np.array([6, 7, 8, 9, 0, 15], np.uint64))]
+    got = plain(idx)["addresses"][idx.nearest_occupied(np.array([6, 7, 8, 9, 0, 15], np.uint64))]
     np.testing.assert_array_equal(got, [6, 6, 6, 10, 2, 10])  # 8 is 2 from 6 and 10: the smaller
 
 
 def test_single_best_and_in_list_bound():
     idx = hand_index([3, 3, 3, 5], errors=np.array([0.3, 0.1, 0.1, 0.0]))
     a = idx.nearest_occupied(np.array([3], np.uint64))
-    assert idx.best[a][0] == 1  # least error, ties to the smaller id
-    from vprscale.method.kernels import in_list_distance
+    assert idx.lists.best(a)[0] == 1  # least error, ties to the smaller id
+    np.testing.assert_array_equal(idx.lists.list_ids(a[0]), [1, 0, 2])  # the best first, then by id
+    from vprscale.method.invlists import in_list_distance
 
-    np.testing.assert_array_equal(in_list_distance(a, np.array([3]), idx.offsets, idx.ids), [1])
+    lists = idx.lists
+    np.testing.assert_array_equal(in_list_distance(a, np.array([3]), lists.starts_args(), lists.ids, lists.id_bits),
+                                  [1])
 
 
 def test_sequence_match_picks_the_aligned_diagonal():
@@ -102,7 +112,7 @@ def test_online_matches_batch_frame_by_frame():
             batch, batch_nr = run(idx, q, centres, L=L, aligned=aligned)
             if L == 1:  # a single frame's match is its address's single best
                 a = idx.nearest_occupied(q)
-                batch, batch_nr = idx.best[a], idx.offsets[a + 1] - idx.offsets[a]
+                batch, batch_nr = plain(idx)["best"][a], np.diff(plain(idx)["offsets"])[a]
             assert got[: L - 1] == [None] * (L - 1)
             np.testing.assert_array_equal(np.array(got[L - 1 :]), batch)
             np.testing.assert_array_equal(np.array(n_rs[L - 1 :]), batch_nr)
@@ -190,15 +200,16 @@ def brute_force_match(idx: Index, q_hash, t, L, aligned):
         return sum(int(w[j, int(h1) // p % idx.k, int(h2) // p % idx.k]) for j, p in enumerate(digits))
 
     q_addr = idx.nearest_occupied(np.asarray(q_hash, np.uint64))
+    arrays = plain(idx)
     half = L // 2
     cands = set()
     for i in range(L):
         a = q_addr[t + i - half]
-        for r in idx.ids[idx.offsets[a]:idx.offsets[a + 1]]:
+        for r in arrays["ids"][arrays["offsets"][a]:arrays["offsets"][a + 1]]:
             c = int(r) - (i - half) if aligned else int(r)
             if 0 <= c < idx.n_ref:
                 cands.add(c)
-    scores = {c: sum(delta(idx.ref_hash[c + i - half], q_hash[t + i - half]) if 0 <= c + i - half < idx.n_ref
+    scores = {c: sum(delta(arrays["ref_hash"][c + i - half], q_hash[t + i - half]) if 0 <= c + i - half < idx.n_ref
                      else dmax for i in range(L)) for c in cands}
     return min(scores, key=lambda c: (scores[c], c)), len(cands)
 
@@ -275,8 +286,10 @@ def test_blocks_split_by_proposals_give_the_same_matches():
         assert (alone[0][0], alone[1][0]) == (match[i], n_r[i])
 
 
-def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
-    import vprscale.method.index as index_module
+def test_frames_sharing_long_lists_share_their_copies(monkeypatch):
+    """A coarse index's frames mostly share a few long lists: beyond the limit each is decoded
+    once and shared, and the matches are those of the lists copied frame by frame."""
+    import vprscale.method.invlists as invlists
 
     rng = np.random.default_rng(8)
     ref = rng.integers(0, 64, 3_000).astype(np.uint64)
@@ -284,11 +297,15 @@ def test_long_lists_are_read_in_place_with_the_same_matches(monkeypatch):
     q = ref[1_000:1_300] ^ (rng.random(300) < 0.2).astype(np.uint64)
     centres = np.arange(10, 290, 7)
     copied = run(idx, q, centres, L=15, aligned=True)
-    monkeypatch.setattr(index_module, "COPIED_LISTS", 0)
-    assert idx.query_frames(q).ids is idx.ids
-    in_place = run(idx, q, centres, L=15, aligned=True)
-    np.testing.assert_array_equal(in_place[0], copied[0])
-    np.testing.assert_array_equal(in_place[1], copied[1])
+    assert len(idx.query_frames(q).ids) == sum(len(idx.lists.list_ids(a)) for a in idx.query_frames(q).slot)
+    monkeypatch.setattr(invlists, "SHARED_ABOVE", 0)
+    qf = idx.query_frames(q)
+    assert len(qf.ids) == sum(len(idx.lists.list_ids(a)) for a in np.unique(qf.slot))
+    for i in range(0, 300, 37):
+        np.testing.assert_array_equal(qf.ids[qf.start[i]:qf.stop[i]], idx.lists.list_ids(qf.slot[i]))
+    shared = run(idx, q, centres, L=15, aligned=True)
+    np.testing.assert_array_equal(shared[0], copied[0])
+    np.testing.assert_array_equal(shared[1], copied[1])
 
 
 def test_pairs_sorted_by_window_score_as_in_query_order():
@@ -311,7 +328,7 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     qf = idx.query_frames(q)
     t = np.arange(L // 2, 2_000 - L // 2, 5)
     hashes, q_planes, start, stop, ids = qf.kernel_args()
-    ref_hash, planes, gaps, w, tables, d, k, dmax = idx.kernel_args()
+    codes, code_bits, n_ref, planes, gaps, w, tables, d, k, dmax = idx.kernel_args()
     proposals = count_proposals(t, L, start, stop)
     in_order, by_window = (_pairs_by_window(*propose(t, L, False, start, stop, ids, len(ref), proposals, shift), shift)
                            for shift in (62, 12))
@@ -320,7 +337,8 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     np.testing.assert_array_equal(in_order, expected)
     np.testing.assert_array_equal(by_window, expected[np.argsort(expected >> 32, kind="stable")])
     words = _query_words(t, L, q_planes, d)
-    answers = [_score_pairs(p, t, L, hashes, words, ref_hash, planes, gaps, w, tables, d, k, dmax, True, 5, runs)
+    answers = [_score_pairs(p, t, L, hashes, words, codes, code_bits, n_ref, planes, gaps, w, tables, d, k, dmax, True,
+                            5, runs)
                for p, runs in ((in_order, 16), (by_window, 3))]
     np.testing.assert_array_equal(answers[0][0], answers[1][0])
     np.testing.assert_array_equal(answers[0][1], answers[1][1])
@@ -328,7 +346,8 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     # the five best are every candidate's full score, sorted (ties to the smaller centre)
     for i in range(0, len(t), 37):
         c = cand[first[i]:first[i] + n_r[i]]
-        full = np.array([score_window(x, t[i], L, L // 2, ref_hash, hashes, w, tables, d, k, dmax, 2**62) for x in c])
+        full = np.array([score_window(x, t[i], L, L // 2, codes, code_bits, n_ref, hashes, w, tables, d, k, dmax, 2**62)
+                         for x in c])
         order = np.lexsort((c, full))[:5]
         np.testing.assert_array_equal(answers[0][0][i, : len(order)], c[order])
         np.testing.assert_array_equal(answers[0][1][i, : len(order)], full[order])
@@ -343,7 +362,7 @@ def test_query_frames_hold_only_the_frames_worked_on():
     match = match_batch(q.positions(np.array([102]), 5), 5, False, *q.kernel_args(), *idx.kernel_args())[0][:, 0]
     assert match[0] == 10  # frames 100…104 repeat refs 8…12
     a = q.slot[0]
-    np.testing.assert_array_equal(q.ids[q.start[0]:q.stop[0]], idx.ids[idx.offsets[a]:idx.offsets[a + 1]])
+    np.testing.assert_array_equal(q.ids[q.start[0]:q.stop[0]], idx.lists.list_ids(a))
     with pytest.raises(ValueError, match="frame 103"):
         q.positions(np.array([103]), 5)  # its window reaches frame 105, which was not worked on
 
@@ -352,8 +371,9 @@ def test_query_frames_hold_only_the_frames_worked_on():
 def test_nearest_occupied_equals_a_full_scan(d, k):
     rng = np.random.default_rng(d)
     idx = hand_index(rng.integers(0, k**d, 500).astype(np.uint64), np.tile(np.linspace(-1, 1, k), (d, 1)))
-    h = np.r_[rng.integers(0, k**d, 2000), idx.addresses[:50], 0, k**d - 1].astype(np.uint64)
-    a = idx.addresses.astype(np.int64)
+    addresses = plain(idx)["addresses"]
+    h = np.r_[rng.integers(0, k**d, 2000), addresses[:50], 0, k**d - 1].astype(np.uint64)
+    a = addresses.astype(np.int64)
     gap = np.abs(a[None, :] - h.astype(np.int64)[:, None])
     np.testing.assert_array_equal(idx.nearest_occupied(h), gap.argmin(axis=1))  # argmin: first, i.e. smaller
 
@@ -385,12 +405,12 @@ def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_inde
 
 
 @pytest.mark.parametrize(("d", "n"), [(26, 1000), (30, 200_000)])
-def test_nearest_occupied_through_the_prefix_table_equals_brute_force(d, n):
+def test_nearest_occupied_through_the_directory_equals_brute_force(d, n):
     rng = np.random.default_rng(d)
     occupied = np.unique(rng.integers(0, 2**d, n, dtype=np.uint64))
     idx = hand_index(occupied, np.tile([[-1.0, 1.0]], (d, 1)))
     h = np.r_[rng.integers(0, 2**d, 3000, dtype=np.uint64), occupied[:50], occupied[-5:] + np.uint64(1)]
-    got = idx.addresses[idx.nearest_occupied(h)]
+    got = plain(idx)["addresses"][idx.nearest_occupied(h)]
     below = occupied[np.clip(np.searchsorted(occupied, h, "right") - 1, 0, None)]
     above = occupied[np.clip(np.searchsorted(occupied, h), None, len(occupied) - 1)]
     dist_below = np.where(below <= h, h - below, np.uint64(2**63))

@@ -21,42 +21,64 @@ def model(tiny_index):
 
 
 def test_lists_are_the_addresses_of_every_ref(tiny_index, tiny_store, model):
+    from vprscale.method.index import read_index
+
     ref = zarr.open_group(tiny_store, mode="r")["ref"][:]
     y = project(ref, model["mean"], model["components"])
     h = pack(quantize(y, model["centres"])[0], 2)
-    lists = pq.read_table(tiny_index / "lists.parquet").to_pandas()
-    assert len(lists) == len(ref)
-    assert lists["hash"].is_monotonic_increasing
-    np.testing.assert_array_equal(h[lists["ref_id"].to_numpy()], lists["hash"].to_numpy())
+    idx = read_index(tiny_index)
+    np.testing.assert_array_equal(idx.ref_addresses(), h)  # P1, decoded from the bit planes
     buckets = pq.read_table(tiny_index / "buckets.parquet").to_pandas()
     np.testing.assert_array_equal(np.unique(h), buckets["hash"].to_numpy())
+    np.testing.assert_array_equal(idx.lists.occupied.decode(), buckets["hash"].to_numpy())
+    np.testing.assert_array_equal(idx.lists.starts.decode(), np.r_[buckets["offset"].to_numpy(), len(ref)])
     err = quantize(y, model["centres"])[1]
     for row in buckets.sample(200, random_state=0).itertuples():
         ids = np.flatnonzero(h == row.hash)
-        assert row.size == len(ids)
-        assert row.best_id == ids[np.argmin(err[ids])]
+        got = idx.lists.list_ids(row.Index)
+        assert row.size == len(ids) == len(got)
+        assert got[0] == ids[np.argmin(err[ids])]  # the single best first, then the rest ascending
+        np.testing.assert_array_equal(got[1:], np.setdiff1d(ids, got[:1]))
 
 
 def test_index_json_and_storage(tiny_index):
+    from vprscale.method.kernels import plane_words
+
     meta = json.loads((tiny_index / "index.json").read_text())
     assert meta["complete"] and meta["d"] == 12 and meta["k"] == 2 and meta["n_ref"] == 52_500
+    assert meta["format"] == 3 and meta["layout"]["id_bits"] == 16 and meta["layout"]["code_bits"] == 12
     st = meta["storage"]
-    assert st["P1"]["paper"] == 8 * 52_500 and st["P1"]["packed"] == 2 * 52_500
+    assert st["P1"]["paper"] == 8 * 52_500 and st["P1"]["packed"] == 12 * 52_500 // 8
     assert st["P3"]["paper"] == 8 * 12 * 96 and st["P4"]["paper"] == 8 * 96 and st["P2"]["paper"] == 8 * 12 * 2
-    # P1 on disk is the map of every reference's address, 2 bytes at d = 12 (plus the .npy header)
-    assert st["P1"]["disk"] == (tiny_index / "ref_hash.npy").stat().st_size == 2 * 52_500 + 128
+    # P1 on disk is the bit planes of every reference's address, 12 bits a place (plus padding and header)
+    assert st["P1"]["disk"] == (tiny_index / "codes.npy").stat().st_size == 8 * plane_words(52_500, 12) + 128
     assert st["total"]["paper"] == sum(st[p]["paper"] for p in ("P1", "P2", "P3", "P4"))
 
 
 def test_sql_lookup_and_formats(tiny_index, capsys):
-    lists = pq.read_table(tiny_index / "lists.parquet").to_pandas()
-    h = int(lists["hash"].iloc[1000])
-    expected = sorted(lists.loc[lists["hash"] == h, "ref_id"].tolist())
+    from vprscale.method.index import read_index
+
+    idx = read_index(tiny_index)
+    h = int(idx.lists.addresses(np.array([700]))[0])
+    expected = sorted(idx.lists.list_ids(700).tolist())
     assert main(["sql", str(tiny_index), f"SELECT ref_id FROM lists WHERE hash = {h} ORDER BY ref_id", "--json"]) == 0
     got = [json.loads(line)["ref_id"] for line in capsys.readouterr().out.splitlines()]
     assert got == expected
-    assert main(["sql", str(tiny_index), "SELECT count(*) AS n FROM buckets", "--csv"]) == 0
-    assert capsys.readouterr().out.splitlines()[1] == str(lists["hash"].nunique())
+    assert main(["sql", str(tiny_index), "SELECT count(*) AS n, sum(size) AS s FROM buckets", "--csv"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == f"{idx.occupied},{idx.n_ref}"
+    assert main(["sql", str(tiny_index), "SELECT hash, best_id FROM buckets WHERE hash = " + str(h), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["best_id"] == idx.lists.best(np.array([700]))[0]
+
+
+def test_sql_lists_view_is_every_place_once(tiny_index, capsys):
+    """The ``lists`` view, read from the engine's packed ids, holds each place once at its own address."""
+    from vprscale.method.index import read_index
+
+    idx = read_index(tiny_index)
+    assert main(["sql", str(tiny_index), "SELECT ref_id, hash FROM lists ORDER BY ref_id", "--csv"]) == 0
+    rows = np.loadtxt(capsys.readouterr().out.splitlines()[1:], delimiter=",", dtype=np.uint64)
+    np.testing.assert_array_equal(rows[:, 0], np.arange(idx.n_ref))
+    np.testing.assert_array_equal(rows[:, 1], idx.ref_addresses())
 
 
 @pytest.mark.parametrize(("query", "message"), [
@@ -119,9 +141,11 @@ def test_inverted_lists_sort_by_address_then_id(high):
 
 
 def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
-    """Sorting partition by partition (bounded memory) gives the lists of one global sort."""
-    from vprscale.method.indexfile import write_lists
-    from vprscale.method.lists import inverted_lists
+    """Sorting partition by partition (bounded memory) writes the files of one global sort, and
+    those of an in-memory index of the same references."""
+    from vprscale.method.coarsehash import CoarseHasher
+    from vprscale.method.index import Index
+    from vprscale.method.indexfile import ENGINE_FILES, write_arrays, write_lists
 
     rng = np.random.default_rng(1)
     n = 100_000
@@ -129,6 +153,7 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
     err = rng.random(n).astype(np.float32)
     err[::7] = 0.5  # ties: the smallest id is the single best
     bounds = [(a, min(n, a + 7000)) for a in range(0, n, 7000)]
+    files = [*ENGINE_FILES.values(), "buckets.parquet"]
     got = {}
     for part_rows in (1 << 30, 5000):
         out = tmp_path / str(part_rows)
@@ -136,11 +161,13 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
         r = write_lists(out, lambda a, b: h[a:b], lambda a, b: err[a:b], bounds, n, 18, 2, quiet=True,
                         part_rows=part_rows)
         assert r["partitions"] == (1 if part_rows > n else 21) and not (out / ".partitions").exists()
-        got[part_rows] = {k: np.load(out / f"{k}.npy") for k in ("ids", "addresses", "offsets", "best", "ref_hash")}
-    want = inverted_lists(h, err)
-    np.testing.assert_array_equal(got[5000]["ids"], want["order"])
-    np.testing.assert_array_equal(got[5000]["addresses"], want["addresses"])
-    np.testing.assert_array_equal(got[5000]["offsets"], np.r_[want["offsets"], n])
-    np.testing.assert_array_equal(got[5000]["best"], want["best"])
-    for k in got[5000]:
-        np.testing.assert_array_equal(got[5000][k], got[1 << 30][k], err_msg=k)
+        assert sorted(p.name for p in out.iterdir()) == sorted(files)  # no work file left behind
+        got[part_rows] = {f: (out / f).read_bytes() for f in files}
+    assert got[5000] == got[1 << 30]
+    centres = np.tile(np.array([-1.0, 1.0]), (18, 1))
+    hasher = CoarseHasher.from_fitted(2, 1 << 14, n, np.zeros(4), np.eye(18, 4), centres, np.ones(18))
+    memory = tmp_path / "memory"
+    memory.mkdir()
+    idx = Index.from_addresses(h, hasher, err)
+    write_arrays(memory, hasher, idx.ref_addresses(), idx.lists, {})
+    assert {f: (memory / f).read_bytes() for f in files} == got[5000]

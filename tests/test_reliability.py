@@ -85,10 +85,10 @@ def test_overwritten_chunk_and_permuted_ids_are_caught(store_copy, tiny_store, t
 def test_truncated_and_deleted_index_files_are_one_line(tiny_index, tmp_path, capsys):
     index = tmp_path / "copy.index"
     shutil.copytree(tiny_index, index)
-    (index / "best.npy").write_bytes((index / "best.npy").read_bytes()[:-8])
-    fails(capsys, ["occupancy", str(index)], "best.npy", "bytes, its manifest says")
-    (index / "best.npy").unlink()
-    fails(capsys, ["sql", str(index), "SELECT 1"], "best.npy", "missing")
+    (index / "starts.npy").write_bytes((index / "starts.npy").read_bytes()[:-8])
+    fails(capsys, ["occupancy", str(index)], "starts.npy", "bytes, its manifest says")
+    (index / "starts.npy").unlink()
+    fails(capsys, ["sql", str(index), "SELECT 1"], "starts.npy", "missing")
 
 
 @pytest.mark.parametrize("case", ["localise-ids", "localise-zarr-json", "index-summary-store", "build-summary-source",

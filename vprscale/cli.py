@@ -61,7 +61,7 @@ def _write_summary(args: argparse.Namespace, data: dict) -> None:
 
 
 # The flags that name what a command reads, and what it writes.
-INPUT_FLAGS = {"build": ("deep1b", "fas", "scale"), "index": ("store",), "eval": ("store", "index"),
+INPUT_FLAGS = {"build": ("deep1b", "fas", "scale"), "index": ("store", "upgrade"), "eval": ("store", "index"),
                "localise": ("index", "queries"), "report": ("results", "index")}
 OUTPUT_FLAGS = ("out", "summary")
 
@@ -173,9 +173,20 @@ def _build_own(args: argparse.Namespace) -> int:
 
 
 def cmd_index(args: argparse.Namespace) -> int:
-    from vprscale.evaluation.storage import format_storage
-    from vprscale.jobs.indexing import build_index
+    from vprscale.evaluation.storage import format_parts, format_storage, index_parts
+    from vprscale.jobs.indexing import build_index, upgrade_index
 
+    if args.upgrade:
+        if args.store:
+            raise InputError(f"--upgrade {args.upgrade}: converts an index; give no store ({args.store})")
+        meta = upgrade_index(args.upgrade)
+        print(f"{args.upgrade}: format {meta['format']}" + (" (converted from format 2, no refit)"
+                                                             if meta.get("converted") else " already"))
+        print(format_parts(index_parts(Path(args.upgrade)), meta["n_ref"], meta["d"], meta["k"]))
+        _write_summary(args, meta)
+        return 0
+    if not args.store:
+        raise InputError("index: give a dataset store (or --upgrade INDEX)")
     meta = build_index(args.store, d=args.d, k=args.k, out=args.out, scheduler=args.scheduler,
                        workers=args.workers, force=args.force)
     print(f"indexed {meta['n_ref']:,} refs of {args.store} → {meta['index']}")
@@ -185,6 +196,7 @@ def cmd_index(args: argparse.Namespace) -> int:
         print(f"  {secs:8.1f} s  {name}")
     print(f"  peak memory {meta['peak_rss_bytes'] / 2**30:.2f} GiB")
     print(format_storage(meta["storage"]))
+    print(format_parts(index_parts(Path(meta["index"])), meta["n_ref"], meta["d"], meta["k"]))
     _write_summary(args, meta)
     return 0
 
@@ -334,10 +346,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(bench.bench_index(args.target, args.d, args.workers))
     elif args.job == "lookup":
         print(bench.bench_lookup(args.target))
-    elif args.job == "online":
+    elif args.job in ("online", "format"):
         if not args.index:
-            raise InputError("bench online: give --index")
-        print(bench.bench_online(args.target, args.index, args.L))
+            raise InputError(f"bench {args.job}: give --index")
+        if args.job == "online":
+            print(bench.bench_online(args.target, args.index, args.L))
+        else:
+            from vprscale.jobs.formatbench import bench_format
+
+            print(bench_format(args.target, args.index, (1, args.L)))
     else:
         if not args.index:
             raise InputError("bench eval: give --index")
@@ -403,7 +420,9 @@ def parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("index", parents=[cluster, summary],
                        help="fit CoarseHash on a dataset store and write its inverted lists")
-    p.add_argument("store", help="a complete <scale>.zarr dataset store")
+    p.add_argument("store", nargs="?", help="a complete <scale>.zarr dataset store")
+    p.add_argument("--upgrade", metavar="INDEX",
+                   help="convert an index of an older format (2) in place, without refitting")
     p.add_argument("--d", type=_positive_int, default=None, help="hash digits (default ⌈log2 N_ref⌉)")
     p.add_argument("--k", type=int, default=2, help="levels per component (default 2)")
     p.add_argument("--force", action="store_true",
@@ -485,13 +504,13 @@ def parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")
-    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online"])
-    p.add_argument("target", help="build: a scale; index/eval: a store; lookup: an index; online: a store")
+    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format"])
+    p.add_argument("target", help="build: a scale; index/eval/online/format: a store; lookup: an index")
     p.add_argument("--out", default="data/bench", help="build: output directory")
     p.add_argument("--deep1b")
     p.add_argument("--fas")
     p.add_argument("--d", type=_positive_int)
-    p.add_argument("--index", help="eval, online: the index to evaluate")
+    p.add_argument("--index", help="eval, online, format: the index to evaluate")
     p.add_argument("--L", type=_positive_int, default=100, help="online: sequence length (default 100)")
     p.add_argument("--workers", type=_positive_int, default=os.cpu_count() or 1)
     p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')

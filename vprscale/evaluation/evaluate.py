@@ -260,7 +260,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
 
 def _default_k(idx: Index) -> int:
     """References a compared method's frame retrieves by default: CoarseHash's mean list size."""
-    return max(1, int(round(idx.n_ref / max(1, len(idx.addresses)))))
+    return max(1, int(round(idx.n_ref / max(1, idx.occupied))))
 
 
 def _method_k(req: EvalRequest, idx: Index) -> list[int]:

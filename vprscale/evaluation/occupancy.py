@@ -8,27 +8,37 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
-from vprscale.method.indexfile import load_index_meta
+from vprscale.method.index import read_index
+
+CHUNK = 1 << 24  # lists whose sizes are decoded together
 
 
 def occupancy(index: str | Path, top: int = 10) -> dict[str, Any]:
-    """Bucket-size histogram, occupied share of K^d, largest buckets, per-component balance."""
-    index = Path(index)
-    meta = load_index_meta(index)
-    sizes = np.diff(np.load(index / "offsets.npy", mmap_mode="r"))  # the lists' lengths, no Parquet decode
-    hashes = np.load(index / "addresses.npy", mmap_mode="r")
-    counts = np.bincount(sizes)
+    """Bucket-size histogram, occupied share of K^d, largest buckets, per-component balance.
+
+    The list sizes come from the index's directory (no Parquet decode), a chunk at a time,
+    so a billion places' half-billion lists take bounded memory.
+    """
+    idx = read_index(index)
+    meta, n = idx.meta, idx.occupied
+    counts = np.zeros(idx.lists.longest + 1, np.int64)
+    best_slots, best_sizes = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    for a in range(0, n, CHUNK):
+        sizes = idx.lists.sizes(a, a + CHUNK)
+        counts += np.bincount(sizes, minlength=len(counts))
+        keep = min(top, len(sizes))
+        cut = np.argpartition(-sizes, keep - 1)[:keep] if keep else np.empty(0, np.int64)
+        best_slots, best_sizes = np.r_[best_slots, cut + a], np.r_[best_sizes, sizes[cut]]
+        order = np.lexsort((best_slots, -best_sizes))[:top]  # largest first, ties by address order
+        best_slots, best_sizes = best_slots[order], best_sizes[order]
     values = np.flatnonzero(counts)
-    counts = counts[values]
-    top = min(top, len(sizes))
-    cut = np.argpartition(-sizes, top - 1)[:top] if top else np.empty(0, np.int64)
-    largest = cut[np.lexsort((cut, -sizes[cut]))]  # largest first, ties by address order
-    model = pq.read_table(index / "components.parquet").to_pylist()
-    return {"d": meta["d"], "k": meta["k"], "n_ref": meta["n_ref"], "occupied": len(sizes),
-            "address_space": meta["k"] ** meta["d"], "occupied_share": len(sizes) / meta["k"] ** meta["d"],
-            "mean_size": float(sizes.mean()), "max_size": int(sizes.max()),
-            "size_histogram": [(int(v), int(c)) for v, c in zip(values, counts, strict=True)],
-            "largest": [(int(hashes[i]), int(sizes[i])) for i in largest], "components": model}
+    hashes = idx.lists.addresses(best_slots)
+    model = pq.read_table(Path(index) / "components.parquet").to_pylist()
+    return {"d": meta["d"], "k": meta["k"], "n_ref": meta["n_ref"], "occupied": n,
+            "address_space": meta["k"] ** meta["d"], "occupied_share": n / meta["k"] ** meta["d"],
+            "mean_size": idx.n_ref / max(1, n), "max_size": int(idx.lists.longest),
+            "size_histogram": [(int(v), int(counts[v])) for v in values],
+            "largest": [(int(h), int(c)) for h, c in zip(hashes, best_sizes, strict=True)], "components": model}
 
 
 def format_occupancy(o: dict[str, Any]) -> str:

@@ -29,9 +29,17 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.core.zarrio import rows_of
 from vprscale.dataset.store import ATTR, load_model, open_complete_group, ref_moments, store_identity, store_layout
-from vprscale.evaluation.storage import file_bytes, storage_table
+from vprscale.evaluation.storage import file_bytes, index_parts, storage_table
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
-from vprscale.method.indexfile import LIST_FILES, MODEL_FILES, load_index_meta, write_lists, write_meta, write_model
+from vprscale.method.indexfile import (
+    ENGINE_FILES,
+    MODEL_FILES,
+    load_index_meta,
+    upgrade,
+    write_lists,
+    write_meta,
+    write_model,
+)
 
 
 def _hash_chunk(x: np.ndarray, mean: np.ndarray, comp: np.ndarray,
@@ -114,9 +122,9 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
                                 quiet=quiet)
             write_model(partial.path, hasher, lists["level_counts"], n_ref)
         peak = cluster_peak_rss(client)
-        disk = {"P1": file_bytes(partial.path / "ref_hash.npy"),
+        disk = {"P1": file_bytes(partial.path / ENGINE_FILES["codes"]),
                 **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
-        list_bytes = file_bytes(*(partial.path / f"{n}.npy" for n in LIST_FILES))
+        list_bytes = file_bytes(*(partial.path / ENGINE_FILES[n] for n in ("ids", "occupied", "starts")))
         built = store / "build.json"
         extra = {
             "store": {"path": str(store.resolve()), "identity": identity, "layout": layout["kind"],
@@ -129,7 +137,8 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
             "versions": {"vprscale": vprscale.__version__},
             "provenance": provenance(inputs={"store": str(store.resolve()), "store_identity": identity}),
         }
-        meta = write_meta(partial.path, hasher, n_ref, lists["occupied"], extra)
+        extra["parts"] = index_parts(partial.path)  # index.json and the manifest are counted where shown
+        meta = write_meta(partial.path, hasher, n_ref, lists["layout"], extra)
         if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside
             kept = final.with_name(f"{final.name}.previous-eval")
             if kept.exists():
@@ -137,6 +146,46 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
             (final / "eval").rename(kept)
         partial.publish()
     return {"index": str(final), **meta}
+
+
+def upgrade_index(path: str | Path, quiet: bool = False) -> dict[str, Any]:
+    """Convert a format-2 index in place into the current format, without refitting (same lists,
+    same matches); an index already current is left as it is.
+
+    The new directory is written into a hidden work copy and published like a fresh index;
+    its evaluations (``eval/``, still valid: the matches do not change) wait beside it in
+    ``<index>.eval-during-upgrade`` while the directories are swapped, and a run killed
+    there moves them back on its next start.
+    """
+    final = Path(path)
+    parked = final.with_name(f"{final.name}.eval-during-upgrade")
+    with exclusive(final):
+        partial = PartialOutput(final, {"upgrade": str(final.resolve())})
+        partial.recover()
+        if parked.is_dir() and not (final / "eval").exists():
+            parked.rename(final / "eval")
+        meta = load_index_meta(final, upgradable=True)
+        if meta["format"] != 2:
+            return {**meta, "index": str(final), "converted": False}
+        check_writable(final.parent)
+        partial.open()
+        t0 = time.perf_counter()
+        meta = upgrade(final, partial.path, quiet=quiet)
+        disk = {"P1": file_bytes(partial.path / ENGINE_FILES["codes"]),
+                **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
+        meta["storage"] = storage_table(int(meta["n_ref"]), int(meta["d"]), int(meta["k"]), int(meta["dim"]), disk)
+        list_bytes = file_bytes(*(partial.path / ENGINE_FILES[n] for n in ("ids", "occupied", "starts")))
+        meta["lists"] = {**meta.get("lists", {}), "bytes": list_bytes, "bytes_per_place": list_bytes / meta["n_ref"]}
+        meta["parts"] = index_parts(partial.path)
+        meta["upgrade"] = {"wall_s": time.perf_counter() - t0,
+                           "provenance": provenance(inputs={"index": str(final.resolve())})}
+        (partial.path / "index.json").write_text(json.dumps(meta, indent=1, default=str))
+        if (final / "eval").is_dir():
+            (final / "eval").rename(parked)
+        partial.publish()
+        if parked.is_dir():
+            parked.rename(final / "eval")
+    return {**meta, "index": str(final), "converted": True}
 
 
 def sweep_indexes(store: str | Path, widths: list[int], scheduler: str | None = None, workers: int = 2,

@@ -6,7 +6,6 @@ query hashing, the per-frame work on query frames, and matching through the kern
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 
 import dask.array as da
@@ -15,7 +14,8 @@ import numpy as np
 
 from vprscale.core.publish import PartialOutput
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
-from vprscale.method.indexfile import read_arrays, write_arrays
+from vprscale.method.indexfile import code_bits, read_arrays, write_arrays
+from vprscale.method.invlists import InvertedLists, best_first, list_top
 from vprscale.method.kernels import (
     DELTA_MAX_UNITS,
     N_BEST,
@@ -23,15 +23,12 @@ from vprscale.method.kernels import (
     bit_gaps,
     bit_planes,
     byte_tables,
-    list_top,
+    decode_codes,
     match_batch,
-    nearest_occupied,
-    retrieve_lists,
 )
 from vprscale.method.lists import inverted_lists
+from vprscale.method.succinct import pack
 from vprscale.protocol import centre_lag, check_window, window_positions, window_start
-
-COPIED_LISTS = 1 << 25  # ids (256 MB) up to which query frames get their own copy of their lists
 
 
 @dataclass
@@ -39,12 +36,11 @@ class QueryFrames:
     """The per-frame work on query frames, done once per frame as it arrives (docs/method.md).
 
     A frame is hashed, given the nearest occupied address, and has that address's list
-    retrieved (the paper's O(1) list look-up per new frame); for K = 2 its address also
+    decoded (the paper's O(1) list look-up per new frame); for K = 2 its address also
     goes into bit planes like the references' (:func:`bit_planes`). Every window that
     contains the frame then reads these, so a query's sequence match never goes back to
-    the index's lists: its L lists are adjacent here, in frame order. (Unless the frames'
-    lists hold more than ``COPIED_LISTS`` ids together, as a coarse index's do: then
-    ``ids`` is the index's own and the bounds point into it.)
+    the index's lists. Each distinct list is decoded once, so frames that share an address
+    (a coarse index) share its copy.
 
     Only the frames worked on are held, ascending; arrays are indexed by position among
     them, and a window's frames, consecutive in the sequence, are consecutive here too.
@@ -55,7 +51,7 @@ class QueryFrames:
     slot: np.ndarray  # position of the occupied address used, among the occupied addresses
     start: np.ndarray  # the list of the frame at position i is ids[start[i]:stop[i]]
     stop: np.ndarray
-    ids: np.ndarray
+    ids: np.ndarray  # the frames' lists, decoded (int64)
     planes: np.ndarray  # K = 2: bit b of positions 64·i … 64·i + 63 as word i·d + b
     errors: np.ndarray | None = None  # each frame's quantisation error Σ_j min_k |y_j − c_kj| (None: unknown)
 
@@ -92,22 +88,25 @@ class Matches:
 
 @dataclass(repr=False)
 class Index:
-    """A CoarseHash index: a fitted :class:`~vprscale.method.coarsehash.CoarseHasher` and the
-    inverted lists of its references (docs/method.md), shaped like a FAISS index.
+    """A CoarseHash index: a fitted :class:`~vprscale.method.coarsehash.CoarseHasher`, its
+    references' codes and their inverted lists (docs/method.md), shaped like a FAISS index.
 
     ``Index.build(ref, d=…, k=…)`` fits and adds in one call (or ``Index.build(ref,
     hasher=fitted)``), :meth:`match` localises a traverse, :meth:`save` / :meth:`load` (and
     the module's :func:`write_index` / :func:`read_index`) write and open the directory
     format of :mod:`vprscale.method.indexfile` that every command reads. A loaded index
-    memory-maps its lists, so opening one costs nothing whatever its size.
+    memory-maps its codes and lists, so opening one costs nothing whatever its size.
+
+    Everything is held succinctly (docs/method.md, "Storage"): ``codes`` is P1, each
+    place's address in ⌈d·log2 K⌉ bits (for K = 2 the bit planes the windows are scored
+    on), and ``lists`` the ids bit-packed with an Elias–Fano directory
+    (:class:`~vprscale.method.invlists.InvertedLists`).
     """
 
     hasher: CoarseHasher
-    addresses: np.ndarray  # sorted occupied addresses
-    offsets: np.ndarray  # CSR: ids of the occupied address at slot a are ids[offsets[a]:offsets[a+1]]
-    ids: np.ndarray  # ref ids, grouped by address, ascending inside
-    best: np.ndarray  # single best ref id per occupied address
-    ref_hash: np.ndarray  # the address of every reference
+    codes: np.ndarray  # P1: K = 2 bit planes (kernels.bit_planes), else packed addresses
+    lists: InvertedLists
+    n_ref: int
     meta: dict = field(default_factory=dict)
 
     @classmethod
@@ -137,8 +136,12 @@ class Index:
             raise ValueError(f"errors: shape {errors.shape}, one per address {ref_hash.shape} expected")
         lists = inverted_lists(ref_hash, errors)
         offsets = np.r_[lists["offsets"], len(ref_hash)].astype(np.int64)
-        return cls(hasher, lists["addresses"], offsets, lists["order"].astype(np.int64),
-                   lists["best"].astype(np.int64), ref_hash, {"n_ref": len(ref_hash)})
+        order = lists["order"].astype(np.int64)
+        best_first(order, offsets, lists["best"].astype(np.int64))
+        d, k = int(hasher.d_), int(hasher.k)
+        codes = bit_planes(ref_hash, d) if k == 2 else pack(ref_hash, code_bits(d, k))
+        return cls(hasher, codes, InvertedLists.build(lists["addresses"], offsets, order, len(ref_hash)),
+                   len(ref_hash), {"n_ref": len(ref_hash)})
 
     @classmethod
     def load(cls, path: str | Path) -> Index:
@@ -150,7 +153,7 @@ class Index:
         return write_index(self, path)
 
     def __repr__(self) -> str:
-        return (f"Index(d={self.d}, k={self.k}, n_ref={self.n_ref:,}, occupied={len(self.addresses):,}, "
+        return (f"Index(d={self.d}, k={self.k}, n_ref={self.n_ref:,}, occupied={self.occupied:,}, "
                 f"features={self.components.shape[1]})")
 
     @property
@@ -174,8 +177,24 @@ class Index:
         return self.hasher.centres_
 
     @property
-    def n_ref(self) -> int:
-        return len(self.ref_hash)
+    def occupied(self) -> int:
+        """Number of occupied addresses (lists)."""
+        return self.lists.n_lists
+
+    @property
+    def code_bits(self) -> int:
+        return code_bits(self.d, self.k)
+
+    @property
+    def planes(self) -> np.ndarray:
+        """For K = 2 the references' addresses as bit planes (:func:`bit_planes`), which are the
+        codes themselves; else empty."""
+        return self.codes if self.k == 2 else np.zeros(0, np.uint64)
+
+    def ref_addresses(self, a: int = 0, b: int | None = None) -> np.ndarray:
+        """The addresses of references ``a … b − 1`` (default: all), decoded from the codes (uint64)."""
+        b = self.n_ref if b is None else min(b, self.n_ref)
+        return decode_codes(self.codes, self.code_bits, self.d, self.k, np.int64(a), np.int64(max(a, b)))
 
     def weights(self) -> np.ndarray:
         """Fixed-point ``|c_ja − c_jb|`` as a (d, K, K) int64 table."""
@@ -183,21 +202,15 @@ class Index:
         span = (self.centres[:, -1] - self.centres[:, 0]).sum()
         return np.rint(diff * (DELTA_MAX_UNITS / span)).astype(np.int64)
 
-    @cached_property
-    def planes(self) -> np.ndarray:
-        """For K = 2 the references' addresses as bit planes (:func:`bit_planes`); else empty.
-
-        ``d / 8`` bytes per place, built once per loaded index (0.1 s per 10M places).
-        """
-        return bit_planes(self.ref_hash, self.d) if self.k == 2 else np.zeros(0, np.uint64)
-
     def kernel_args(self) -> tuple:
-        """``(ref_hash, planes, gaps, w, tables, d, k, δ_max)``: the index's arguments of :func:`match_batch`.
+        """``(codes, code_bits, n_ref, planes, gaps, w, tables, d, k, δ_max)``: the index's
+        arguments of :func:`match_batch`.
 
         ``gaps[b]`` is the cost of a differing bit ``b`` (K = 2), ``tables`` the per-byte δ.
         """
         w, tables, dmax = self.delta_tables()
-        return self.ref_hash, self.planes, bit_gaps(w), w, tables, self.d, self.k, dmax
+        return (self.codes, self.code_bits, self.n_ref, self.planes, bit_gaps(w), w, tables, self.d, self.k,
+                dmax)
 
     def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
         """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame."""
@@ -207,10 +220,6 @@ class Index:
 
     def hash_queries(self, x: np.ndarray) -> np.ndarray:
         """Own addresses of query rows (docs/method.md)."""
-        x = np.asarray(x)
-        if x.ndim != 2 or x.shape[1] != self.components.shape[1]:
-            raise ValueError(f"query rows have shape {x.shape}; this index hashes rows of "
-                             f"{self.components.shape[1]} features")
         return self.hash_frames(x)[0]
 
     def hash_frames(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,43 +263,25 @@ class Index:
             a = qf.slot[pos]
             span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
             err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors, np.float64)[pos]
-            moved = address_delta(qf.hashes[pos], np.asarray(self.addresses, np.uint64)[a], w, tables, self.d, self.k)
+            moved = address_delta(qf.hashes[pos], self.lists.addresses(a), w, tables, self.d, self.k)
             score = err / span + moved / float(dmax)
-            return (list_top(a, self.offsets, self.ids, self.best, n_best), score,
-                    (self.offsets[a + 1] - self.offsets[a]).astype(np.int64))
+            return (list_top(self.lists.starts_args(), self.lists.ids, self.lists.id_bits, a, n_best), score,
+                    qf.stop[pos] - qf.start[pos])
         args = self.kernel_args()  # (…, δ_max) last
         top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, n_best,
                                        numba.get_num_threads())
         return top, scores[:, 0] / float(args[-1]), n_r
 
-    @cached_property
-    def prefix_table(self) -> tuple[np.ndarray, int]:
-        """``(first, shift)``: the occupied addresses whose top bits are ``p`` are ``first[p] … first[p+1]``.
-
-        About one prefix per occupied address (2^16 to 2^24 of them), so a search touches two
-        table entries and a run of a few addresses, one page of a memory-mapped index,
-        instead of ~log2(occupied) scattered reads (at 1B places a 2^16 table left ~9,000
-        addresses, several pages, per prefix). Counted chunk by chunk, in bounded memory.
-        """
-        bits = int(np.ceil(self.d * np.log2(self.k)))
-        wanted = int(np.ceil(np.log2(max(2, len(self.addresses)))))
-        shift = max(0, bits - min(24, max(16, wanted)))
-        counts = np.zeros((1 << (bits - shift)) + 1, np.int64)
-        for a in range(0, len(self.addresses), 1 << 24):
-            part = (np.asarray(self.addresses[a : a + (1 << 24)], np.uint64) >> np.uint64(shift)).astype(np.int64)
-            counts[1:] += np.bincount(part, minlength=len(counts) - 1)
-        return np.cumsum(counts), shift
-
     def warm(self) -> Index:
-        """Hold the per-address arrays (addresses, offsets, single bests) in memory, read in
-        order, and build the prefix table and bit planes now.
+        """Hold the directory (occupied addresses, list starts: well under a byte per place) and
+        the codes in memory, read in order.
 
         A batch then times look-ups, not first touches of a memory-mapped file: on this VM a
         page's first touch costs 5–35 µs even from the page cache, and at 1B places each
         query frame touches several. The ids stay memory-mapped (a frame reads one list).
         """
-        self.addresses, self.offsets, self.best = (np.array(a) for a in (self.addresses, self.offsets, self.best))
-        _ = self.prefix_table, self.planes
+        self.lists = self.lists.in_memory()
+        self.codes = np.array(self.codes)
         return self
 
     def query_frames(self, h: np.ndarray, frames: np.ndarray | None = None,
@@ -304,26 +295,20 @@ class Index:
         h = np.asarray(h, np.uint64)
         frames = np.arange(len(h)) if frames is None else np.asarray(frames, np.int64)
         a = self.nearest_occupied(h)
-        start, stop = self.offsets[a], self.offsets[a + 1]
-        if (stop - start).sum() <= COPIED_LISTS:
-            start, stop, ids = retrieve_lists(self.offsets, self.ids, a)
-        else:  # long lists (a coarse index): read in place
-            ids = self.ids
+        start, stop, ids = self.lists.gather(a)
         planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
         return QueryFrames(frames, h, a, start, stop, ids, planes, errors)
 
     def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
-        """Index of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
-        first, shift = self.prefix_table
-        return nearest_occupied(self.addresses, first, shift, np.asarray(h, np.uint64))
+        """Slot of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
+        return self.lists.nearest(np.asarray(h, np.uint64))
 
 
 def read_index(path: str | Path) -> Index:
-    """Open an index directory (:mod:`vprscale.method.indexfile`); the lists and the map are
+    """Open an index directory (:mod:`vprscale.method.indexfile`); the codes and the lists are
     memory-mapped, not read."""
-    hasher, arrays, meta = read_arrays(path)
-    return Index(hasher, arrays["addresses"], arrays["offsets"], arrays["ids"], arrays["best"], arrays["ref_hash"],
-                 meta)
+    hasher, codes, lists, meta = read_arrays(path)
+    return Index(hasher, codes, lists, int(meta["n_ref"]), meta)
 
 
 def write_index(index: Index, path: str | Path) -> Path:
@@ -338,7 +323,6 @@ def write_index(index: Index, path: str | Path) -> Path:
     publish = PartialOutput(path, {"save": index.n_ref})
     publish.recover()
     publish.open()
-    write_arrays(publish.path, index.hasher, index.ref_hash, index.addresses, index.offsets, index.ids, index.best,
-                 index.meta)
+    write_arrays(publish.path, index.hasher, index.ref_addresses(), index.lists, index.meta)
     publish.publish()
     return path

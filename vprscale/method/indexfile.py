@@ -1,24 +1,28 @@
 """The index directory format: the one module that writes and reads it.
 
-An index directory holds:
+An index directory (format 3, docs/method.md "Storage") holds:
 
 - ``index.json``: kind, format, parameters (``d``, ``k``, ``bins``, ``n_ref``, ``dim``,
-  ``occupied``) and whatever the writer adds (the store it came from, storage, timings);
+  ``occupied``), the layout of the succinct files (``lists``) and whatever the writer adds
+  (the store it came from, storage, timings);
 - ``model/{mean,components,centres,explained_variance}.npy``: the fitted CoarseHasher;
 - ``components.parquet``: per component and cluster: centre, reference count and share;
-- the inverted lists as ``.npy`` files the query side memory-maps: ``ref_hash.npy`` (every
-  place's address, P1), ``ids.npy`` (ids grouped by address, ascending inside),
-  ``addresses.npy`` (sorted occupied addresses), ``offsets.npy`` (CSR, one more than the
-  addresses) and ``best.npy`` (single best per address); ids, offsets and bests are uint32
-  below 2^32 places, addresses as narrow as ``K^d`` allows;
-- ``lists.parquet`` (``hash``, ``ref_id``) and ``buckets.parquet`` (``hash``, ``size``,
-  ``best_id``, ``offset``): the lists as tables for the SQL console.
+- the engine's files, memory-mapped by the query side (:mod:`vprscale.method.succinct`):
+  ``codes.npy`` (P1, every place's address in ⌈d·log2 K⌉ bits: for K = 2 the bit planes
+  the windows are scored on, else bit-packed), ``ids.npy`` (the ids grouped by address,
+  bit-packed at ⌈log2 N⌉ bits, each list's single best first and the rest ascending),
+  ``occupied.npy`` and ``starts.npy`` (the sorted occupied addresses and the lists'
+  starts, Elias–Fano);
+- ``buckets.parquet`` (``hash``, ``size``, ``offset``): one row per occupied address for
+  the SQL console, its sorted integers delta-coded and compressed; the console's ``lists``
+  view reads ``ids.npy`` itself (:mod:`vprscale.evaluation.sqlchild`), so the ids are never
+  stored twice.
 
-Two writers produce the same files: :func:`write_lists` streams a job's references through
-the partitioned sort of :mod:`vprscale.method.lists` (bounded memory at any scale), and
-:func:`write_arrays` writes lists held in memory (``Index.save``). Both finish with
-:func:`write_model` and :func:`write_meta`; :func:`read_arrays` opens either. Publishing
-(hidden work copy, lock, atomic rename) is the caller's.
+Three writers produce the same files through :class:`_Writer`: :func:`write_lists` streams a
+job's references through the partitioned sort of :mod:`vprscale.method.lists` (bounded
+memory at any scale), :func:`write_arrays` writes lists held in memory (``Index.save``) and
+:func:`upgrade` converts a format-2 directory without refitting. :func:`read_arrays` opens
+any of them. Publishing (hidden work copy, lock, atomic rename) is the caller's.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest
 from vprscale.core.progress import ChunkProgress
 from vprscale.method.coarsehash import CoarseHasher
+from vprscale.method.invlists import InvertedLists, best_first
+from vprscale.method.kernels import plane_words, planes_into
 from vprscale.method.lists import (
     PART_ROWS,
     PREFIX_BITS,
@@ -47,53 +53,64 @@ from vprscale.method.lists import (
     prefix_cuts,
     scatter,
 )
+from vprscale.method.succinct import EliasFano, pack_into, packed_words, width
 
 KIND = "coarsehash-index"
-INDEX_FORMAT = 2  # 2: lists as .npy files beside the Parquet copies
+INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
 MODEL = ("mean", "components", "centres", "explained_variance")
 MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_variance.npy"], "P4": ["mean.npy"]}
-LIST_FILES = ("ids", "addresses", "offsets", "best")
+ENGINE_FILES = {"codes": "codes.npy", "ids": "ids.npy", "occupied": "occupied.npy", "starts": "starts.npy"}
+SQL_FILES = ("buckets.parquet", "components.parquet")
 ROW_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
-
-def id_dtype(n_ref: int) -> np.dtype:
-    """Ids (and offsets, single bests) are uint32 below 2^32 places."""
-    return np.dtype(np.uint32) if n_ref < 2**32 else np.dtype(np.uint64)
+UPGRADE_LISTS = 1 << 22  # lists converted together by upgrade
 
 
-class _Views:
-    """``lists.parquet`` and ``buckets.parquet``, the SQL views of the lists, written a run at a time."""
+def code_bits(d: int, k: int) -> int:
+    """Bits of one place's code: ⌈d·log2 K⌉ (d for K = 2)."""
+    return d if k == 2 else width(k**d - 1)
 
-    def __init__(self, out: Path, id_t: np.dtype) -> None:
-        self.lists = pq.ParquetWriter(out / "lists.parquet",
-                                      pa.schema([("hash", pa.uint64()), ("ref_id", pa.from_numpy_dtype(id_t))]),
-                                      compression="zstd", use_dictionary=False,
-                                      column_encoding={"hash": "DELTA_BINARY_PACKED",
-                                                       "ref_id": "DELTA_BINARY_PACKED"})
-        self.buckets = pq.ParquetWriter(out / "buckets.parquet",
-                                        pa.schema([("hash", pa.uint64()), ("size", pa.uint32()),
-                                                   ("best_id", pa.from_numpy_dtype(id_t)), ("offset", pa.uint64())]),
-                                        compression="zstd", use_dictionary=False,
-                                        column_encoding={"hash": "DELTA_BINARY_PACKED", "size": "PLAIN",
-                                                         "best_id": "PLAIN", "offset": "DELTA_BINARY_PACKED"})
-        self.id_t = id_t
 
-    def write(self, addresses: np.ndarray, sizes: np.ndarray, offsets: np.ndarray, ids: np.ndarray,
-              best: np.ndarray) -> None:
-        """One run of occupied addresses with their list sizes and (global) offsets, ids and single bests."""
-        hashes = np.repeat(np.asarray(addresses, np.uint64), sizes)
-        for r in range(0, len(ids), 1 << 24):  # bounded Arrow buffers
-            self.lists.write_table(pa.table({"hash": pa.array(hashes[r : r + (1 << 24)], pa.uint64()),
-                                             "ref_id": pa.array(np.asarray(ids[r : r + (1 << 24)], self.id_t))}),
-                                   row_group_size=ROW_GROUP)
-        self.buckets.write_table(pa.table({"hash": pa.array(np.asarray(addresses, np.uint64), pa.uint64()),
-                                           "size": pa.array(np.asarray(sizes, np.uint32)),
-                                           "best_id": pa.array(np.asarray(best, self.id_t)),
-                                           "offset": pa.array(np.asarray(offsets, np.uint64))}),
-                                 row_group_size=ROW_GROUP)
+def code_words(n_ref: int, d: int, k: int) -> int:
+    return plane_words(n_ref, d) if k == 2 else packed_words(n_ref, code_bits(d, k))
+
+
+class _Buckets:
+    """``buckets.parquet``, written a run of occupied addresses at a time.
+
+    Sorted addresses and offsets are delta-coded (their deltas are small), sizes
+    dictionary-coded (a few distinct values), all zstd-compressed: about 0.6 bytes per
+    occupied address where plain words take 20.
+    """
+
+    def __init__(self, out: Path) -> None:
+        self.writer = pq.ParquetWriter(out / "buckets.parquet",
+                                       pa.schema([("hash", pa.uint64()), ("size", pa.uint32()),
+                                                  ("offset", pa.uint64())]),
+                                       compression="zstd", compression_level=9,
+                                       use_dictionary=["size"],
+                                       column_encoding={"hash": "DELTA_BINARY_PACKED",
+                                                        "offset": "DELTA_BINARY_PACKED"})
+        self.pending = [np.zeros(0, np.uint64), np.zeros(0, np.uint32), np.zeros(0, np.uint64)]
+
+    def write(self, addresses: np.ndarray, sizes: np.ndarray, offsets: np.ndarray) -> None:
+        """Append a run of buckets; whole row groups are written as they fill, so the file is the
+        same bytes however the runs were cut (partitions, upgrade chunks)."""
+        self.pending = [np.r_[p, np.asarray(x, t)] for p, x, t in
+                        zip(self.pending, (addresses, sizes, offsets), (np.uint64, np.uint32, np.uint64), strict=True)]
+        full = len(self.pending[0]) // ROW_GROUP * ROW_GROUP
+        if full:
+            self._flush(full)
+
+    def _flush(self, n: int) -> None:
+        hashes, sizes, offsets = (p[:n] for p in self.pending)
+        self.writer.write_table(pa.table({"hash": pa.array(hashes), "size": pa.array(sizes),
+                                          "offset": pa.array(offsets)}), row_group_size=ROW_GROUP)
+        self.pending = [p[n:] for p in self.pending]
 
     def close(self) -> None:
-        self.lists.close()
-        self.buckets.close()
+        if len(self.pending[0]):
+            self._flush(len(self.pending[0]))
+        self.writer.close()
 
 
 class _Appender:
@@ -124,6 +141,72 @@ class _Appender:
         self.f.close()
 
 
+class _Writer:
+    """The engine's files and the SQL buckets of one directory, written in order.
+
+    :meth:`codes` takes places' addresses chunk by chunk (any order of chunks), :meth:`lists`
+    runs of lists in address order, each list's ids with its single best first;
+    :meth:`close` builds the Elias–Fano directory from the appended addresses and offsets
+    (read back once, memory-mapped) and returns the layout that ``index.json`` records.
+    """
+
+    def __init__(self, out: Path, n_ref: int, d: int, k: int) -> None:
+        self.out, self.n_ref, self.d, self.k = out, n_ref, d, k
+        self.code_bits, self.id_bits = code_bits(d, k), width(max(0, n_ref - 1))
+        self.codes_file = np.lib.format.open_memmap(out / ENGINE_FILES["codes"], mode="w+", dtype=np.uint64,
+                                                    shape=(code_words(n_ref, d, k),))
+        self.ids_file = np.lib.format.open_memmap(out / ENGINE_FILES["ids"], mode="w+", dtype=np.uint64,
+                                                  shape=(packed_words(n_ref, self.id_bits),))
+        self.addresses = _Appender(out / ".addresses.tmp", np.uint64)
+        self.offsets = _Appender(out / ".offsets.tmp", np.int64)
+        self.buckets = _Buckets(out)
+        self.n_ids = self.longest = 0
+
+    def codes(self, a: int, h: np.ndarray) -> None:
+        """The addresses of places ``a … a + len(h) − 1``."""
+        h = np.asarray(h, np.uint64)
+        if self.k == 2:
+            planes_into(self.codes_file, h, np.int64(a), self.d)
+        else:
+            pack_into(self.codes_file, self.code_bits, np.int64(a), h)
+
+    def lists(self, addresses: np.ndarray, sizes: np.ndarray, ids: np.ndarray) -> None:
+        """The next run of occupied addresses (ascending), their lists' sizes and ids."""
+        offsets = self.n_ids + np.r_[0, np.cumsum(sizes[:-1])].astype(np.int64) if len(sizes) else np.zeros(0, np.int64)
+        pack_into(self.ids_file, self.id_bits, np.int64(self.n_ids), np.asarray(ids, np.uint64))
+        self.addresses.append(addresses)
+        self.offsets.append(offsets)
+        self.buckets.write(addresses, sizes, offsets)
+        self.n_ids += len(ids)
+        self.longest = max(self.longest, int(np.max(sizes, initial=0)))
+
+    def close(self) -> dict[str, Any]:
+        self.offsets.append(np.array([self.n_ids]))
+        for f in (self.addresses, self.offsets):
+            f.close()
+        self.buckets.close()
+        self.codes_file.flush()
+        self.ids_file.flush()
+        del self.codes_file, self.ids_file
+        layout: dict[str, Any] = {"code_bits": self.code_bits, "codes": "planes" if self.k == 2 else "packed",
+                                  "id_bits": self.id_bits, "longest": self.longest}
+        for name, tmp in (("occupied", self.addresses), ("starts", self.offsets)):
+            ef = EliasFano.build(np.load(tmp.path, mmap_mode="r"))
+            np.save(self.out / ENGINE_FILES[name], ef.words())
+            layout[name] = ef.layout()
+            del ef
+            tmp.path.unlink()
+        layout["occupied"]["count"] = self.addresses.n
+        return layout
+
+
+def _best_first_run(order: np.ndarray, sizes: np.ndarray, best: np.ndarray) -> np.ndarray:
+    """``order`` (ids ascending per list) with each list's single best moved to its front."""
+    order = np.array(order, np.int64)
+    best_first(order, np.r_[0, np.cumsum(sizes)].astype(np.int64), np.asarray(best, np.int64))
+    return order
+
+
 def level_counts(addresses: np.ndarray, d: int, k: int) -> np.ndarray:
     """References per code level, (d × K), of addresses (the first component is the top digit)."""
     rest = np.asarray(addresses, np.uint64).copy()
@@ -136,56 +219,49 @@ def level_counts(addresses: np.ndarray, d: int, k: int) -> np.ndarray:
 
 def write_lists(out: Path, addresses: Reader, errors: Reader, bounds: list[tuple[int, int]], n_ref: int, d: int,
                 k: int, quiet: bool = False, part_rows: int = PART_ROWS) -> dict:
-    """Sort references into inverted lists in ``out`` in bounded memory; returns counts and sizes.
+    """Sort references into inverted lists in ``out`` in bounded memory; returns counts and layout.
 
     ``addresses(a, b)`` and ``errors(a, b)`` give the addresses and quantisation errors of
     references ``[a, b)`` (``bounds`` are their chunks); each is read once. Returns
-    ``level_counts`` (d × K references per code level), ``occupied`` and ``partitions``.
+    ``level_counts`` (d × K references per code level), ``occupied``, ``partitions`` and
+    ``layout`` (what ``index.json`` records of the engine's files).
     """
     bits = max(1, math.ceil(d * math.log2(k)))
-    addr_t, id_t = address_dtype(d, k), id_dtype(n_ref)
+    addr_t, id_t = address_dtype(d, k), np.dtype(np.uint32 if n_ref < 2**32 else np.uint64)
     shift = np.uint64(max(0, bits - PREFIX_BITS))
-    ref_hash = np.lib.format.open_memmap(out / "ref_hash.npy", mode="w+", dtype=addr_t, shape=(n_ref,))
+    writer = _Writer(out, n_ref, d, k)
+    # every place's address once more, for the partitioned sort to read back; removed at the end
+    ref_hash = np.lib.format.open_memmap(out / ".ref_hash.tmp", mode="w+", dtype=addr_t, shape=(n_ref,))
     prefix_counts = np.zeros(1 << min(bits, PREFIX_BITS), np.int64)
     counts = np.zeros((d, k), np.int64)
     progress = None if quiet else ChunkProgress("scan addresses", len(bounds))
     for a, b in bounds:
         h = np.asarray(addresses(a, b), np.uint64)
         ref_hash[a:b] = h
+        writer.codes(a, h)
         prefix_counts += np.bincount((h >> shift).astype(np.int64), minlength=len(prefix_counts))
         counts += level_counts(h, d, k)
         if progress:
             progress.update(1)
     ref_hash.flush()
     cuts = prefix_cuts(prefix_counts, part_rows)
-    files = {name: _Appender(out / f"{name}.npy", t) for name, t in
-             (("ids", id_t), ("addresses", addr_t), ("offsets", id_t), ("best", id_t))}
-    views = _Views(out, id_t)
     parts = scatter(out / ".partitions", errors, bounds, ref_hash, cuts, shift, id_t, quiet)
     progress = None if quiet or len(cuts) == 1 else ChunkProgress("sort partitions", len(cuts))
-    offset = 0
     for part in parts:
         h, err, ids = part()
         lists = inverted_lists(h, err)
         del h, err
-        order = ids[lists["order"]]
-        best = ids[lists["best"]]
-        del ids
-        files["ids"].append(order)
-        files["addresses"].append(lists["addresses"])
-        files["offsets"].append(lists["offsets"] + offset)
-        files["best"].append(best)
-        views.write(lists["addresses"], lists["sizes"], lists["offsets"] + offset, order, best)
-        offset += len(order)
-        del lists, order, best
+        writer.lists(lists["addresses"], lists["sizes"],
+                     _best_first_run(ids[lists["order"]], lists["sizes"], ids[lists["best"]]))
+        del ids, lists
         if progress:
             progress.update(1)
     shutil.rmtree(out / ".partitions", ignore_errors=True)
-    files["offsets"].append(np.array([offset]))
-    for f in files.values():
-        f.close()
-    views.close()
-    return {"level_counts": counts, "occupied": files["addresses"].n, "partitions": len(cuts)}
+    del ref_hash
+    (out / ".ref_hash.tmp").unlink()
+    layout = writer.close()
+    return {"level_counts": counts, "occupied": layout["occupied"]["count"], "partitions": len(cuts),
+            "layout": layout}
 
 
 def write_model(path: Path, hasher: CoarseHasher, counts: np.ndarray, n_ref: int) -> None:
@@ -203,38 +279,80 @@ def write_model(path: Path, hasher: CoarseHasher, counts: np.ndarray, n_ref: int
     pq.write_table(comp, path / "components.parquet")
 
 
-def write_meta(path: Path, hasher: CoarseHasher, n_ref: int, occupied: int, extra: dict[str, Any]) -> dict[str, Any]:
+def write_meta(path: Path, hasher: CoarseHasher, n_ref: int, layout: dict[str, Any],
+               extra: dict[str, Any]) -> dict[str, Any]:
     """``index.json``: the format's own keys, then what the writer adds (``extra`` cannot override them)."""
     own = {"kind": KIND, "complete": True, "format": INDEX_FORMAT, "d": int(hasher.d_), "k": int(hasher.k),
-           "n_ref": int(n_ref), "dim": int(hasher.n_features_in_), "occupied": int(occupied), "bins": int(hasher.bins)}
+           "n_ref": int(n_ref), "dim": int(hasher.n_features_in_), "occupied": int(layout["occupied"]["count"]),
+           "bins": int(hasher.bins), "layout": layout}
     meta = {**own, **{key: value for key, value in extra.items() if key not in own}}
     (path / "index.json").write_text(json.dumps(meta, indent=1, default=str))
     return meta
 
 
-def write_arrays(path: Path, hasher: CoarseHasher, ref_hash: np.ndarray, addresses: np.ndarray,
-                 offsets: np.ndarray, ids: np.ndarray, best: np.ndarray, extra: dict[str, Any]) -> dict[str, Any]:
-    """Write lists held in memory into the directory ``path`` (which must exist and be empty).
+def write_arrays(path: Path, hasher: CoarseHasher, ref_hash: np.ndarray, lists: InvertedLists,
+                 extra: dict[str, Any]) -> dict[str, Any]:
+    """Write an index held in memory into the directory ``path`` (which must exist and be empty).
 
-    The arrays are written in the dtypes :func:`write_lists` gives them, so the directory is
-    the one a job writes for the same lists.
+    The files are those :func:`write_lists` writes for the same references.
     """
     d, k, n_ref = hasher.d_, hasher.k, len(ref_hash)
-    addr_t, id_t = address_dtype(d, k), id_dtype(n_ref)
-    arrays = {"ref_hash": (ref_hash, addr_t), "ids": (ids, id_t), "addresses": (addresses, addr_t),
-              "offsets": (offsets, id_t), "best": (best, id_t)}
-    for name, (arr, dtype) in arrays.items():
-        np.save(path / f"{name}.npy", np.asarray(arr, dtype))
-    views = _Views(path, id_t)
-    offsets = np.asarray(offsets, np.int64)
-    views.write(addresses, np.diff(offsets), offsets[:-1], ids, best)
-    views.close()
+    writer = _Writer(path, n_ref, d, k)
+    writer.codes(0, ref_hash)
+    offsets = lists.starts.decode()
+    writer.lists(lists.occupied.decode(), np.diff(offsets), lists.ids_range(0, lists.n_ids))
     write_model(path, hasher, level_counts(ref_hash, d, k), n_ref)
-    return write_meta(path, hasher, n_ref, len(addresses), extra)
+    return write_meta(path, hasher, n_ref, writer.close(), extra)
 
 
-def load_index_meta(index: str | Path) -> dict[str, Any]:
-    """``index.json`` of a complete index, or an error naming the directory."""
+def upgrade(old: Path, out: Path, quiet: bool = False) -> dict[str, Any]:
+    """Convert a format-2 index directory ``old`` into format 3 in ``out`` (existing, empty),
+    without refitting: the same addresses, lists and single bests, streamed in bounded memory.
+
+    Returns the new ``index.json``; its storage accounting is the caller's to refresh.
+    """
+    meta = json.loads((old / "index.json").read_text())
+    d, k, n_ref = int(meta["d"]), int(meta["k"]), int(meta["n_ref"])
+    try:
+        arrays = {name: np.load(old / f"{name}.npy", mmap_mode="r")
+                  for name in ("ref_hash", "ids", "addresses", "offsets", "best")}
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"{old}: a format-2 index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
+                         "re-run vprscale index") from None
+    writer = _Writer(out, n_ref, d, k)
+    chunk = 1 << 24
+    progress = None if quiet else ChunkProgress("upgrade: codes", -(-n_ref // chunk))
+    for a in range(0, n_ref, chunk):
+        writer.codes(a, arrays["ref_hash"][a : a + chunk])
+        if progress:
+            progress.update(1)
+    occupied = len(arrays["addresses"])
+    progress = None if quiet else ChunkProgress("upgrade: lists", -(-occupied // UPGRADE_LISTS))
+    for a in range(0, occupied, UPGRADE_LISTS):
+        b = min(occupied, a + UPGRADE_LISTS)
+        offsets = np.asarray(arrays["offsets"][a : b + 1], np.int64)
+        sizes = np.diff(offsets)
+        writer.lists(arrays["addresses"][a:b], sizes,
+                     _best_first_run(arrays["ids"][offsets[0] : offsets[-1]], sizes, arrays["best"][a:b]))
+        if progress:
+            progress.update(1)
+    layout = writer.close()
+    (out / "model").mkdir(exist_ok=True)
+    for name in MODEL:
+        shutil.copy2(old / "model" / f"{name}.npy", out / "model" / f"{name}.npy")
+    shutil.copy2(old / "components.parquet", out / "components.parquet")
+    meta.update({"format": INDEX_FORMAT, "layout": layout, "occupied": int(layout["occupied"]["count"]),
+                 "upgraded_from": 2})
+    (out / "index.json").write_text(json.dumps(meta, indent=1, default=str))
+    return meta
+
+
+def load_index_meta(index: str | Path, upgradable: bool = False) -> dict[str, Any]:
+    """``index.json`` of a complete index, or an error naming the directory.
+
+    An index of an older format is refused with what to run; with ``upgradable`` a format-2
+    index (which ``vprscale index --upgrade`` converts) is returned as it is.
+    """
     p = Path(index)
     meta_file = p / "index.json"
     if not meta_file.is_file():
@@ -245,22 +363,37 @@ def load_index_meta(index: str | Path) -> dict[str, Any]:
         raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
     if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != KIND:
         raise InputError(f"{p}: the index is incomplete or of another kind")
-    if meta.get("format", 1) < INDEX_FORMAT:
+    fmt = meta.get("format", 1)
+    if fmt < 2:
         raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")
+    if fmt == 2 and not upgradable:
+        raise InputError(f"{p}: an index of format 2 (plain lists, 2-3x larger); convert it without refitting: "
+                         f"vprscale index --upgrade {p}")
+    if fmt > INDEX_FORMAT:
+        raise InputError(f"{p}: index format {fmt} is newer than this vprscale reads ({INDEX_FORMAT}); "
+                         "upgrade vprscale")
     check_manifest(p)
     return meta
 
 
-def read_arrays(path: str | Path) -> tuple[CoarseHasher, dict[str, np.ndarray], dict[str, Any]]:
-    """``(hasher, arrays, meta)`` of an index directory: the model read, the lists and the map
-    memory-mapped (a query touches only the pages it reads)."""
+def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLists, dict[str, Any]]:
+    """``(hasher, codes, lists, meta)`` of an index directory: the model read, the codes and the
+    lists memory-mapped (a query touches only the pages it reads)."""
     path = Path(path)
     meta = load_index_meta(path)
+    layout = meta["layout"]
     try:
         model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
-        arrays = {name: np.load(path / f"{name}.npy", mmap_mode="r") for name in (*LIST_FILES, "ref_hash")}
-    except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file of an index without a manifest
+        files = {name: np.load(path / file, mmap_mode="r") for name, file in ENGINE_FILES.items()}
+        lists = InvertedLists(EliasFano.from_words(files["occupied"], layout["occupied"]),
+                              EliasFano.from_words(files["starts"], layout["starts"]), files["ids"],
+                              int(layout["id_bits"]), int(layout["longest"]))
+    except (OSError, ValueError, EOFError, KeyError) as exc:  # a missing or truncated file (no manifest)
         raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
                          "re-run vprscale index") from None
-    hasher = CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), int(meta["n_ref"]), **model)
-    return hasher, arrays, meta
+    n_ref = int(meta["n_ref"])
+    if len(files["codes"]) != code_words(n_ref, int(meta["d"]), int(meta["k"])) or \
+            len(files["ids"]) != packed_words(n_ref, lists.id_bits):
+        raise InputError(f"{path}: codes.npy or ids.npy does not hold {n_ref:,} places; re-run vprscale index")
+    hasher = CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), n_ref, **model)
+    return hasher, files["codes"], lists, meta

@@ -1,9 +1,11 @@
-"""LLVM intrinsics numba does not expose: population count, funnel shift and a cache prefetch.
+"""LLVM intrinsics numba does not expose: population count, trailing zeros, funnel shift and a
+cache prefetch.
 
 ``popcount`` lets a bit-plane distance count differing frames 64 at a time (and vectorise
 to ``vpopcntq`` where the CPU has it); ``funnel_shift_right`` reads 64 frames that start
 anywhere in two consecutive words as one instruction (``vpshrdvq`` with AVX-512 VBMI2,
-three shifts and an or without); ``prefetch`` hides the memory latency of scoring
+three shifts and an or without); ``trailing_zeros`` finds a set bit in one instruction
+(``tzcnt``) where the succinct directory selects the i-th one; ``prefetch`` hides the memory latency of scoring
 candidates scattered over a reference map far larger than the caches.
 """
 
@@ -27,6 +29,19 @@ def popcount(typingctx, x):
     def codegen(context, builder, signature, args):
         fn = builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(64)])
         return builder.call(fn, args)
+
+    return types.int64(types.uint64), codegen
+
+
+@intrinsic
+def trailing_zeros(typingctx, x):
+    """Index of the lowest set bit of a uint64 (64 for zero), as int64."""
+    if x != types.uint64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.cttz", [_I64], fnty=ir.FunctionType(_I64, [_I64, ir.IntType(1)]))
+        return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 0)])
 
     return types.int64(types.uint64), codegen
 

@@ -1,5 +1,6 @@
-"""The numba kernels of the query engine (docs/method.md): list retrieval, nearest occupied
-address, the symmetric code distance δ, bit planes and the batched sequence matcher.
+"""The numba kernels of the query engine (docs/method.md): the symmetric code distance δ, the
+references' codes (bit planes), and the batched sequence matcher. The lists' look-ups are
+:mod:`vprscale.method.invlists`'s.
 
 Sequence distances are computed in fixed point (int64; δ_max is ``DELTA_MAX_UNITS``), so that
 sums are exact and associative: the batch kernel, any batching and the online matcher agree
@@ -12,6 +13,7 @@ import numba
 import numpy as np
 
 from vprscale.method.intrinsics import funnel_shift_right, popcount, prefetch
+from vprscale.method.succinct import get_packed
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
 N_BEST = 20  # candidates an answer keeps, best first: Recall@N for N up to 20 (docs/protocol.md)
@@ -59,49 +61,6 @@ def finish_best(best_c: np.ndarray) -> np.ndarray:
     return best_c
 
 
-@numba.njit(cache=True, nogil=True)
-def retrieve_lists(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(start, stop, lists)``: the lists of addresses ``a`` copied one after another."""
-    start = np.empty(a.shape[0], np.int64)
-    stop = np.empty(a.shape[0], np.int64)
-    total = 0
-    for i in range(a.shape[0]):
-        total += offsets[a[i] + 1] - offsets[a[i]]
-    out = np.empty(total, np.int64)
-    m = 0
-    for i in range(a.shape[0]):
-        start[i] = m
-        for q in range(offsets[a[i]], offsets[a[i] + 1]):
-            out[m] = ids[q]
-            m += 1
-        stop[i] = m
-    return start, stop, out
-
-
-@numba.njit(cache=True, nogil=True)
-def nearest_occupied(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarray) -> np.ndarray:
-    out = np.empty(h.shape[0], np.int64)
-    for i in range(h.shape[0]):
-        x = h[i]
-        p = np.int64(x >> np.uint64(shift))
-        lo, hi = first[p], first[p + 1]  # the first address ≥ x is in [lo, hi], hi meaning "a later prefix"
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            if a[mid] < x:
-                lo = mid + 1
-            else:
-                hi = mid
-        if lo < a.shape[0] and a[lo] == x:
-            out[i] = lo
-        elif lo == 0:
-            out[i] = 0
-        elif lo == a.shape[0] or x - a[lo - 1] <= a[lo] - x:  # ties go to the smaller address
-            out[i] = lo - 1
-        else:
-            out[i] = lo
-    return out
-
-
 def bit_gaps(w: np.ndarray) -> np.ndarray:
     """For K = 2: the cost of a differing bit ``b`` of two addresses (component ``d − 1 − b``'s gap)."""
     return np.ascontiguousarray(w[::-1, 0, 1])
@@ -143,21 +102,44 @@ def delta(h1: np.uint64, h2: np.uint64, w: np.ndarray, tables: np.ndarray, d: in
     return s
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def code_at(codes: np.ndarray, code_bits: int, d: int, k: int, p: np.int64) -> np.uint64:
+    """The address of reference ``p``: gathered from its bit in each of the ``d`` planes (K = 2),
+    else read from the packed codes."""
+    if k == 2:
+        row = (p >> 6) * d
+        bit = np.uint64(p & 63)
+        v = np.uint64(0)
+        for b in range(d):
+            v |= ((codes[row + b] >> bit) & np.uint64(1)) << np.uint64(b)
+        return v
+    return get_packed(codes, code_bits, p)
+
+
 @numba.njit(cache=True, nogil=True)
-def score_window(c: np.int64, t: np.int64, L: int, half: int, ref_hash: np.ndarray, q_hash: np.ndarray,
-           w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64, bound: np.int64) -> np.int64:
+def decode_codes(codes: np.ndarray, code_bits: int, d: int, k: int, a: np.int64, b: np.int64) -> np.ndarray:
+    """Addresses of references ``a … b − 1`` (uint64)."""
+    out = np.empty(max(0, b - a), np.uint64)
+    for p in range(a, b):
+        out[p - a] = code_at(codes, code_bits, d, k, p)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def score_window(c: np.int64, t: np.int64, L: int, half: int, codes: np.ndarray, code_bits: int, n_ref: int,
+                 q_hash: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64,
+                 bound: np.int64) -> np.int64:
     """Score of centre ``c`` for the window at ``t``, abandoned once it reaches ``bound``.
 
     Reference frames outside the map cost δ_max each; the in-range offsets form one
     contiguous run, scanned without a branch per frame. δ ≥ 0, so a partial sum that has
     reached ``bound`` can only end at or above it: returning early changes no decision.
     """
-    n_ref = ref_hash.shape[0]
     lo = max(0, half - c)  # first window offset whose reference frame is inside [0, n_ref)
     hi = min(L, n_ref - c + half)
     s = np.int64(lo + (L - hi)) * dmax
     for i in range(lo, hi):
-        s += delta(ref_hash[c + i - half], q_hash[t + i - half], w, tables, d, k)
+        s += delta(code_at(codes, code_bits, d, k, c + i - half), q_hash[t + i - half], w, tables, d, k)
         if s >= bound:
             return s
     return s
@@ -173,21 +155,36 @@ MAX_BUCKETS = 1 << 16
 CACHED_PLANES = 1 << 23  # bytes of bit planes that stay in cache: smaller maps keep pairs in query order
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+def plane_words(n: int, d: int) -> int:
+    """Words of the bit planes of ``n`` places: rows of ``d`` words per 64 places, two zero rows after."""
+    return (n // 64 + 2) * d
+
+
 def bit_planes(h: np.ndarray, d: int) -> np.ndarray:
     """For K = 2: bit ``b`` of the addresses of places ``64·i … 64·i + 63`` as word ``i·d + b``.
 
     Flat (rows of ``d`` words), so that the short scoring kernel slices it directly: a
     reshape on every call cost twice the arithmetic. Two zero rows pad the end so that any
-    window inside the map reads whole rows.
+    window inside the map reads whole rows. This is also how an index stores its
+    references' codes (P1, d bits per place): the engine maps the file and scores on it.
     """
-    n = h.shape[0]
-    out = np.zeros((n // 64 + 2) * d, np.uint64)
-    for blk in numba.prange((n + 63) // 64):
-        row = out[blk * d:]
-        for p in range(64 * blk, min(n, 64 * blk + 64)):
-            set_bit(row, h[p], p & 63, d)
+    out = np.zeros(plane_words(len(h), d), np.uint64)
+    planes_into(out, np.asarray(h, np.uint64), 0, d)
     return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def planes_into(out: np.ndarray, h: np.ndarray, start: np.int64, d: int) -> None:
+    """Set the plane bits of places ``start … start + len(h) − 1`` (their bits still zero), so a
+    streamed job writes the planes chunk by chunk."""
+    n = h.shape[0]
+    if n == 0:
+        return
+    first, last = start >> 6, (start + n - 1) >> 6
+    for blk in numba.prange(first, last + 1):
+        row = out[blk * d:]
+        for p in range(max(start, 64 * blk), min(start + n, 64 * blk + 64)):
+            set_bit(row, h[p - start], p & 63, d)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -384,8 +381,9 @@ def window_masks(L: int, d: int, bit_gap: np.ndarray) -> tuple[np.ndarray, np.nd
 
 @numba.njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract"})
 def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.ndarray, q_words: np.ndarray,
-                 ref_hash: np.ndarray, planes: np.ndarray, bit_gap: np.ndarray, w: np.ndarray, tables: np.ndarray,
-                 d: int, k: int, dmax: np.int64, fast: bool, n_best: int, runs: int) -> tuple[np.ndarray, np.ndarray]:
+                 codes: np.ndarray, code_bits: int, n_ref: int, planes: np.ndarray, bit_gap: np.ndarray,
+                 w: np.ndarray, tables: np.ndarray, d: int, k: int, dmax: np.int64, fast: bool, n_best: int,
+                 runs: int) -> tuple[np.ndarray, np.ndarray]:
     """``(centres, scores)``: each query's ``n_best`` best pairs, best first (ties to the smaller centre).
 
     Runs of the sorted pairs are scored in parallel, each run keeping its own best-first
@@ -395,7 +393,6 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
     """
     n = centres_t.shape[0]
     half = L // 2
-    n_ref = ref_hash.shape[0]
     masks, gaps = window_masks(L, d, bit_gap)
     m = pairs.shape[0]
     run_s = np.full(runs * n * n_best, np.int64(2**62))  # flat: (run, query, place)
@@ -411,7 +408,7 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
             if fast and c >= half and c - half + L <= n_ref:
                 s = score_planes(c - half, planes, d, q_words[qi], masks, gaps)
             else:
-                s = score_window(c, centres_t[qi], L, half, ref_hash, q_hash, w, tables, d, k, dmax,
+                s = score_window(c, centres_t[qi], L, half, codes, code_bits, n_ref, q_hash, w, tables, d, k, dmax,
                                  run_s[base + n_best - 1] + 1)
             keep_best_at(run_s, run_c, base, n_best, s, c)
     for qi in numba.prange(n):  # every run's list merged into the first run's
@@ -426,9 +423,9 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
 
 @numba.njit(cache=True, nogil=True)
 def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_planes: np.ndarray,
-                q_start: np.ndarray, q_stop: np.ndarray, q_ids: np.ndarray, ref_hash: np.ndarray,
-                planes: np.ndarray, gaps: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
-                dmax: np.int64, n_best: int = 1, threads: int = SCORE_CHUNKS // 2
+                q_start: np.ndarray, q_stop: np.ndarray, q_ids: np.ndarray, codes: np.ndarray, code_bits: int,
+                n_ref: int, planes: np.ndarray, gaps: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
+                k: int, dmax: np.int64, n_best: int = 1, threads: int = SCORE_CHUNKS // 2
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sequence match of every query centre: ``(top, scores, n_r)``, its ``n_best`` best
     candidates best first (``top[:, 0]`` is the match; −1 where there were fewer), their
@@ -450,7 +447,6 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     (:func:`score_planes`); other windows, and K > 2, frame by frame (:func:`score_window`).
     """
     n = centres_t.shape[0]
-    n_ref = ref_hash.shape[0]
     # the bit-plane score sums in float64: exact while L·δ_max < 2^53
     fast = k == 2 and planes.shape[0] > 0 and np.float64(L) * np.float64(dmax) < 2.0**53
     top = np.empty((n, n_best), np.int64)
@@ -468,8 +464,8 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
                                                   shift)
         pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
         q_words = _query_words(t, L, q_planes, d) if fast else np.zeros((t.shape[0], 0), np.uint64)
-        top[lo:hi], scores[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, ref_hash, planes, gaps, w, tables,
-                                                 d, k, dmax, fast, n_best,
+        top[lo:hi], scores[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, codes, code_bits, n_ref, planes,
+                                                 gaps, w, tables, d, k, dmax, fast, n_best,
                                                  min(SCORE_CHUNKS, max(1, 2 * threads)))
         n_r[lo:hi] = block_n_r
         lo = hi
@@ -482,24 +478,6 @@ def address_delta(h1: np.ndarray, h2: np.ndarray, w: np.ndarray, tables: np.ndar
     out = np.empty(h1.shape[0], np.int64)
     for i in range(h1.shape[0]):
         out[i] = delta(h1[i], h2[i], w, tables, d, k)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def list_top(slot: np.ndarray, offsets: np.ndarray, ids: np.ndarray, best: np.ndarray, n_best: int) -> np.ndarray:
-    """L = 1's best-first candidates of frames that took occupied addresses ``slot``: the
-    address's single best, then the rest of its list by id (−1 where the list is shorter)."""
-    out = np.full((slot.shape[0], n_best), -1, np.int64)
-    for i in range(slot.shape[0]):
-        a = slot[i]
-        out[i, 0] = best[a]
-        j = 1
-        for q in range(offsets[a], offsets[a + 1]):
-            if j >= n_best:
-                break
-            if ids[q] != best[a]:
-                out[i, j] = ids[q]
-                j += 1
     return out
 
 
@@ -522,17 +500,3 @@ def window_proposals(positions: np.ndarray, L: int, aligned: bool, lists: tuple,
     cand, first, n_r, _ = propose(positions, L, aligned, start, stop, flat, n_ref,
                                   count_proposals(positions, L, start, stop), 62)
     return cand, first, n_r
-
-
-@numba.njit(cache=True, nogil=True)
-def in_list_distance(addr: np.ndarray, gt: np.ndarray, offsets: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """For single frames: the smallest ``|id − gt|`` over the address's whole list."""
-    out = np.empty(addr.shape[0], np.int64)
-    for i in range(addr.shape[0]):
-        best = np.int64(2**62)
-        for p in range(offsets[addr[i]], offsets[addr[i] + 1]):
-            dist = abs(ids[p] - gt[i])
-            if dist < best:
-                best = dist
-        out[i] = best
-    return out

@@ -18,14 +18,15 @@ import numba
 import numpy as np
 
 from vprscale.method.index import Index
+from vprscale.method.invlists import list_span, nearest_slots
 from vprscale.method.kernels import (
-    nearest_occupied,
     score_planes,
     score_window,
     set_bit,
     window_candidates,
     window_masks,
 )
+from vprscale.method.succinct import get_packed
 from vprscale.protocol import check_window
 
 
@@ -47,10 +48,8 @@ class OnlineMatcher:
         check_window(L, mode)
         self.index, self.L, self.mode = index, int(L), mode
         self.n_r: int | None = None
-        ref_hash, planes, bit_gap, w, tables, d, k, dmax = index.kernel_args()
-        first, shift = index.prefix_table
-        longest = int(np.max(np.diff(np.asarray(index.offsets, np.int64)))) if len(index.offsets) > 1 else 1
-        capacity = 2 * self.L * max(1, longest)
+        codes, code_bits, n_ref, planes, bit_gap, w, tables, d, k, dmax = index.kernel_args()
+        capacity = 2 * self.L * max(1, index.lists.longest)
         masks, gaps = window_masks(self.L, d, bit_gap)
         self._state = np.zeros(4, np.int64)  # frames seen, buffer start, buffer end, ring slot of the oldest
         self._ring_h = np.zeros(self.L, np.uint64)
@@ -61,8 +60,9 @@ class OnlineMatcher:
         while slots < 2 * capacity:
             slots *= 2
         self._slots = np.empty(slots, np.int64)
-        self._args = (np.asarray(index.addresses), first, shift, np.asarray(index.offsets), index.ids, ref_hash, planes,
-                      gaps, masks, w, tables, d, k, dmax)
+        lists = index.lists
+        self._args = (lists.occupied_args(), lists.starts_args(), lists.ids, lists.id_bits, codes, code_bits, n_ref,
+                      planes, gaps, masks, w, tables, d, k, dmax)
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
 
     def push(self, descriptor: np.ndarray) -> int | None:
@@ -73,9 +73,10 @@ class OnlineMatcher:
     def push_address(self, h: int) -> int | None:
         """Add one query frame given its own address (already hashed)."""
         if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
-            a = int(self.index.nearest_occupied(np.array([h], np.uint64))[0])
-            self.n_r = int(self.index.offsets[a + 1] - self.index.offsets[a])
-            return int(self.index.best[a])
+            a = self.index.nearest_occupied(np.array([h], np.uint64))
+            start, stop = self.index.lists.spans(a)
+            self.n_r = int(stop[0] - start[0])
+            return int(self.index.lists.best(a)[0])
         match, n_r = _step(np.uint64(h), self._state, self._ring_h, self._ring_n, self._buf, self._scratch,
                            self._slots, self.L, self.mode == "aligned", self._fast, *self._args)
         if match < 0:
@@ -91,25 +92,26 @@ class OnlineMatcher:
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
-          cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, addresses: np.ndarray,
-          first: np.ndarray, shift: int, offsets: np.ndarray, ids: np.ndarray, ref_hash: np.ndarray,
+          cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, occ: tuple, starts: tuple,
+          ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int,
           planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
           k: int, dmax: np.int64) -> tuple[np.int64, np.int64]:
     """One frame: its list into the window, then the window's match (−1 until L frames)."""
     one = np.empty(1, np.uint64)
     one[0] = h
-    a = nearest_occupied(addresses, first, shift, one)[0]
+    a = nearest_slots(occ, one)[0]
     slot = st[3]
     if st[0] >= L:  # the oldest frame leaves the window
         st[1] += ring_n[slot]
-    n = offsets[a + 1] - offsets[a]
+    first, last = list_span(starts, a)
+    n = last - first
     if st[2] + n > buf.shape[0]:  # slide the window's lists back to the start of the buffer
         live = st[2] - st[1]
         for i in range(live):
             buf[i] = buf[st[1] + i]
         st[1], st[2] = 0, live
     for q in range(n):
-        buf[st[2] + q] = ids[offsets[a] + q]
+        buf[st[2] + q] = np.int64(get_packed(ids, id_bits, first + q))
     ring_h[slot], ring_n[slot] = h, n
     st[2] += n
     st[3] = (slot + 1) % L
@@ -136,7 +138,6 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
     while (1 << bits) < 2 * total:
         bits += 1
     q_words = q_planes[: masks.shape[0]]  # the window starts at frame 0: its words are the plane rows as they are
-    n_ref = ref_hash.shape[0]
     n_r = window_candidates(np.int64(half), L, half, aligned, q_start, q_stop, buf, n_ref, cand, slots[: 1 << bits],
                             bits)
     best, best_s = np.int64(-1), np.int64(2**62)
@@ -145,7 +146,8 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
         if fast and c >= half and c - half + L <= n_ref:
             s = score_planes(c - half, planes, d, q_words, masks, gaps)
         else:
-            s = score_window(c, np.int64(half), L, half, ref_hash, q_hash, w, tables, d, k, dmax, best_s + 1)
+            s = score_window(c, np.int64(half), L, half, codes, code_bits, n_ref, q_hash, w, tables, d, k, dmax,
+                             best_s + 1)
         if s < best_s or (s == best_s and c < best):
             best_s, best = s, c
     return best, np.int64(n_r)

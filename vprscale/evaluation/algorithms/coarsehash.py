@@ -9,7 +9,8 @@ import numpy as np
 from vprscale.evaluation.accounting import method_ops
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes
 from vprscale.method.index import Index, QueryFrames
-from vprscale.method.kernels import N_BEST, in_list_distance
+from vprscale.method.invlists import in_list_distance
+from vprscale.method.kernels import N_BEST
 
 
 class CoarseHash(Algorithm):
@@ -23,11 +24,10 @@ class CoarseHash(Algorithm):
         self.bytes_per_place = self._bytes_per_place()
 
     def _bytes_per_place(self) -> float:
-        """The map's code (⌈d·log2 K⌉ bits, the bit planes the windows are scored on) plus the
-        inverted lists (ids, and per occupied address its address, offset and single best)."""
+        """What the engine holds per place: the codes (⌈d·log2 K⌉ bits, the bit planes the
+        windows are scored on) and the inverted lists (packed ids, Elias–Fano directory)."""
         idx = self.index
-        lists = sum(np.asarray(a).dtype.itemsize * len(a) for a in (idx.ids, idx.addresses, idx.offsets, idx.best))
-        return float(np.ceil(idx.d * np.log2(idx.k)) / 8 + lists / max(1, idx.n_ref))
+        return float((idx.codes.nbytes + sum(idx.lists.nbytes().values())) / max(1, idx.n_ref))
 
     def columns(self) -> dict[str, Any]:
         return {"d": self.index.d, "K": self.index.k, "params": None}
@@ -48,12 +48,13 @@ class CoarseHash(Algorithm):
     def _ops(self, state: QueryFrames, pos: np.ndarray, L: int, n_r: np.ndarray) -> float:
         """Counted operations per query, with the share of frames whose own address was unoccupied."""
         a = state.slot[pos]
-        fallback = float(np.mean(self.index.addresses[a] != state.hashes[pos])) if len(pos) else 0.0
+        fallback = float(np.mean(self.index.lists.addresses(a) != state.hashes[pos])) if len(pos) else 0.0
         return method_ops(self.dim, self.index.d, self.index.k, L, float(np.mean(n_r)) if len(n_r) else 0.0,
-                          len(self.index.addresses), fallback)["total"]
+                          self.index.occupied, fallback)["total"]
 
     def in_list(self, state: QueryFrames, pos: np.ndarray, truth: np.ndarray) -> np.ndarray:
-        return in_list_distance(state.slot[pos], truth, self.index.offsets, self.index.ids)
+        lists = self.index.lists
+        return in_list_distance(state.slot[pos], truth, lists.starts_args(), lists.ids, lists.id_bits)
 
 
 def create(context: Any) -> list[Algorithm]:

@@ -1,0 +1,183 @@
+"""``vprscale bench format``: the succinct index (format 3) against plain arrays (format 2's
+layout) on the same index, per query per core, in one process.
+
+Format 2 held the lists as plain words in memory: ids (uint32), sorted occupied addresses
+with a prefix table for the search, offsets and single bests. :class:`PlainLists` rebuilds
+exactly that from a format-3 index (decoded once, outside the timing), with format 2's
+look-up kernels, so the two are timed side by side on the same frames, interleaved repeat
+by repeat, and their matches checked equal. The window scores read the same bit planes in
+both (the codes were already d bits a place, built in memory, in format 2).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from vprscale.method.index import Index, QueryFrames
+from vprscale.method.kernels import bit_planes, match_batch
+
+PREFIX_BITS = (16, 24)  # format 2's prefix table: about one entry per occupied address, 2^16 to 2^24
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_plain(a: np.ndarray, first: np.ndarray, shift: int, h: np.ndarray) -> np.ndarray:
+    """Format 2's search: the prefix table's range, then a binary search (ties to the smaller)."""
+    out = np.empty(h.shape[0], np.int64)
+    for i in range(h.shape[0]):
+        x = h[i]
+        lo, hi = first[np.int64(x >> np.uint64(shift))], first[np.int64(x >> np.uint64(shift)) + 1]
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if a[mid] < x:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo < a.shape[0] and a[lo] == x:
+            out[i] = lo
+        elif lo == 0:
+            out[i] = 0
+        elif lo == a.shape[0] or x - a[lo - 1] <= a[lo] - x:
+            out[i] = lo - 1
+        else:
+            out[i] = lo
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _retrieve_plain(offsets: np.ndarray, ids: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Format 2's list retrieval: each frame's list copied, one after another."""
+    start = np.empty(a.shape[0], np.int64)
+    stop = np.empty(a.shape[0], np.int64)
+    total = 0
+    for i in range(a.shape[0]):
+        total += offsets[a[i] + 1] - offsets[a[i]]
+    out = np.empty(total, np.int64)
+    m = 0
+    for i in range(a.shape[0]):
+        start[i] = m
+        for q in range(offsets[a[i]], offsets[a[i] + 1]):
+            out[m] = ids[q]
+            m += 1
+        stop[i] = m
+    return start, stop, out
+
+
+@numba.njit(cache=True, nogil=True)
+def _top_plain(slot: np.ndarray, offsets: np.ndarray, ids: np.ndarray, best: np.ndarray, n_best: int) -> np.ndarray:
+    """Format 2's L = 1 answer: the single best from its array, then the list by id."""
+    out = np.full((slot.shape[0], n_best), -1, np.int64)
+    for i in range(slot.shape[0]):
+        a = slot[i]
+        out[i, 0] = best[a]
+        j = 1
+        for q in range(offsets[a], offsets[a + 1]):
+            if j >= n_best:
+                break
+            if ids[q] != best[a]:
+                out[i, j] = ids[q]
+                j += 1
+    return out
+
+
+@dataclass
+class PlainLists:
+    """Format 2's lists, in memory: what the plain side of the benchmark reads."""
+
+    addresses: np.ndarray
+    offsets: np.ndarray
+    ids: np.ndarray
+    best: np.ndarray
+    first: np.ndarray
+    shift: int
+
+    @classmethod
+    def of(cls, idx: Index) -> PlainLists:
+        bits = int(np.ceil(idx.d * np.log2(idx.k)))
+        addr_t = np.uint16 if bits <= 16 else np.uint32 if bits <= 32 else np.uint64
+        addresses = idx.lists.occupied.decode().astype(addr_t)
+        offsets = idx.lists.starts.decode().astype(np.uint32 if idx.n_ref < 2**32 else np.uint64)
+        order = idx.lists.ids_range(0, idx.n_ref)
+        best = order[offsets[:-1].astype(np.int64)]
+        for a in range(len(addresses)):  # format 2 kept ids ascending inside a list, the best apart
+            order[offsets[a] : offsets[a + 1]].sort()
+        wanted = int(np.ceil(np.log2(max(2, len(addresses)))))
+        shift = max(0, bits - min(PREFIX_BITS[1], max(PREFIX_BITS[0], wanted)))
+        counts = np.zeros((1 << (bits - shift)) + 1, np.int64)
+        counts[1:] = np.bincount((addresses.astype(np.uint64) >> np.uint64(shift)).astype(np.int64),
+                                 minlength=len(counts) - 1)
+        id_t = offsets.dtype
+        return cls(addresses, offsets, order.astype(id_t), best.astype(id_t), np.cumsum(counts), shift)
+
+    def query_frames(self, idx: Index, h: np.ndarray) -> QueryFrames:
+        a = _nearest_plain(self.addresses, self.first, self.shift, h)
+        start, stop, ids = _retrieve_plain(self.offsets, self.ids, a)
+        return QueryFrames(np.arange(len(h)), h, a, start, stop, ids, bit_planes(h, idx.d))
+
+
+def _cpu(fn: Callable[[], object]) -> float:
+    t0 = time.thread_time()
+    fn()
+    return time.thread_time() - t0
+
+
+def bench_format(store: str, index: str, Ls: tuple[int, ...] = (1, 100), frames: int = 4096,
+                 repeats: int = 5) -> str:
+    """Per-frame work and per-query cost of both layouts (µs, one thread, medians of ``repeats``
+    with their range), the ratio succinct / plain, and the bytes per place of each."""
+    import zarr
+
+    idx = Index.load(index).warm()
+    q = zarr.open_group(store, mode="r")["query_qm1"]
+    start = max(0, q.shape[0] // 2 - frames // 2)
+    h, _ = idx.hash_frames(q[start : start + frames])
+    plain = PlainLists.of(idx)
+    plain_bytes = sum(a.nbytes for a in (plain.addresses, plain.offsets, plain.ids, plain.best)) + idx.codes.nbytes
+    new_bytes = idx.codes.nbytes + sum(idx.lists.nbytes().values())
+    sides: dict[str, Callable[[np.ndarray], QueryFrames]] = {
+        "succinct": lambda x: idx.query_frames(x), "plain": lambda x: plain.query_frames(idx, x)}
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        lines = [f"index format, {idx.n_ref:,} places, {frames:,} query frames, one thread, median of {repeats} "
+                 f"(range); bytes per place (codes + lists in memory): succinct {new_bytes / idx.n_ref:.2f}, "
+                 f"plain {plain_bytes / idx.n_ref:.2f}"]
+        qf = {name: make(h) for name, make in sides.items()}
+        per_frame: dict[str, list[float]] = {name: [] for name in sides}
+        for _ in range(repeats):
+            for name, make in sides.items():
+                per_frame[name].append(_cpu(lambda make=make: make(h)) / frames * 1e6)
+        lines.append(_line("per-frame work (look-up, list, planes)", per_frame))
+        for L in Ls:
+            pos = np.arange(L // 2, frames - L + L // 2 + 1, max(1, (frames - L) // 1024))
+            for mode in ("paper",) if L == 1 else ("paper", "aligned"):
+                run = {"succinct": lambda L=L, mode=mode, pos=pos: idx.answer(qf["succinct"], pos, L, mode, 1),
+                       "plain": lambda L=L, mode=mode, pos=pos: _answer_plain(idx, plain, qf["plain"], pos, L, mode)}
+                a, b = (np.asarray(run[s]()[0]) for s in ("succinct", "plain"))
+                if not np.array_equal(a[:, 0], b[:, 0]):
+                    raise SystemExit(f"bench format: L = {L} {mode}: the two layouts' matches differ")
+                per_query: dict[str, list[float]] = {name: [] for name in sides}
+                for r in range(repeats):
+                    for name in sides:
+                        per_query[name].append(_cpu(run[name]) / len(pos) * 1e6 + per_frame[name][r])
+                lines.append(_line(f"L = {L} {mode}: per query, per-frame work included", per_query))
+    finally:
+        numba.set_num_threads(before)
+    return "\n".join(lines)
+
+
+def _answer_plain(idx: Index, plain: PlainLists, qf: QueryFrames, pos: np.ndarray, L: int,
+                  mode: str) -> tuple[np.ndarray, ...]:
+    if L == 1:
+        return (_top_plain(qf.slot[pos], plain.offsets, plain.ids, plain.best, 1),)
+    return match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *idx.kernel_args(), 1, 1)
+
+
+def _line(what: str, times: dict[str, list[float]]) -> str:
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    spans = ", ".join(f"{k} {med[k]:.2f} ({min(v):.2f}–{max(v):.2f}) µs" for k, v in times.items())
+    return f"  {what}: {spans}; succinct / plain = {med['succinct'] / med['plain']:.2f}×"

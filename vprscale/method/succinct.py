@@ -1,0 +1,373 @@
+"""Succinct arrays of the index (docs/method.md, "Storage"): integers bit-packed at their
+width, and ascending sequences as Elias–Fano.
+
+At a billion places every byte per place is a gigabyte, so the index stores what the query
+engine reads at close to its information content: a place's id in ⌈log2 N⌉ bits, not 32,
+and the directory of occupied addresses and list starts in about 2 + log2(u/n) bits per
+entry, not 32 or 64.
+
+*Packed*: value ``i`` of a ``bits``-wide array occupies bits ``[i·bits, (i + 1)·bits)`` of
+little-endian uint64 words; a zero word pads the end, so that a read may always load two
+words.
+
+*Elias–Fano* (Elias 1974, Fano 1971; Vigna, "Quasi-succinct indices", 2013): ``n``
+ascending values below ``u`` are split into their ``lb = ⌊log2(u/n)⌋`` low bits, stored
+packed, and their high part, stored in unary in a bit vector: value ``i`` sets bit
+``(v_i >> lb) + i``. Value ``i`` is then found from the position of the ``i``-th one
+(select1); the values whose high part is ``h`` lie between the ``(h − 1)``-th and the
+``h``-th zero (select0). Every ``SAMPLE``-th one and zero has its position kept, so a
+select reads one sample and, on average, a couple of words. One uint64 array holds a
+sequence whole (:meth:`EliasFano.words`), which is how the index files store it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from vprscale.method.intrinsics import popcount, trailing_zeros
+
+SAMPLE_BITS = 8
+SAMPLE = 1 << SAMPLE_BITS  # every 256th one (and zero) keeps its position: 0.25 bit per value
+ALL = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+def packed_words(n: int, bits: int) -> int:
+    """Words that hold ``n`` values of ``bits`` bits, with the padding word."""
+    return (n * bits + 63) // 64 + 1
+
+
+def width(top: int) -> int:
+    """Bits that hold every value up to ``top`` (at least 1)."""
+    return max(1, int(top).bit_length())
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def get_packed(words: np.ndarray, bits: int, i: np.int64) -> np.uint64:
+    """Value ``i`` of a packed array."""
+    pos = np.uint64(i) * np.uint64(bits)
+    w = np.int64(pos >> np.uint64(6))
+    o = pos & np.uint64(63)
+    v = words[w] >> o
+    if o + np.uint64(bits) > np.uint64(64):
+        v |= words[w + 1] << (np.uint64(64) - o)
+    if bits < 64:
+        v &= (np.uint64(1) << np.uint64(bits)) - np.uint64(1)
+    return v
+
+
+@numba.njit(cache=True, nogil=True)
+def pack_into(words: np.ndarray, bits: int, start: np.int64, values: np.ndarray) -> None:
+    """Write ``values`` as entries ``start …`` of a packed array whose words there are still zero."""
+    for j in range(values.shape[0]):
+        v = np.uint64(values[j])
+        pos = np.uint64(start + j) * np.uint64(bits)
+        w = np.int64(pos >> np.uint64(6))
+        o = pos & np.uint64(63)
+        words[w] |= v << o
+        if o + np.uint64(bits) > np.uint64(64):
+            words[w + 1] |= v >> (np.uint64(64) - o)
+
+
+@numba.njit(cache=True, nogil=True)
+def unpack(words: np.ndarray, bits: int, a: np.int64, b: np.int64) -> np.ndarray:
+    """Values ``a … b − 1`` of a packed array, as int64."""
+    out = np.empty(max(0, b - a), np.int64)
+    for j in range(out.shape[0]):
+        out[j] = np.int64(get_packed(words, bits, a + j))
+    return out
+
+
+def pack(values: np.ndarray, bits: int) -> np.ndarray:
+    """A packed array of ``values`` (non-negative, below ``2**bits``)."""
+    words = np.zeros(packed_words(len(values), bits), np.uint64)
+    pack_into(words, bits, 0, np.asarray(values, np.uint64))
+    return words
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _select_in_word(x: np.uint64, r: np.int64) -> np.int64:
+    """Position of the ``r``-th (from 0) set bit of ``x``, which has more than ``r``."""
+    shift = np.int64(0)
+    while True:
+        c = popcount(x & np.uint64(255))
+        if r < c:
+            break
+        r -= c
+        x >>= np.uint64(8)
+        shift += 8
+    for _ in range(r):
+        x &= x - np.uint64(1)
+    return shift + trailing_zeros(x)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def select(high: np.ndarray, samples: np.ndarray, i: np.int64, ones: bool) -> np.int64:
+    """Position of the ``i``-th one (``ones``) or zero of the bit vector ``high``."""
+    s = i >> SAMPLE_BITS
+    p = samples[s]
+    r = i - (s << SAMPLE_BITS)
+    w = p >> 6
+    x = high[w] if ones else ~high[w]
+    x &= ALL << np.uint64(p & 63)
+    while True:
+        c = popcount(x)
+        if r < c:
+            break
+        r -= c
+        w += 1
+        x = high[w] if ones else ~high[w]
+    return w * 64 + _select_in_word(x, r)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bit(high: np.ndarray, p: np.int64) -> bool:
+    return (high[p >> 6] >> np.uint64(p & 63)) & np.uint64(1) != np.uint64(0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ef_get(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, i: np.int64) -> np.int64:
+    """Value ``i`` of an Elias–Fano sequence."""
+    p = select(high, ones, i, True)
+    v = np.uint64(p - i) << np.uint64(lb)
+    if lb:
+        v |= get_packed(low, lb, i)
+    return np.int64(v)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ef_pair(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, i: np.int64) -> tuple[np.int64, np.int64]:
+    """Values ``i`` and ``i + 1`` (a list's start and stop): one select, then the next one bit."""
+    p = select(high, ones, i, True)
+    w = p >> 6
+    x = high[w] & (ALL << np.uint64(p & 63)) & ~(np.uint64(1) << np.uint64(p & 63))
+    while x == np.uint64(0):
+        w += 1
+        x = high[w]
+    q = w * 64 + trailing_zeros(x)
+    a = np.uint64(p - i) << np.uint64(lb)
+    b = np.uint64(q - i - 1) << np.uint64(lb)
+    if lb:
+        a |= get_packed(low, lb, i)
+        b |= get_packed(low, lb, i + 1)
+    return np.int64(a), np.int64(b)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ef_lower_bound(high: np.ndarray, low: np.ndarray, lb: int, zeros: np.ndarray, n: np.int64,
+                   buckets: np.int64, x: np.uint64) -> np.int64:
+    """Index of the first value ≥ ``x`` (``n`` if none); ``buckets`` is the number of zeros."""
+    hx = np.int64(x >> np.uint64(lb))
+    if hx >= buckets:
+        return n
+    p = np.int64(0) if hx == 0 else select(high, zeros, hx - 1, False) + 1
+    i = p - hx
+    while _bit(high, p):  # the values whose high part is hx, ascending
+        v = np.uint64(hx) << np.uint64(lb)
+        if lb:
+            v |= get_packed(low, lb, i)
+        if v >= x:
+            return i
+        i += 1
+        p += 1
+    return i
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _value(low: np.ndarray, lb: int, i: np.int64, high_part: np.int64) -> np.uint64:
+    v = np.uint64(high_part) << np.uint64(lb)
+    if lb:
+        v |= get_packed(low, lb, i)
+    return v
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zeros: np.ndarray, n: np.int64,
+               buckets: np.int64, x: np.uint64) -> np.int64:
+    """Index of the value equal to ``x``, else of the numerically nearest (ties: the smaller).
+
+    One select0 finds the run of values sharing ``x``'s high part; the scan along it, and on
+    to the next one bit, finds the neighbours without selecting them again (a select1 is
+    needed only for a predecessor in an earlier run).
+    """
+    hx = np.int64(x >> np.uint64(lb))
+    if hx >= buckets:
+        return n - 1
+    p = np.int64(0) if hx == 0 else select(high, zeros, hx - 1, False) + 1
+    i = p - hx
+    below, has_below = np.uint64(0), False
+    while _bit(high, p):  # the run of values whose high part is hx
+        v = _value(low, lb, i, hx)
+        if v >= x:
+            break
+        below, has_below = v, True
+        i += 1
+        p += 1
+    if i == n:
+        return n - 1
+    w = p >> 6  # the value at i: at or after p
+    word = high[w] & (ALL << np.uint64(p & 63))
+    while word == np.uint64(0):
+        w += 1
+        word = high[w]
+    q = w * 64 + trailing_zeros(word)
+    above = _value(low, lb, i, q - i)
+    if above == x or i == 0:
+        return i
+    if not has_below:
+        below = np.uint64(ef_get(high, low, lb, ones, i - 1))
+    return i - 1 if x - below <= above - x else i
+
+
+@numba.njit(cache=True, nogil=True)
+def _build_high(values: np.ndarray, lb: int, high: np.ndarray, low: np.ndarray) -> None:
+    prev = np.uint64(0)
+    for i in range(values.shape[0]):
+        v = np.uint64(values[i])
+        if v < prev:
+            raise ValueError("Elias-Fano values must ascend")
+        prev = v
+        p = np.int64(v >> np.uint64(lb)) + i
+        high[p >> 6] |= np.uint64(1) << np.uint64(p & 63)
+    if lb:
+        mask = (np.uint64(1) << np.uint64(lb)) - np.uint64(1)
+        for i in range(values.shape[0]):
+            v = np.uint64(values[i]) & mask
+            pos = np.uint64(i) * np.uint64(lb)
+            w = np.int64(pos >> np.uint64(6))
+            o = pos & np.uint64(63)
+            low[w] |= v << o
+            if o + np.uint64(lb) > np.uint64(64):
+                low[w + 1] |= v >> (np.uint64(64) - o)
+
+
+@numba.njit(cache=True, nogil=True)
+def _samples(high: np.ndarray, nbits: np.int64, ones: bool, count: np.int64) -> np.ndarray:
+    """Positions of every ``SAMPLE``-th one (or zero) of the first ``nbits`` bits of ``high``."""
+    out = np.zeros((count + SAMPLE - 1) // SAMPLE + 1, np.int64)
+    k, seen = 0, np.int64(0)
+    for w in range((nbits + 63) // 64):
+        x = high[w] if ones else ~high[w]
+        if (w + 1) * 64 > nbits:
+            x &= (np.uint64(1) << np.uint64(nbits - w * 64)) - np.uint64(1)
+        c = popcount(x)
+        while k * SAMPLE < seen + c:
+            out[k] = w * 64 + _select_in_word(x, k * SAMPLE - seen)
+            k += 1
+        seen += c
+    return out
+
+
+@dataclass
+class EliasFano:
+    """An ascending sequence of ``n`` integers below ``2**63``, in Elias–Fano form (see the module)."""
+
+    high: np.ndarray  # the unary high parts, n + buckets bits
+    low: np.ndarray  # the low lb bits, packed
+    ones: np.ndarray  # position of every SAMPLE-th one
+    zeros: np.ndarray  # position of every SAMPLE-th zero
+    n: int
+    lb: int
+    buckets: int  # zeros of ``high``: the high parts 0 … buckets − 1
+
+    @classmethod
+    def build(cls, values: np.ndarray) -> EliasFano:
+        """The sequence of ``values`` (ascending; a memory-mapped array is read once, in order)."""
+        n = len(values)
+        top = int(values[-1]) if n else 0
+        lb = max(0, int(np.floor(np.log2((top + 1) / n)))) if n else 0
+        buckets = (top >> lb) + 1
+        nbits = n + buckets
+        high = np.zeros((nbits + 63) // 64 + 1, np.uint64)
+        low = np.zeros(packed_words(n, lb) if lb else 1, np.uint64)
+        _build_high(values, lb, high, low)
+        return cls(high, low, _samples(high, nbits, True, n), _samples(high, nbits, False, buckets), n, lb, buckets)
+
+    def words(self) -> np.ndarray:
+        """The sequence as one uint64 array (with :meth:`layout`, what :meth:`from_words` reads)."""
+        return np.concatenate([self.high, self.low, self.ones.view(np.uint64), self.zeros.view(np.uint64)])
+
+    def layout(self) -> dict[str, int]:
+        return {"n": self.n, "lb": self.lb, "buckets": self.buckets, "sample_bits": SAMPLE_BITS,
+                "high": len(self.high), "low": len(self.low),
+                "ones": len(self.ones), "zeros": len(self.zeros)}
+
+    @classmethod
+    def from_words(cls, words: np.ndarray, layout: dict[str, int]) -> EliasFano:
+        """The sequence over ``words`` (views: a memory-mapped file stays mapped)."""
+        if layout.get("sample_bits") != SAMPLE_BITS:
+            raise ValueError(f"select samples every 2^{layout.get('sample_bits')} bits, this vprscale reads "
+                             f"2^{SAMPLE_BITS}")
+        cuts = np.cumsum([0] + [int(layout[k]) for k in ("high", "low", "ones", "zeros")])
+        if cuts[-1] != len(words):
+            raise ValueError(f"{len(words)} words, the layout describes {cuts[-1]}")
+        high, low, ones, zeros = (words[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True))
+        return cls(high, low, ones.view(np.int64), zeros.view(np.int64), int(layout["n"]), int(layout["lb"]),
+                   int(layout["buckets"]))
+
+    def in_memory(self) -> EliasFano:
+        """A copy held in memory (a memory-mapped sequence read whole, in order)."""
+        return EliasFano(*(np.array(a) for a in (self.high, self.low, self.ones, self.zeros)), self.n, self.lb,
+                         self.buckets)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.high, self.low, self.ones, self.zeros))
+
+    def __len__(self) -> int:
+        return self.n
+
+    def get(self, i: np.ndarray | int) -> np.ndarray:
+        """Values at indexes ``i`` (int64)."""
+        return ef_take(self.high, self.low, self.lb, self.ones, np.atleast_1d(np.asarray(i, np.int64)))
+
+    def decode(self, a: int = 0, b: int | None = None) -> np.ndarray:
+        """Values ``a … b − 1`` (default: all), decoded in one pass."""
+        b = self.n if b is None else min(b, self.n)
+        return ef_range(self.high, self.low, self.lb, self.ones, np.int64(a), np.int64(max(a, b)))
+
+    def lower_bound(self, x: np.ndarray) -> np.ndarray:
+        """Index of the first value ≥ each ``x`` (``n`` where none is)."""
+        return ef_lower_bounds(self.high, self.low, self.lb, self.zeros, self.n, self.buckets,
+                               np.asarray(x, np.uint64))
+
+
+@numba.njit(cache=True, nogil=True)
+def ef_take(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    out = np.empty(idx.shape[0], np.int64)
+    for j in range(idx.shape[0]):
+        out[j] = ef_get(high, low, lb, ones, idx[j])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def ef_range(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, a: np.int64, b: np.int64) -> np.ndarray:
+    """Values ``a … b − 1``: one select, then the following one bits in order."""
+    out = np.empty(b - a, np.int64)
+    if b <= a:
+        return out
+    p = select(high, ones, a, True)
+    w = p >> 6
+    x = high[w] & (ALL << np.uint64(p & 63))
+    for i in range(a, b):
+        while x == np.uint64(0):
+            w += 1
+            x = high[w]
+        q = w * 64 + trailing_zeros(x)
+        x &= x - np.uint64(1)
+        v = np.uint64(q - i) << np.uint64(lb)
+        if lb:
+            v |= get_packed(low, lb, i)
+        out[i - a] = np.int64(v)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def ef_lower_bounds(high: np.ndarray, low: np.ndarray, lb: int, zeros: np.ndarray, n: np.int64, buckets: np.int64,
+                    x: np.ndarray) -> np.ndarray:
+    out = np.empty(x.shape[0], np.int64)
+    for j in range(x.shape[0]):
+        out[j] = ef_lower_bound(high, low, lb, zeros, n, buckets, x[j])
+    return out
