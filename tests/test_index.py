@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -171,3 +172,62 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
     idx = Index.from_addresses(h, hasher, err)
     write_arrays(memory, hasher, idx.ref_addresses(), idx.lists, {})
     assert {f: (memory / f).read_bytes() for f in files} == got[5000]
+
+
+def _as_format_2(src, dst):
+    """The directory format 2 wrote for the lists of ``src`` (plain arrays, ids ascending in a
+    list, single bests apart, no manifest): what an index of an older vprscale looks like."""
+    import shutil
+
+    from vprscale.method.index import read_index
+    from vprscale.method.lists import address_dtype
+
+    idx = read_index(src)
+    dst.mkdir()
+    addr_t = address_dtype(idx.d, idx.k)
+    offsets = idx.lists.starts.decode()
+    ids = idx.lists.ids_range(0, idx.n_ref)
+    best = ids[offsets[:-1]]
+    for a in range(idx.occupied):
+        ids[offsets[a]:offsets[a + 1]].sort()
+    for name, arr, t in (("ref_hash", idx.ref_addresses(), addr_t), ("ids", ids, np.uint32),
+                         ("addresses", idx.lists.occupied.decode(), addr_t), ("offsets", offsets, np.uint32),
+                         ("best", best, np.uint32)):
+        np.save(dst / f"{name}.npy", np.asarray(arr, t))
+    shutil.copytree(src / "model", dst / "model")
+    shutil.copy(src / "components.parquet", dst)
+    meta = json.loads((src / "index.json").read_text())
+    meta["format"] = 2
+    del meta["layout"]
+    (dst / "index.json").write_text(json.dumps(meta))
+    (dst / "eval").mkdir()
+    (dst / "eval" / "eval.json").write_text('{"mine": 1}')
+
+
+def test_an_old_index_is_refused_then_upgraded_without_refitting(tiny_index, tiny_store, tmp_path, capsys):
+    old = tmp_path / "old.index"
+    _as_format_2(tiny_index, old)
+    assert main(["localise", str(old), str(tiny_store / "query_qm1"), "--out", str(tmp_path / "m.parquet")]) == 2
+    assert f"vprscale index --upgrade {old}" in capsys.readouterr().err
+    assert main(["index", "--upgrade", str(old)]) == 0
+    out = capsys.readouterr().out
+    assert "converted from format 2" in out and "the index is" in out and "× the floor" in out
+    for name in ("codes.npy", "ids.npy", "occupied.npy", "starts.npy", "buckets.parquet"):
+        assert (old / name).read_bytes() == (tiny_index / name).read_bytes(), name  # what a fresh index writes
+    assert not (old / "best.npy").exists() and (old / "eval" / "eval.json").read_text() == '{"mine": 1}'
+    assert main(["verify", str(old)]) == 0
+    assert main(["index", "--upgrade", str(old)]) == 0
+    assert "format 3 already" in capsys.readouterr().out
+    assert main(["index", "--upgrade", str(tmp_path / "nowhere")]) == 2
+    assert "no index.json" in capsys.readouterr().err
+
+
+def test_bench_format_times_both_layouts_on_the_same_matches(tiny_store, tiny_index, capsys):
+    """``bench format`` rebuilds format 2's plain arrays from the index, checks both layouts
+    give the same matches, and prints each one's cost and the ratio (no time is asserted)."""
+    assert main(["bench", "format", str(tiny_store), "--index", str(tiny_index), "--L", "20"]) == 0
+    out = capsys.readouterr().out
+    for what in ("per-frame work", "L = 1 paper", "L = 20 paper", "L = 20 aligned"):
+        assert re.search(rf"{what}.*succinct [\d.]+ .*plain [\d.]+ .*succinct / plain = [\d.]+×", out), what
+    plain, succinct = (float(x) for x in re.search(r"succinct ([\d.]+), plain ([\d.]+)", out).groups()[::-1])
+    assert succinct < plain  # bytes per place in memory

@@ -24,6 +24,7 @@ from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
+from vprscale.evaluation.storage import floor_bits  # noqa: E402
 
 PAPER = {"nr_L50": {"20K": 74, "1M": 57, "10M": 32}, "storage_mb": {"20K": 0.2, "1M": 8.4, "10M": 80.4},
          "ops_10M": 37_400, "baseline_ratio": 1300, "fas20K": (1, 98, 267)}
@@ -188,6 +189,11 @@ def fig_storage(indexes, out, figures) -> None:
         tables = [(x, b) for x, b in tables if b]
         if tables:
             ax.plot(*zip(*tables, strict=True), "D:", color="C5", label="SQL tables of the lists on disk")
+    whole = [x for x in n if "parts" in by_n[x]]
+    if whole:  # every file of the index, measured, against the floor of d + ⌈log2 N⌉ bits a place
+        ax.plot(whole, [sum(by_n[x]["parts"].values()) for x in whole], "^-", color="C6", label="whole index on disk")
+        ax.plot(whole, [x * floor_bits(x, by_n[x]["d"], by_n[x]["k"]) / 8 for x in whole], "--", color="C7",
+                label="floor: d + ⌈log2 N⌉ bits a place")
     ax.set(xscale="log", yscale="log", xlabel="reference places N_ref", ylabel="bytes",
            title="Storage growth (paper Fig. 4c, with the lists)")
     ax.grid(alpha=0.3, which="both")
@@ -196,7 +202,10 @@ def fig_storage(indexes, out, figures) -> None:
 
 
 def _sql_table_bytes(index: dict) -> int:
-    """Bytes of the Parquet tables an index keeps for the SQL console (0 when its folder is gone)."""
+    """Bytes of the tables an index keeps for the SQL console: measured when it was written
+    (format 3), else from its folder (format 2's Parquet copies; 0 when the folder is gone)."""
+    if "parts" in index:
+        return index["parts"]["SQL tables"]
     path = Path(index.get("path", ""))
     return sum((path / f).stat().st_size for f in ("lists.parquet", "buckets.parquet") if (path / f).is_file())
 
@@ -358,19 +367,24 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compar
     for i in sorted(indexes, key=lambda i: (i["n_ref"], i["d"])):
         st = i["storage"]
         lists = i.get("lists", {}).get("bytes_per_place")
+        whole = sum(i["parts"].values()) / i["n_ref"] if "parts" in i else None
+        floor = floor_bits(i["n_ref"], i["d"], i["k"]) / 8
         rows.append([i["store"]["scale"] + ("" if i["store"].get("rescale", True) else " (no rescale)"), i["d"],
                      f"{i['n_ref']:,}", *(f"{st[p]['paper'] / 1e6:.3f}" for p in ("P1", "P2", "P3", "P4", "total")),
                      f"{st['total']['packed'] / 1e6:.3f}", f"{st['total']['disk'] / 1e6:.3f}", _num(lists, ".2f"),
-                     _num(_sql_table_bytes(i) / i["n_ref"] or None, ".2f"), i["store"].get("layout", "full")])
+                     _num(_sql_table_bytes(i) / i["n_ref"] or None, ".2f"), _num(whole, ".2f"), f"{floor:.2f}",
+                     _num(whole and whole / floor, ".2f"), i["store"].get("layout", "full")])
     md += ["## Storage (MB)", "",
-           "P1–P4 counted the paper's way (8 bytes a number), packed (⌈d·log2 K / 8⌉ bytes an address, float32 "
-           "model) and as the index directory holds them; the inverted lists (ids grouped by address, with "
-           "their offsets, addresses and single bests) are counted apart, in bytes per place, and so are the "
-           "Parquet copies of the lists the SQL console reads. A compact store "
+           "P1–P4 counted the paper's way (8 bytes a number), packed (⌈d·log2 K⌉ bits an address, float32 "
+           "model) and as the index directory holds them; the inverted lists (ids and their directory) are "
+           "counted apart, in bytes per place, and so are the tables the SQL console reads; the whole index "
+           "(every file, measured) is set against the floor of d + ⌈log2 N⌉ bits a place (docs/method.md, "
+           "\"Storage\"; indexes of format 2 have no whole-index figure). A compact store "
            "keeps 12 bytes per place (address, quantisation error, baseline value) and the evaluated query "
            "windows; a full one 1.15 KB per place.", "",
            _md_table(["scale", "d", "N_ref", "P1", "P2", "P3", "P4", "total (8 B)", "total packed", "on disk",
-                      "lists B/place", "SQL tables B/place", "store layout"], rows),
+                      "lists B/place", "SQL tables B/place", "index B/place", "floor B/place", "× floor",
+                      "store layout"], rows),
            ""]
     rows = []
     for i in sorted(indexes, key=lambda i: (i["n_ref"], i["d"])):
