@@ -1,11 +1,12 @@
-"""LLVM intrinsics numba does not expose: population count, trailing zeros, funnel shift and a
-cache prefetch.
+"""LLVM intrinsics numba does not expose: population count, trailing and leading zeros, funnel
+shift and a cache prefetch.
 
 ``popcount`` lets a bit-plane distance count differing frames 64 at a time (and vectorise
 to ``vpopcntq`` where the CPU has it); ``funnel_shift_right`` reads 64 frames that start
 anywhere in two consecutive words as one instruction (``vpshrdvq`` with AVX-512 VBMI2,
-three shifts and an or without); ``trailing_zeros`` finds a set bit in one instruction
-(``tzcnt``) where the succinct directory selects the i-th one; ``prefetch`` hides the memory latency of scoring
+three shifts and an or without); ``trailing_zeros`` and ``leading_zeros`` find the
+next or previous set bit in one instruction (``tzcnt``, ``lzcnt``) where the succinct
+directory scans its bit vectors; ``prefetch`` hides the memory latency of scoring
 candidates scattered over a reference map far larger than the caches.
 """
 
@@ -41,6 +42,19 @@ def trailing_zeros(typingctx, x):
 
     def codegen(context, builder, signature, args):
         fn = builder.module.declare_intrinsic("llvm.cttz", [_I64], fnty=ir.FunctionType(_I64, [_I64, ir.IntType(1)]))
+        return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 0)])
+
+    return types.int64(types.uint64), codegen
+
+
+@intrinsic
+def leading_zeros(typingctx, x):
+    """Number of zero bits above the highest set bit of a uint64 (64 for zero), as int64."""
+    if x != types.uint64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.ctlz", [_I64], fnty=ir.FunctionType(_I64, [_I64, ir.IntType(1)]))
         return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 0)])
 
     return types.int64(types.uint64), codegen

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from vprscale.method.intrinsics import popcount, trailing_zeros
+from vprscale.method.intrinsics import leading_zeros, popcount, trailing_zeros
 
 SAMPLE_BITS = 8
 SAMPLE = 1 << SAMPLE_BITS  # every 256th one (and zero) keeps its position: 0.25 bit per value
@@ -87,20 +87,37 @@ def pack(values: np.ndarray, bits: int) -> np.ndarray:
     return words
 
 
+def _byte_select_table() -> np.ndarray:
+    """``table[8·b + r]``: the position of the ``r``-th set bit of the byte ``b``."""
+    table = np.zeros(256 * 8, np.uint8)
+    for b in range(256):
+        for r, p in enumerate(i for i in range(8) if b >> i & 1):
+            table[8 * b + r] = p
+    return table
+
+
+BYTE_SELECT = _byte_select_table()
+L8, H8 = np.uint64(0x0101010101010101), np.uint64(0x8080808080808080)
+M1, M2, M4 = np.uint64(0x5555555555555555), np.uint64(0x3333333333333333), np.uint64(0x0F0F0F0F0F0F0F0F)
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def _select_in_word(x: np.uint64, r: np.int64) -> np.int64:
-    """Position of the ``r``-th (from 0) set bit of ``x``, which has more than ``r``."""
-    shift = np.int64(0)
-    while True:
-        c = popcount(x & np.uint64(255))
-        if r < c:
-            break
-        r -= c
-        x >>= np.uint64(8)
-        shift += 8
-    for _ in range(r):
-        x &= x - np.uint64(1)
-    return shift + trailing_zeros(x)
+    """Position of the ``r``-th (from 0) set bit of ``x``, which has more than ``r``.
+
+    Broadword (Vigna, "Broadword implementation of rank/select queries", 2008): the bytes'
+    cumulative popcounts in one multiply, the byte holding the bit by a bytewise compare,
+    then a table of the 8 positions in each byte; no branch, about a nanosecond (a loop
+    clearing bits took 14, its branches unpredictable).
+    """
+    s = x - ((x >> np.uint64(1)) & M1)
+    s = (s & M2) + ((s >> np.uint64(2)) & M2)
+    s = ((s + (s >> np.uint64(4))) & M4) * L8  # byte i: the set bits of bytes 0 … i
+    below = ((((np.uint64(r) * L8) | H8) - s) & H8) >> np.uint64(7)  # 1 in each byte whose count is ≤ r
+    shift = ((below * L8) >> np.uint64(56)) << np.uint64(3)  # 8 × the number of such bytes
+    before = np.int64(((s << np.uint64(8)) >> shift) & np.uint64(255))
+    byte = np.int64((x >> shift) & np.uint64(255))
+    return np.int64(shift) + np.int64(BYTE_SELECT[8 * byte + r - before])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -188,9 +205,9 @@ def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zer
                buckets: np.int64, x: np.uint64) -> np.int64:
     """Index of the value equal to ``x``, else of the numerically nearest (ties: the smaller).
 
-    One select0 finds the run of values sharing ``x``'s high part; the scan along it, and on
-    to the next one bit, finds the neighbours without selecting them again (a select1 is
-    needed only for a predecessor in an earlier run).
+    One select0 finds the run of values sharing ``x``'s high part; the scan along it, on to
+    the next one bit, and back to the one bit before the run, finds the neighbours without
+    selecting them again.
     """
     hx = np.int64(x >> np.uint64(lb))
     if hx >= buckets:
@@ -216,8 +233,14 @@ def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zer
     above = _value(low, lb, i, q - i)
     if above == x or i == 0:
         return i
-    if not has_below:
-        below = np.uint64(ef_get(high, low, lb, ones, i - 1))
+    if not has_below:  # value i − 1 is the last one bit before the run's start p0 = p − (i − i0)
+        r = p - 1
+        w = r >> 6
+        word = high[w] & (ALL >> np.uint64(63 - (r & 63)))
+        while word == np.uint64(0):
+            w -= 1
+            word = high[w]
+        below = _value(low, lb, i - 1, w * 64 + 63 - leading_zeros(word) - (i - 1))
     return i - 1 if x - below <= above - x else i
 
 
