@@ -141,16 +141,18 @@ def test_inverted_lists_sort_by_address_then_id(high):
         assert best == ids[np.argmin(err[ids])]  # least error, ties to the smallest id
 
 
-def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
+@pytest.mark.parametrize(("d", "k"), [(18, 2), (11, 3)])
+def test_partitioned_lists_equal_the_in_memory_sort(tmp_path, d, k):
     """Sorting partition by partition (bounded memory) writes the files of one global sort, and
-    those of an in-memory index of the same references."""
+    those of an in-memory index of the same references (bit planes for K = 2, packed codes else;
+    chunks of any length)."""
     from vprscale.method.coarsehash import CoarseHasher
     from vprscale.method.index import Index
     from vprscale.method.indexfile import ENGINE_FILES, write_arrays, write_lists
 
     rng = np.random.default_rng(1)
     n = 100_000
-    h = np.minimum(rng.integers(0, 2**18, n), rng.integers(0, 2**18, n)).astype(np.uint64)  # skewed buckets
+    h = np.minimum(rng.integers(0, k**d, n), rng.integers(0, k**d, n)).astype(np.uint64)  # skewed buckets
     err = rng.random(n).astype(np.float32)
     err[::7] = 0.5  # ties: the smallest id is the single best
     bounds = [(a, min(n, a + 7000)) for a in range(0, n, 7000)]
@@ -159,14 +161,14 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path):
     for part_rows in (1 << 30, 5000):
         out = tmp_path / str(part_rows)
         out.mkdir()
-        r = write_lists(out, lambda a, b: h[a:b], lambda a, b: err[a:b], bounds, n, 18, 2, quiet=True,
+        r = write_lists(out, lambda a, b: h[a:b], lambda a, b: err[a:b], bounds, n, d, k, quiet=True,
                         part_rows=part_rows)
-        assert r["partitions"] == (1 if part_rows > n else 21) and not (out / ".partitions").exists()
+        assert (r["partitions"] == 1) == (part_rows > n) and not (out / ".partitions").exists()
         assert sorted(p.name for p in out.iterdir()) == sorted(files)  # no work file left behind
         got[part_rows] = {f: (out / f).read_bytes() for f in files}
     assert got[5000] == got[1 << 30]
-    centres = np.tile(np.array([-1.0, 1.0]), (18, 1))
-    hasher = CoarseHasher.from_fitted(2, 1 << 14, n, np.zeros(4), np.eye(18, 4), centres, np.ones(18))
+    centres = np.tile(np.linspace(-1.0, 1.0, k), (d, 1))
+    hasher = CoarseHasher.from_fitted(k, 1 << 14, n, np.zeros(4), np.eye(d, 4), centres, np.ones(d))
     memory = tmp_path / "memory"
     memory.mkdir()
     idx = Index.from_addresses(h, hasher, err)

@@ -53,7 +53,7 @@ from vprscale.method.lists import (
     prefix_cuts,
     scatter,
 )
-from vprscale.method.succinct import EliasFano, pack_into, packed_words, width
+from vprscale.method.succinct import EliasFano, pack_bits_into, packed_words, width
 
 KIND = "coarsehash-index"
 INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
@@ -141,6 +141,42 @@ class _Appender:
         self.f.close()
 
 
+class _WordsFile:
+    """A uint64 ``.npy`` file of ``n_words`` words, written front to back from runs that may
+    share their boundary word (bit-packed values) or row (bit planes) with the next run.
+
+    Only the words a later run may still change are held in memory; every word before them
+    is final and written out, so writing a billion places' codes or ids holds a few words,
+    not a gigabyte-sized mapped file (whose written pages count as resident memory).
+    """
+
+    def __init__(self, path: Path, n_words: int, unit: int) -> None:
+        self.path, self.n_words, self.unit = path, n_words, unit  # unit: words that are final together
+        self.f = path.open("wb")
+        np.lib.format.write_array_header_1_0(self.f, {"descr": "<u8", "fortran_order": False, "shape": (n_words,)})
+        self.written = 0  # words in the file
+        self.tail = np.zeros(0, np.uint64)  # words from ``written`` on that a later run may still change
+
+    def run(self, last: int) -> np.ndarray:
+        """The words from the first unwritten one to ``last − 1``, to fill: the held tail, then zeros."""
+        out = np.zeros(last - self.written, np.uint64)
+        out[: len(self.tail)] = self.tail
+        return out
+
+    def done(self, words: np.ndarray, final: int) -> None:
+        """``words`` (from :meth:`run`) are filled; those before word ``final`` will not change."""
+        cut = (final - self.written) // self.unit * self.unit
+        self.f.write(words[:cut].tobytes())
+        self.written += cut
+        self.tail = words[cut:].copy()
+
+    def close(self) -> None:
+        rest = np.zeros(self.n_words - self.written, np.uint64)
+        rest[: len(self.tail)] = self.tail
+        self.f.write(rest.tobytes())
+        self.f.close()
+
+
 class _Writer:
     """The engine's files and the SQL buckets of one directory, written in order.
 
@@ -153,27 +189,38 @@ class _Writer:
     def __init__(self, out: Path, n_ref: int, d: int, k: int) -> None:
         self.out, self.n_ref, self.d, self.k = out, n_ref, d, k
         self.code_bits, self.id_bits = code_bits(d, k), width(max(0, n_ref - 1))
-        self.codes_file = np.lib.format.open_memmap(out / ENGINE_FILES["codes"], mode="w+", dtype=np.uint64,
-                                                    shape=(code_words(n_ref, d, k),))
-        self.ids_file = np.lib.format.open_memmap(out / ENGINE_FILES["ids"], mode="w+", dtype=np.uint64,
-                                                  shape=(packed_words(n_ref, self.id_bits),))
+        self.codes_file = _WordsFile(out / ENGINE_FILES["codes"], code_words(n_ref, d, k), d if k == 2 else 1)
+        self.ids_file = _WordsFile(out / ENGINE_FILES["ids"], packed_words(n_ref, self.id_bits), 1)
+        self.n_codes = 0
         self.addresses = _Appender(out / ".addresses.tmp", np.uint64)
         self.offsets = _Appender(out / ".offsets.tmp", np.int64)
         self.buckets = _Buckets(out)
         self.n_ids = self.longest = 0
 
     def codes(self, a: int, h: np.ndarray) -> None:
-        """The addresses of places ``a … a + len(h) − 1``."""
+        """The addresses of the next places, ``a … a + len(h) − 1`` (runs in order, from 0)."""
+        if a != self.n_codes:
+            raise ValueError(f"codes of places from {a:,}: the next place is {self.n_codes:,}")
         h = np.asarray(h, np.uint64)
-        if self.k == 2:
-            planes_into(self.codes_file, h, np.int64(a), self.d)
+        f, b = self.codes_file, a + len(h)
+        if self.k == 2:  # rows of d words per 64 places: the rows before place b's are final
+            words = f.run(((b + 63) // 64) * self.d)
+            planes_into(words, h, np.int64(a - 64 * (f.written // self.d)), self.d)
+            f.done(words, (b // 64) * self.d)
         else:
-            pack_into(self.codes_file, self.code_bits, np.int64(a), h)
+            words = f.run(-(-b * self.code_bits // 64))
+            pack_bits_into(words, self.code_bits, np.int64(a * self.code_bits - 64 * f.written), h)
+            f.done(words, b * self.code_bits // 64)
+        self.n_codes = b
 
     def lists(self, addresses: np.ndarray, sizes: np.ndarray, ids: np.ndarray) -> None:
         """The next run of occupied addresses (ascending), their lists' sizes and ids."""
         offsets = self.n_ids + np.r_[0, np.cumsum(sizes[:-1])].astype(np.int64) if len(sizes) else np.zeros(0, np.int64)
-        pack_into(self.ids_file, self.id_bits, np.int64(self.n_ids), np.asarray(ids, np.uint64))
+        f, b = self.ids_file, self.n_ids + len(ids)
+        words = f.run(-(-b * self.id_bits // 64))
+        pack_bits_into(words, self.id_bits, np.int64(self.n_ids * self.id_bits - 64 * f.written),
+                       np.asarray(ids, np.uint64))
+        f.done(words, b * self.id_bits // 64)
         self.addresses.append(addresses)
         self.offsets.append(offsets)
         self.buckets.write(addresses, sizes, offsets)
@@ -185,9 +232,8 @@ class _Writer:
         for f in (self.addresses, self.offsets):
             f.close()
         self.buckets.close()
-        self.codes_file.flush()
-        self.ids_file.flush()
-        del self.codes_file, self.ids_file
+        self.codes_file.close()
+        self.ids_file.close()
         layout: dict[str, Any] = {"code_bits": self.code_bits, "codes": "planes" if self.k == 2 else "packed",
                                   "id_bits": self.id_bits, "longest": self.longest}
         for name, tmp in (("occupied", self.addresses), ("starts", self.offsets)):

@@ -61,9 +61,15 @@ def get_packed(words: np.ndarray, bits: int, i: np.int64) -> np.uint64:
 @numba.njit(cache=True, nogil=True)
 def pack_into(words: np.ndarray, bits: int, start: np.int64, values: np.ndarray) -> None:
     """Write ``values`` as entries ``start …`` of a packed array whose words there are still zero."""
+    pack_bits_into(words, bits, start * bits, values)
+
+
+@numba.njit(cache=True, nogil=True)
+def pack_bits_into(words: np.ndarray, bits: int, first_bit: np.int64, values: np.ndarray) -> None:
+    """Write ``values`` of ``bits`` bits each from bit ``first_bit`` of ``words`` (still zero there)."""
     for j in range(values.shape[0]):
         v = np.uint64(values[j])
-        pos = np.uint64(start + j) * np.uint64(bits)
+        pos = np.uint64(first_bit) + np.uint64(j) * np.uint64(bits)
         w = np.int64(pos >> np.uint64(6))
         o = pos & np.uint64(63)
         words[w] |= v << o
