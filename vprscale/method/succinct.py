@@ -64,17 +64,21 @@ def pack_into(words: np.ndarray, bits: int, start: np.int64, values: np.ndarray)
     pack_bits_into(words, bits, start * bits, values)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _put(words: np.ndarray, bits: int, pos: np.uint64, v: np.uint64) -> None:
+    """Or the ``bits``-bit value ``v`` into ``words`` at bit ``pos``."""
+    w = np.int64(pos >> np.uint64(6))
+    o = pos & np.uint64(63)
+    words[w] |= v << o
+    if o + np.uint64(bits) > np.uint64(64):
+        words[w + 1] |= v >> (np.uint64(64) - o)
+
+
 @numba.njit(cache=True, nogil=True)
 def pack_bits_into(words: np.ndarray, bits: int, first_bit: np.int64, values: np.ndarray) -> None:
     """Write ``values`` of ``bits`` bits each from bit ``first_bit`` of ``words`` (still zero there)."""
     for j in range(values.shape[0]):
-        v = np.uint64(values[j])
-        pos = np.uint64(first_bit) + np.uint64(j) * np.uint64(bits)
-        w = np.int64(pos >> np.uint64(6))
-        o = pos & np.uint64(63)
-        words[w] |= v << o
-        if o + np.uint64(bits) > np.uint64(64):
-            words[w + 1] |= v >> (np.uint64(64) - o)
+        _put(words, bits, np.uint64(first_bit) + np.uint64(j) * np.uint64(bits), np.uint64(values[j]))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -263,13 +267,7 @@ def _build_high(values: np.ndarray, lb: int, high: np.ndarray, low: np.ndarray) 
     if lb:
         mask = (np.uint64(1) << np.uint64(lb)) - np.uint64(1)
         for i in range(values.shape[0]):
-            v = np.uint64(values[i]) & mask
-            pos = np.uint64(i) * np.uint64(lb)
-            w = np.int64(pos >> np.uint64(6))
-            o = pos & np.uint64(63)
-            low[w] |= v << o
-            if o + np.uint64(lb) > np.uint64(64):
-                low[w + 1] |= v >> (np.uint64(64) - o)
+            _put(low, lb, np.uint64(i) * np.uint64(lb), np.uint64(values[i]) & mask)
 
 
 @numba.njit(cache=True, nogil=True)
