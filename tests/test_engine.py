@@ -51,9 +51,8 @@ def test_single_best_and_in_list_bound():
     np.testing.assert_array_equal(idx.lists.list_ids(a[0]), [1, 0, 2])  # the best first, then by id
     from vprscale.method.invlists import in_list_distance
 
-    lists = idx.lists
-    np.testing.assert_array_equal(in_list_distance(a, np.array([3]), lists.starts_args(), lists.ids, lists.id_bits),
-                                  [1])
+    qf = idx.query_frames(np.array([3], np.uint64))
+    np.testing.assert_array_equal(in_list_distance(qf.start, qf.stop, qf.ids, np.array([0]), np.array([3])), [1])
 
 
 def test_sequence_match_picks_the_aligned_diagonal():

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vprscale.method.invlists import nearest_slots
-from vprscale.method.succinct import EliasFano, _select_in_word, pack, unpack
+from vprscale.method.succinct import EliasFano, RankBitmap, _select_in_word, occupancy_structure, pack, unpack
 
 sorted_values = st.lists(st.integers(0, 2**40), min_size=1, max_size=3000).map(lambda v: np.sort(np.array(v, np.int64)))
 
@@ -26,16 +26,27 @@ def test_elias_fano_equals_the_plain_sequence(values, probes):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.integers(0, 2**30), min_size=1, max_size=2000, unique=True), st.lists(st.integers(0, 2**30),
-                                                                                        max_size=300))
-def test_nearest_occupied_slot_equals_a_full_scan(occupied, probes):
-    """The directory's nearest occupied address: equal, else the numerically nearest, ties to the smaller."""
+@given(st.sampled_from([2**12, 2**20]), st.data())
+def test_nearest_occupied_slot_equals_a_full_scan(universe, data):
+    """The directory's nearest occupied address, from Elias–Fano and from a rank bitmap (the
+    smaller of the two stores it): equal, else the numerically nearest, ties to the smaller."""
+    occupied = data.draw(st.lists(st.integers(0, universe - 1), min_size=1, max_size=2000, unique=True))
+    probes = data.draw(st.lists(st.integers(0, universe - 1), max_size=300))
     occupied = np.sort(np.array(occupied, np.int64))
-    ef = EliasFano.build(occupied)
-    args = (ef.high, ef.low, ef.lb, ef.ones, ef.zeros, np.int64(ef.n), np.int64(ef.buckets))
+    for structure in (EliasFano.build(occupied), RankBitmap.build(occupied, universe)):
+        np.testing.assert_array_equal(structure.decode(), occupied)
+        np.testing.assert_array_equal(structure.get(np.arange(len(occupied))), occupied)
+        _nearest_equals_a_scan(structure.args(), occupied, probes)
+    chosen = occupancy_structure(occupied, universe)
+    assert chosen.nbytes == min(EliasFano.build(occupied).nbytes, RankBitmap.build(occupied, universe).nbytes)
+
+
+def _nearest_equals_a_scan(args, occupied, probes):
     h = np.array(probes + list(occupied[:5]), np.int64)
     gap = np.abs(occupied[None, :] - h[:, None])
-    np.testing.assert_array_equal(nearest_slots(args, h.astype(np.uint64)), gap.argmin(axis=1))
+    slots, taken = nearest_slots(args, h.astype(np.uint64))
+    np.testing.assert_array_equal(slots, gap.argmin(axis=1))
+    np.testing.assert_array_equal(taken, occupied[slots])
 
 
 @settings(max_examples=40, deadline=None)

@@ -6,6 +6,7 @@ query hashing, the per-frame work on query frames, and matching through the kern
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import dask.array as da
@@ -15,7 +16,7 @@ import numpy as np
 from vprscale.core.publish import PartialOutput
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
 from vprscale.method.indexfile import code_bits, read_arrays, write_arrays
-from vprscale.method.invlists import InvertedLists, best_first, list_top
+from vprscale.method.invlists import InvertedLists, best_first, frame_top
 from vprscale.method.kernels import (
     DELTA_MAX_UNITS,
     N_BEST,
@@ -49,6 +50,7 @@ class QueryFrames:
     frames: np.ndarray  # the frames held (ascending), positions 0 … n − 1
     hashes: np.ndarray  # own address of every frame (uint64)
     slot: np.ndarray  # position of the occupied address used, among the occupied addresses
+    taken: np.ndarray  # that occupied address (uint64)
     start: np.ndarray  # the list of the frame at position i is ids[start[i]:stop[i]]
     stop: np.ndarray
     ids: np.ndarray  # the frames' lists, decoded (int64)
@@ -140,7 +142,7 @@ class Index:
         best_first(order, offsets, lists["best"].astype(np.int64))
         d, k = int(hasher.d_), int(hasher.k)
         codes = bit_planes(ref_hash, d) if k == 2 else pack(ref_hash, code_bits(d, k))
-        return cls(hasher, codes, InvertedLists.build(lists["addresses"], offsets, order, len(ref_hash)),
+        return cls(hasher, codes, InvertedLists.build(lists["addresses"], offsets, order, len(ref_hash), k**d),
                    len(ref_hash), {"n_ref": len(ref_hash)})
 
     @classmethod
@@ -213,7 +215,11 @@ class Index:
                 dmax)
 
     def delta_tables(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
-        """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame."""
+        """``(w, tables, δ_max)``: what :func:`delta` needs, frame by frame (built once)."""
+        return self._delta
+
+    @cached_property
+    def _delta(self) -> tuple[np.ndarray, np.ndarray, np.int64]:
         w = self.weights()
         tables = byte_tables(w) if self.k == 2 else np.zeros((1, 256), np.int64)
         return w, tables, np.int64(w[:, 0, -1].sum())
@@ -258,15 +264,13 @@ class Index:
         """``(top, score, n_r)`` of the centres at positions ``pos`` of the query frames (see
         :class:`Matches`; ``score`` of the best, in δ_max units)."""
         pos = np.asarray(pos, np.int64)
-        if L == 1:
+        if L == 1:  # the frame's own list, decoded with the per-frame work: its best first
             w, tables, dmax = self.delta_tables()
-            a = qf.slot[pos]
             span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
             err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors, np.float64)[pos]
-            moved = address_delta(qf.hashes[pos], self.lists.addresses(a), w, tables, self.d, self.k)
+            moved = address_delta(qf.hashes[pos], qf.taken[pos], w, tables, self.d, self.k)
             score = err / span + moved / float(dmax)
-            return (list_top(self.lists.starts_args(), self.lists.ids, self.lists.id_bits, a, n_best), score,
-                    qf.stop[pos] - qf.start[pos])
+            return frame_top(qf.start, qf.stop, qf.ids, pos, n_best), score, qf.stop[pos] - qf.start[pos]
         args = self.kernel_args()  # (…, δ_max) last
         top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, n_best,
                                        numba.get_num_threads())
@@ -294,14 +298,14 @@ class Index:
         """
         h = np.asarray(h, np.uint64)
         frames = np.arange(len(h)) if frames is None else np.asarray(frames, np.int64)
-        a = self.nearest_occupied(h)
+        a, taken = self.lists.nearest(h)
         start, stop, ids = self.lists.gather(a)
         planes = bit_planes(h, self.d) if self.k == 2 else np.zeros(0, np.uint64)
-        return QueryFrames(frames, h, a, start, stop, ids, planes, errors)
+        return QueryFrames(frames, h, a, taken, start, stop, ids, planes, errors)
 
     def nearest_occupied(self, h: np.ndarray) -> np.ndarray:
         """Slot of ``h`` among the occupied addresses, else of the numerically nearest (ties: smaller)."""
-        return self.lists.nearest(np.asarray(h, np.uint64))
+        return self.lists.nearest(np.asarray(h, np.uint64))[0]
 
 
 def read_index(path: str | Path) -> Index:

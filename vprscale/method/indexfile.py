@@ -53,7 +53,14 @@ from vprscale.method.lists import (
     prefix_cuts,
     scatter,
 )
-from vprscale.method.succinct import EliasFano, pack_bits_into, packed_words, width
+from vprscale.method.succinct import (
+    EliasFano,
+    occupancy_structure,
+    pack_bits_into,
+    packed_words,
+    structure_from_words,
+    width,
+)
 
 KIND = "coarsehash-index"
 INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
@@ -237,10 +244,11 @@ class _Writer:
         layout: dict[str, Any] = {"code_bits": self.code_bits, "codes": "planes" if self.k == 2 else "packed",
                                   "id_bits": self.id_bits, "longest": self.longest}
         for name, tmp in (("occupied", self.addresses), ("starts", self.offsets)):
-            ef = EliasFano.build(np.load(tmp.path, mmap_mode="r"))
-            np.save(self.out / ENGINE_FILES[name], ef.words())
-            layout[name] = ef.layout()
-            del ef
+            values = np.load(tmp.path, mmap_mode="r")
+            structure = occupancy_structure(values, self.k**self.d) if name == "occupied" else EliasFano.build(values)
+            np.save(self.out / ENGINE_FILES[name], structure.words())
+            layout[name] = structure.layout()
+            del structure, values
             tmp.path.unlink()
         layout["occupied"]["count"] = self.addresses.n
         return layout
@@ -431,7 +439,7 @@ def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLis
     try:
         model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
         files = {name: np.load(path / file, mmap_mode="r") for name, file in ENGINE_FILES.items()}
-        lists = InvertedLists(EliasFano.from_words(files["occupied"], layout["occupied"]),
+        lists = InvertedLists(structure_from_words(files["occupied"], layout["occupied"]),
                               EliasFano.from_words(files["starts"], layout["starts"]), files["ids"],
                               int(layout["id_bits"]), int(layout["longest"]))
     except (OSError, ValueError, EOFError, KeyError) as exc:  # a missing or truncated file (no manifest)

@@ -22,18 +22,24 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from vprscale.method.intrinsics import prefetch
 from vprscale.method.succinct import (
+    SAMPLE_BITS,
     EliasFano,
+    RankBitmap,
     ef_nearest,
     ef_pair,
     get_packed,
+    occupancy_structure,
     pack_into,
     packed_words,
+    rb_nearest,
     unpack,
     width,
 )
 
 SHARED_ABOVE = 1 << 25  # ids (256 MB decoded) beyond which frames share their lists' copies
+AHEAD = 8  # frames ahead whose select samples are fetched while a frame is looked up
 
 
 @numba.njit(cache=True, nogil=True)
@@ -54,13 +60,34 @@ def best_first(order: np.ndarray, starts: np.ndarray, best: np.ndarray) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
-def nearest_slots(occ: tuple, h: np.ndarray) -> np.ndarray:
-    """Slot of each address ``h`` among the occupied ones, else of the numerically nearest (ties: smaller)."""
-    high, low, lb, ones, zeros, n, buckets = occ
-    out = np.empty(h.shape[0], np.int64)
+def nearest_slots(occ: tuple, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(slots, taken)``: the slot of each address ``h`` among the occupied ones, else of the
+    numerically nearest (ties: smaller), and the occupied address it took.
+
+    ``occ`` is the occupied addresses' ``args()``: a rank bitmap (kind 1: bits, ranks, select
+    samples) or Elias–Fano (kind 0). The words a later frame reads are fetched ahead.
+    """
+    kind, high, low, lb, ones, zeros, n, size = occ
+    slots = np.empty(h.shape[0], np.int64)
+    taken = np.empty(h.shape[0], np.uint64)
     for i in range(h.shape[0]):
-        out[i] = ef_nearest(high, low, lb, ones, zeros, n, buckets, h[i])
-    return out
+        if kind == 1:
+            if i + AHEAD < h.shape[0] and np.int64(h[i + AHEAD]) < size:
+                x = np.int64(h[i + AHEAD])
+                prefetch(zeros, x >> 9)
+                prefetch(high, x >> 6)
+            slots[i], taken[i] = rb_nearest(high, zeros, ones, n, size, h[i])
+            continue
+        if i + AHEAD < h.shape[0]:  # the select sample a later frame will read, then the words it points to
+            hx = np.int64(h[i + AHEAD] >> np.uint64(lb)) - 1
+            if 0 <= hx < size:
+                prefetch(zeros, hx >> SAMPLE_BITS)
+        if i + AHEAD // 2 < h.shape[0]:
+            hx = np.int64(h[i + AHEAD // 2] >> np.uint64(lb)) - 1
+            if 0 <= hx < size:
+                prefetch(high, zeros[hx >> SAMPLE_BITS] >> 6)
+        slots[i], taken[i] = ef_nearest(high, low, lb, ones, zeros, n, size, h[i])
+    return slots, taken
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -93,6 +120,10 @@ def gather(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarray, limi
     stop = np.empty(n, np.int64)
     total = 0
     for i in range(n):
+        if i + AHEAD < n:  # the select sample a later frame will read, then the word it points to
+            prefetch(starts[3], slots[i + AHEAD] >> SAMPLE_BITS)
+        if i + AHEAD // 2 < n:
+            prefetch(starts[0], starts[3][slots[i + AHEAD // 2] >> SAMPLE_BITS] >> 6)
         start[i], stop[i] = list_span(starts, slots[i])
         total += stop[i] - start[i]
     if total > limit:
@@ -100,6 +131,8 @@ def gather(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarray, limi
     flat = np.empty(total, np.int64)
     m = 0
     for i in range(n):
+        if i + AHEAD < n:
+            prefetch(ids, (start[i + AHEAD] * id_bits) >> 6)
         s, e = start[i], stop[i]
         start[i] = m
         for q in range(s, e):
@@ -138,26 +171,27 @@ def _gather_shared(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True)
-def list_top(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarray, n_best: int) -> np.ndarray:
-    """L = 1's best-first candidates of frames that took ``slots``: each list's first ``n_best``
-    ids, its single best then the rest by id (−1 where the list is shorter)."""
-    out = np.full((slots.shape[0], n_best), -1, np.int64)
-    for i in range(slots.shape[0]):
-        s, e = list_span(starts, slots[i])
-        for j in range(min(n_best, e - s)):
-            out[i, j] = np.int64(get_packed(ids, id_bits, s + j))
+def frame_top(start: np.ndarray, stop: np.ndarray, flat: np.ndarray, pos: np.ndarray, n_best: int) -> np.ndarray:
+    """L = 1's best-first candidates of the frames at ``pos`` from their decoded lists
+    (:func:`gather`): each list's first ``n_best`` ids, its single best then the rest by id
+    (−1 where the list is shorter)."""
+    out = np.full((pos.shape[0], n_best), -1, np.int64)
+    for i in range(pos.shape[0]):
+        s = start[pos[i]]
+        for j in range(min(n_best, stop[pos[i]] - s)):
+            out[i, j] = flat[s + j]
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def in_list_distance(slots: np.ndarray, gt: np.ndarray, starts: tuple, ids: np.ndarray, id_bits: int) -> np.ndarray:
-    """For single frames: the smallest ``|id − gt|`` over the slot's whole list."""
-    out = np.empty(slots.shape[0], np.int64)
-    for i in range(slots.shape[0]):
-        s, e = list_span(starts, slots[i])
+def in_list_distance(start: np.ndarray, stop: np.ndarray, flat: np.ndarray, pos: np.ndarray,
+                     gt: np.ndarray) -> np.ndarray:
+    """For single frames: the smallest ``|id − gt|`` over the frame's whole list."""
+    out = np.empty(pos.shape[0], np.int64)
+    for i in range(pos.shape[0]):
         best = np.int64(2**62)
-        for p in range(s, e):
-            dist = abs(np.int64(get_packed(ids, id_bits, p)) - gt[i])
+        for q in range(start[pos[i]], stop[pos[i]]):
+            dist = abs(flat[q] - gt[i])
             if dist < best:
                 best = dist
         out[i] = best
@@ -168,22 +202,24 @@ def in_list_distance(slots: np.ndarray, gt: np.ndarray, starts: tuple, ids: np.n
 class InvertedLists:
     """Occupied addresses, list starts and packed ids (see the module's docstring)."""
 
-    occupied: EliasFano
+    occupied: EliasFano | RankBitmap
     starts: EliasFano
     ids: np.ndarray  # packed words
     id_bits: int
     longest: int  # the longest list's length (what a matcher's buffers must hold)
 
     @classmethod
-    def build(cls, addresses: np.ndarray, offsets: np.ndarray, order: np.ndarray, n_ref: int) -> InvertedLists:
-        """From lists in memory: sorted occupied ``addresses``, CSR ``offsets`` (one more than
-        the addresses) and the ids in list order (each list's single best first)."""
+    def build(cls, addresses: np.ndarray, offsets: np.ndarray, order: np.ndarray, n_ref: int,
+              universe: int) -> InvertedLists:
+        """From lists in memory: sorted occupied ``addresses`` (below ``universe``, K^d), CSR
+        ``offsets`` (one more than the addresses) and the ids in list order (each list's
+        single best first)."""
         bits = width(max(0, n_ref - 1))
         words = np.zeros(packed_words(len(order), bits), np.uint64)
         pack_into(words, bits, 0, np.asarray(order, np.uint64))
         offsets = np.asarray(offsets, np.int64)
-        return cls(EliasFano.build(np.asarray(addresses, np.uint64)), EliasFano.build(offsets), words, bits,
-                   int(np.diff(offsets).max(initial=0)))
+        return cls(occupancy_structure(np.asarray(addresses, np.uint64), universe), EliasFano.build(offsets), words,
+                   bits, int(np.diff(offsets).max(initial=0)))
 
     @property
     def n_lists(self) -> int:
@@ -194,15 +230,15 @@ class InvertedLists:
         return int(self.starts.get(self.starts.n - 1)[0]) if self.starts.n else 0
 
     def occupied_args(self) -> tuple:
-        o = self.occupied
-        return o.high, o.low, o.lb, o.ones, o.zeros, np.int64(o.n), np.int64(o.buckets)
+        return self.occupied.args()
 
     def starts_args(self) -> tuple:
         s = self.starts
         return s.high, s.low, s.lb, s.ones
 
-    def nearest(self, h: np.ndarray) -> np.ndarray:
-        """Slot of each address, or of the numerically nearest occupied one (ties: smaller)."""
+    def nearest(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(slots, taken)``: the slot of each address, or of the numerically nearest occupied
+        one (ties: smaller), and the address it took."""
         return nearest_slots(self.occupied_args(), np.asarray(h, np.uint64))
 
     def addresses(self, slots: np.ndarray) -> np.ndarray:
@@ -229,7 +265,8 @@ class InvertedLists:
 
     def best(self, slots: np.ndarray) -> np.ndarray:
         """Each slot's single best id (its list's first)."""
-        return list_top(self.starts_args(), self.ids, self.id_bits, np.atleast_1d(np.asarray(slots, np.int64)), 1)[:, 0]
+        start, _ = self.spans(slots)
+        return np.array([self.ids_range(s, s + 1)[0] for s in start], np.int64)
 
     def gather(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(start, stop, flat)``: the lists of ``slots`` decoded (:func:`gather`)."""

@@ -99,7 +99,7 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
     """One frame: its list into the window, then the window's match (−1 until L frames)."""
     one = np.empty(1, np.uint64)
     one[0] = h
-    a = nearest_slots(occ, one)[0]
+    a = nearest_slots(occ, one)[0][0]
     slot = st[3]
     if st[0] >= L:  # the oldest frame leaves the window
         st[1] += ring_n[slot]

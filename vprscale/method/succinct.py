@@ -18,11 +18,18 @@ packed, and their high part, stored in unary in a bit vector: value ``i`` sets b
 ``h``-th zero (select0). Every ``SAMPLE``-th one and zero has its position kept, so a
 select reads one sample and, on average, a couple of words. One uint64 array holds a
 sequence whole (:meth:`EliasFano.words`), which is how the index files store it.
+
+*Rank bitmap*: where the values are dense in their universe (the occupied addresses of an
+index at its default width fill 37–55 % of K^d), one bit per possible value is smaller than
+Elias–Fano's 2 + log2(u/n) bits per value, and faster: a value's rank is a sampled count
+plus the popcounts of at most eight words, and its neighbours are usually in the same word.
+:func:`occupancy_structure` builds whichever of the two is smaller.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -212,8 +219,8 @@ def _value(low: np.ndarray, lb: int, i: np.int64, high_part: np.int64) -> np.uin
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zeros: np.ndarray, n: np.int64,
-               buckets: np.int64, x: np.uint64) -> np.int64:
-    """Index of the value equal to ``x``, else of the numerically nearest (ties: the smaller).
+               buckets: np.int64, x: np.uint64) -> tuple[np.int64, np.uint64]:
+    """``(index, value)`` of the value equal to ``x``, else of the numerically nearest (ties: the smaller).
 
     One select0 finds the run of values sharing ``x``'s high part; the scan along it, on to
     the next one bit, and back to the one bit before the run, finds the neighbours without
@@ -221,7 +228,7 @@ def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zer
     """
     hx = np.int64(x >> np.uint64(lb))
     if hx >= buckets:
-        return n - 1
+        return n - 1, np.uint64(ef_get(high, low, lb, ones, n - 1))
     p = np.int64(0) if hx == 0 else select(high, zeros, hx - 1, False) + 1
     i = p - hx
     below, has_below = np.uint64(0), False
@@ -232,8 +239,8 @@ def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zer
         below, has_below = v, True
         i += 1
         p += 1
-    if i == n:
-        return n - 1
+    if i == n:  # every value is below x
+        return n - 1, below if has_below else np.uint64(ef_get(high, low, lb, ones, n - 1))
     w = p >> 6  # the value at i: at or after p
     word = high[w] & (ALL << np.uint64(p & 63))
     while word == np.uint64(0):
@@ -242,7 +249,7 @@ def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zer
     q = w * 64 + trailing_zeros(word)
     above = _value(low, lb, i, q - i)
     if above == x or i == 0:
-        return i
+        return i, above
     if not has_below:  # value i − 1 is the last one bit before the run's start p0 = p − (i − i0)
         r = p - 1
         w = r >> 6
@@ -251,7 +258,7 @@ def ef_nearest(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, zer
             w -= 1
             word = high[w]
         below = _value(low, lb, i - 1, w * 64 + 63 - leading_zeros(word) - (i - 1))
-    return i - 1 if x - below <= above - x else i
+    return (i - 1, below) if x - below <= above - x else (i, above)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -287,6 +294,172 @@ def _samples(high: np.ndarray, nbits: np.int64, ones: bool, count: np.int64) -> 
     return out
 
 
+RANK_WORDS = 8  # words per rank sample of a bitmap: 512 bits, 12.5 % on top of the bitmap
+LOCAL_WORDS = 2  # words a bitmap's neighbour search scans each way before it selects
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def rb_rank(bits: np.ndarray, ranks: np.ndarray, x: np.int64) -> np.int64:
+    """Set bits of ``bits`` before position ``x``."""
+    w = x >> 6
+    r = ranks[w >> 3]
+    for j in range((w >> 3) << 3, w):
+        r += popcount(bits[j])
+    if x & 63:
+        r += popcount(bits[w] & ((np.uint64(1) << np.uint64(x & 63)) - np.uint64(1)))
+    return r
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def rb_nearest(bits: np.ndarray, ranks: np.ndarray, ones: np.ndarray, n: np.int64, universe: np.int64,
+               x: np.uint64) -> tuple[np.int64, np.uint64]:
+    """``(rank, value)`` of the set bit at ``x``, else of the nearest one (ties: the smaller)."""
+    if np.int64(x) >= universe:
+        return n - 1, np.uint64(select(bits, ones, n - 1, True))
+    xi = np.int64(x)
+    r = rb_rank(bits, ranks, xi)
+    w, o = xi >> 6, np.uint64(xi & 63)
+    if (bits[w] >> o) & np.uint64(1):
+        return r, x
+    above = np.int64(-1)  # the next set bit: in this word or the next few, else by select
+    word = bits[w] & (ALL << o)
+    for j in range(w, min(w + LOCAL_WORDS + 1, bits.shape[0])):
+        if j > w:
+            word = bits[j]
+        if word:
+            above = j * 64 + trailing_zeros(word)
+            break
+    if above < 0 and r < n:
+        above = select(bits, ones, r, True)
+    below = np.int64(-1)  # the previous set bit, the same way down
+    word = bits[w] & ((np.uint64(1) << o) - np.uint64(1))
+    for j in range(w, max(w - LOCAL_WORDS - 1, -1), -1):
+        if j < w:
+            word = bits[j]
+        if word:
+            below = j * 64 + 63 - leading_zeros(word)
+            break
+    if below < 0 and r > 0:
+        below = select(bits, ones, r - 1, True)
+    if below < 0 or (above >= 0 and above - xi < xi - below):
+        return r, np.uint64(above)
+    return r - 1, np.uint64(below)
+
+
+@numba.njit(cache=True, nogil=True)
+def _set_bits(values: np.ndarray, bits: np.ndarray) -> None:
+    prev = np.int64(-1)
+    for i in range(values.shape[0]):
+        v = np.int64(values[i])
+        if v <= prev:
+            raise ValueError("bitmap values must ascend strictly")
+        prev = v
+        bits[v >> 6] |= np.uint64(1) << np.uint64(v & 63)
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_ranks(bits: np.ndarray) -> np.ndarray:
+    out = np.zeros((bits.shape[0] + RANK_WORDS - 1) // RANK_WORDS + 1, np.int64)
+    total = np.int64(0)
+    for j in range(bits.shape[0]):
+        if j % RANK_WORDS == 0:
+            out[j // RANK_WORDS] = total
+        total += popcount(bits[j])
+    out[-1] = total
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _bitmap_range(bits: np.ndarray, ones: np.ndarray, a: np.int64, b: np.int64) -> np.ndarray:
+    """The positions of set bits ``a … b − 1``."""
+    out = np.empty(b - a, np.int64)
+    if b <= a:
+        return out
+    p = select(bits, ones, a, True)
+    w = p >> 6
+    x = bits[w] & (ALL << np.uint64(p & 63))
+    for i in range(b - a):
+        while x == np.uint64(0):
+            w += 1
+            x = bits[w]
+        out[i] = w * 64 + trailing_zeros(x)
+        x &= x - np.uint64(1)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _bitmap_take(bits: np.ndarray, ones: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    out = np.empty(idx.shape[0], np.int64)
+    for j in range(idx.shape[0]):
+        out[j] = select(bits, ones, idx[j], True)
+    return out
+
+
+@dataclass
+class RankBitmap:
+    """A strictly ascending sequence of ``n`` integers below ``universe`` as a bitmap with rank
+    and select samples (see the module)."""
+
+    bits: np.ndarray
+    ranks: np.ndarray  # set bits before each block of RANK_WORDS words (and the total last)
+    ones: np.ndarray  # position of every SAMPLE-th set bit
+    n: int
+    universe: int
+
+    @classmethod
+    def build(cls, values: np.ndarray, universe: int) -> RankBitmap:
+        bits = np.zeros((universe + 63) // 64 + 1, np.uint64)
+        _set_bits(values, bits)
+        return cls(bits, _block_ranks(bits), _samples(bits, np.int64(universe), True, len(values)), len(values),
+                   universe)
+
+    def words(self) -> np.ndarray:
+        return np.concatenate([self.bits, self.ranks.view(np.uint64), self.ones.view(np.uint64)])
+
+    def layout(self) -> dict[str, int | str]:
+        return {"kind": "bitmap", "n": self.n, "universe": self.universe, "sample_bits": SAMPLE_BITS,
+                "bits": len(self.bits), "ranks": len(self.ranks), "ones": len(self.ones)}
+
+    @classmethod
+    def from_words(cls, words: np.ndarray, layout: dict[str, Any]) -> RankBitmap:
+        bits, ranks, ones = _split(words, layout, ("bits", "ranks", "ones"))
+        return cls(bits, ranks.view(np.int64), ones.view(np.int64), int(layout["n"]), int(layout["universe"]))
+
+    def in_memory(self) -> RankBitmap:
+        return RankBitmap(np.array(self.bits), np.array(self.ranks), np.array(self.ones), self.n, self.universe)
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.bits, self.ranks, self.ones))
+
+    def __len__(self) -> int:
+        return self.n
+
+    def get(self, i: np.ndarray | int) -> np.ndarray:
+        """Values at indexes ``i`` (int64)."""
+        return _bitmap_take(self.bits, self.ones, np.atleast_1d(np.asarray(i, np.int64)))
+
+    def decode(self, a: int = 0, b: int | None = None) -> np.ndarray:
+        b = self.n if b is None else min(b, self.n)
+        return _bitmap_range(self.bits, self.ones, np.int64(a), np.int64(max(a, b)))
+
+    def args(self) -> tuple:
+        """The occupancy tuple the look-up kernels take (:func:`occupancy_structure`)."""
+        return (np.int64(1), self.bits, np.zeros(1, np.uint64), np.int64(0), self.ones, self.ranks, np.int64(self.n),
+                np.int64(self.universe))
+
+
+def _split(words: np.ndarray, layout: dict[str, Any], parts: tuple[str, ...]) -> list[np.ndarray]:
+    """Views of the consecutive ``parts`` of one array, by the lengths ``layout`` gives."""
+    if layout.get("sample_bits") != SAMPLE_BITS:
+        raise ValueError(f"select samples every 2^{layout.get('sample_bits')} bits, this vprscale reads "
+                         f"2^{SAMPLE_BITS}")
+    cuts = np.cumsum([0] + [int(layout[k]) for k in parts])
+    if cuts[-1] != len(words):
+        raise ValueError(f"{len(words)} words, the layout describes {cuts[-1]}")
+    return [words[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+
+
 @dataclass
 class EliasFano:
     """An ascending sequence of ``n`` integers below ``2**63``, in Elias–Fano form (see the module)."""
@@ -316,21 +489,15 @@ class EliasFano:
         """The sequence as one uint64 array (with :meth:`layout`, what :meth:`from_words` reads)."""
         return np.concatenate([self.high, self.low, self.ones.view(np.uint64), self.zeros.view(np.uint64)])
 
-    def layout(self) -> dict[str, int]:
-        return {"n": self.n, "lb": self.lb, "buckets": self.buckets, "sample_bits": SAMPLE_BITS,
+    def layout(self) -> dict[str, int | str]:
+        return {"kind": "elias-fano", "n": self.n, "lb": self.lb, "buckets": self.buckets, "sample_bits": SAMPLE_BITS,
                 "high": len(self.high), "low": len(self.low),
                 "ones": len(self.ones), "zeros": len(self.zeros)}
 
     @classmethod
-    def from_words(cls, words: np.ndarray, layout: dict[str, int]) -> EliasFano:
+    def from_words(cls, words: np.ndarray, layout: dict[str, Any]) -> EliasFano:
         """The sequence over ``words`` (views: a memory-mapped file stays mapped)."""
-        if layout.get("sample_bits") != SAMPLE_BITS:
-            raise ValueError(f"select samples every 2^{layout.get('sample_bits')} bits, this vprscale reads "
-                             f"2^{SAMPLE_BITS}")
-        cuts = np.cumsum([0] + [int(layout[k]) for k in ("high", "low", "ones", "zeros")])
-        if cuts[-1] != len(words):
-            raise ValueError(f"{len(words)} words, the layout describes {cuts[-1]}")
-        high, low, ones, zeros = (words[a:b] for a, b in zip(cuts[:-1], cuts[1:], strict=True))
+        high, low, ones, zeros = _split(words, layout, ("high", "low", "ones", "zeros"))
         return cls(high, low, ones.view(np.int64), zeros.view(np.int64), int(layout["n"]), int(layout["lb"]),
                    int(layout["buckets"]))
 
@@ -354,6 +521,11 @@ class EliasFano:
         """Values ``a … b − 1`` (default: all), decoded in one pass."""
         b = self.n if b is None else min(b, self.n)
         return ef_range(self.high, self.low, self.lb, self.ones, np.int64(a), np.int64(max(a, b)))
+
+    def args(self) -> tuple:
+        """The occupancy tuple the look-up kernels take (:func:`occupancy_structure`)."""
+        return (np.int64(0), self.high, self.low, np.int64(self.lb), self.ones, self.zeros, np.int64(self.n),
+                np.int64(self.buckets))
 
     def lower_bound(self, x: np.ndarray) -> np.ndarray:
         """Index of the first value ≥ each ``x`` (``n`` where none is)."""
@@ -398,3 +570,25 @@ def ef_lower_bounds(high: np.ndarray, low: np.ndarray, lb: int, zeros: np.ndarra
     for j in range(x.shape[0]):
         out[j] = ef_lower_bound(high, low, lb, zeros, n, buckets, x[j])
     return out
+
+
+def occupancy_structure(values: np.ndarray, universe: int) -> EliasFano | RankBitmap:
+    """The smaller of an Elias–Fano sequence and a rank bitmap over ``values`` (strictly
+    ascending, below ``universe``): the bitmap where they are dense."""
+    n = len(values)
+    top = int(values[-1]) if n else 0
+    lb = max(0, int(np.floor(np.log2((top + 1) / n)))) if n else 0
+    buckets = (top >> lb) + 1
+    samples = (n + SAMPLE - 1) // SAMPLE + 1
+    ef_words = ((n + buckets + 63) // 64 + 1 + (packed_words(n, lb) if lb else 1) + samples
+                + (buckets + SAMPLE - 1) // SAMPLE + 1)
+    bits = (universe + 63) // 64 + 1
+    bitmap_words = bits + (bits + RANK_WORDS - 1) // RANK_WORDS + 1 + samples
+    return RankBitmap.build(values, universe) if bitmap_words < ef_words else EliasFano.build(values)
+
+
+def structure_from_words(words: np.ndarray, layout: dict[str, Any]) -> EliasFano | RankBitmap:
+    """The structure ``layout`` names, over ``words``."""
+    if layout.get("kind") == "bitmap":
+        return RankBitmap.from_words(words, layout)
+    return EliasFano.from_words(words, layout)

@@ -47,14 +47,12 @@ class CoarseHash(Algorithm):
 
     def _ops(self, state: QueryFrames, pos: np.ndarray, L: int, n_r: np.ndarray) -> float:
         """Counted operations per query, with the share of frames whose own address was unoccupied."""
-        a = state.slot[pos]
-        fallback = float(np.mean(self.index.lists.addresses(a) != state.hashes[pos])) if len(pos) else 0.0
+        fallback = float(np.mean(state.taken[pos] != state.hashes[pos])) if len(pos) else 0.0
         return method_ops(self.dim, self.index.d, self.index.k, L, float(np.mean(n_r)) if len(n_r) else 0.0,
                           self.index.occupied, fallback)["total"]
 
     def in_list(self, state: QueryFrames, pos: np.ndarray, truth: np.ndarray) -> np.ndarray:
-        lists = self.index.lists
-        return in_list_distance(state.slot[pos], truth, lists.starts_args(), lists.ids, lists.id_bits)
+        return in_list_distance(state.start, state.stop, state.ids, np.asarray(pos, np.int64), truth)
 
 
 def create(context: Any) -> list[Algorithm]:
