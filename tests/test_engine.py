@@ -115,6 +115,10 @@ def test_online_matches_batch_frame_by_frame():
             assert got[: L - 1] == [None] * (L - 1)
             np.testing.assert_array_equal(np.array(got[L - 1 :]), batch)
             np.testing.assert_array_equal(np.array(n_rs[L - 1 :]), batch_nr)
+            blocks = OnlineMatcher(idx, L=L, mode="aligned" if aligned else "paper")  # blocks of frames: the same
+            parts = [blocks.push_addresses(q[a : a + 7]) for a in range(0, len(q), 7)]
+            np.testing.assert_array_equal(np.concatenate([m for m, _ in parts]), np.r_[[-1] * (L - 1), batch])
+            np.testing.assert_array_equal(np.concatenate([n for _, n in parts])[L - 1 :], batch_nr)
 
 
 def test_online_matches_index_match_on_every_centre_with_bounded_state(tiny_store, tiny_index):

@@ -87,11 +87,10 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
         bad = np.flatnonzero(~np.isfinite(block).all(axis=1))
         if len(bad):  # a NaN frame would hash to an arbitrary address and be matched
             raise InputError(f"{path}: frame {u + int(bad[0]):,} holds NaN or Inf")
-        for row in block:
-            m = matcher.push(row)
-            if m is not None:
-                match[u], n_r[u] = m, matcher.n_r
-            u += 1
+        got, got_n_r = matcher.push_many(block)  # frame by frame, one call per block
+        done = got >= 0
+        match[u : u + len(block)][done], n_r[u : u + len(block)][done] = got[done], got_n_r[done]
+        u += len(block)
         if progress:
             progress.update(1)
     secs = time.perf_counter() - t0

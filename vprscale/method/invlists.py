@@ -171,6 +171,17 @@ def _gather_shared(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarr
 
 
 @numba.njit(cache=True, nogil=True)
+def heads(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(best, size)`` of each slot's list: its first id (the single best) and its length."""
+    best = np.empty(slots.shape[0], np.int64)
+    size = np.empty(slots.shape[0], np.int64)
+    for i in range(slots.shape[0]):
+        s, e = list_span(starts, slots[i])
+        best[i], size[i] = np.int64(get_packed(ids, id_bits, s)), e - s
+    return best, size
+
+
+@numba.njit(cache=True, nogil=True)
 def frame_top(start: np.ndarray, stop: np.ndarray, flat: np.ndarray, pos: np.ndarray, n_best: int) -> np.ndarray:
     """L = 1's best-first candidates of the frames at ``pos`` from their decoded lists
     (:func:`gather`): each list's first ``n_best`` ids, its single best then the rest by id
@@ -265,8 +276,7 @@ class InvertedLists:
 
     def best(self, slots: np.ndarray) -> np.ndarray:
         """Each slot's single best id (its list's first)."""
-        start, _ = self.spans(slots)
-        return np.array([self.ids_range(s, s + 1)[0] for s in start], np.int64)
+        return heads(self.starts_args(), self.ids, self.id_bits, np.atleast_1d(np.asarray(slots, np.int64)))[0]
 
     def gather(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(start, stop, flat)``: the lists of ``slots`` decoded (:func:`gather`)."""

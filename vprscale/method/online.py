@@ -18,7 +18,7 @@ import numba
 import numpy as np
 
 from vprscale.method.index import Index
-from vprscale.method.invlists import list_span, nearest_slots
+from vprscale.method.invlists import heads, list_span, nearest_slots
 from vprscale.method.kernels import (
     score_planes,
     score_window,
@@ -72,22 +72,46 @@ class OnlineMatcher:
 
     def push_address(self, h: int) -> int | None:
         """Add one query frame given its own address (already hashed)."""
-        if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
-            a = self.index.nearest_occupied(np.array([h], np.uint64))
-            start, stop = self.index.lists.spans(a)
-            self.n_r = int(stop[0] - start[0])
-            return int(self.index.lists.best(a)[0])
-        match, n_r = _step(np.uint64(h), self._state, self._ring_h, self._ring_n, self._buf, self._scratch,
-                           self._slots, self.L, self.mode == "aligned", self._fast, *self._args)
-        if match < 0:
+        match, n_r = self.push_addresses(np.array([h], np.uint64))
+        if match[0] < 0:
             return None
-        self.n_r = int(n_r)
-        return int(match)
+        self.n_r = int(n_r[0])
+        return int(match[0])
+
+    def push_many(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Add consecutive query frames (rows); ``(match, n_r)`` of the window each completes
+        (−1 and 0 for the first L − 1 frames): what :meth:`push` answers frame by frame, with
+        the hashing and the Python call done once for the block."""
+        return self.push_addresses(self.index.hash_queries(np.asarray(descriptors, np.float32)))
+
+    def push_addresses(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`push_many` for frames given by their own addresses (already hashed)."""
+        h = np.asarray(h, np.uint64)
+        if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
+            lists = self.index.lists
+            return heads(lists.starts_args(), lists.ids, lists.id_bits, lists.nearest(h)[0])
+        return _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots, self.L,
+                      self.mode == "aligned", self._fast, *self._args)
 
     @property
     def state_bytes(self) -> int:
         """Bytes held between frames: fixed at construction, whatever the length of the stream."""
         return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots))
+
+
+@numba.njit(cache=True, nogil=True)
+def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
+           cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, occ: tuple, starts: tuple,
+           ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int,
+           planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
+           k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_step` for each address of ``hs`` in turn."""
+    match = np.empty(hs.shape[0], np.int64)
+    n_r = np.empty(hs.shape[0], np.int64)
+    for i in range(hs.shape[0]):
+        match[i], n_r[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, L, aligned, fast, occ, starts, ids,
+                                 id_bits, codes, code_bits, n_ref, planes, gaps, masks, w, tables, d, k, dmax)
+    return match, n_r
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
