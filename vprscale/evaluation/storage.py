@@ -48,6 +48,7 @@ def index_parts(path: Path) -> dict[str, int]:
 def floor_bits(n_ref: int, d: int, k: int) -> int:
     """The information floor per place: its code (⌈d·log2 K⌉ bits, what the window scores read)
     and its id in a list (⌈log2 N⌉ bits); the directory adds a few bits per occupied address."""
+    n_ref, d, k = int(n_ref), int(d), int(k)  # numpy integers have no bit_length
     code = d if k == 2 else (k**d - 1).bit_length()
     return code + max(1, (n_ref - 1).bit_length())
 
