@@ -192,7 +192,7 @@ def fig_storage(indexes, out, figures) -> None:
     whole = [x for x in n if "parts" in by_n[x]]
     if whole:  # every file of the index, measured, against the floor of d + ⌈log2 N⌉ bits a place
         ax.plot(whole, [sum(by_n[x]["parts"].values()) for x in whole], "^-", color="C6", label="whole index on disk")
-        ax.plot(whole, [x * floor_bits(x, by_n[x]["d"], by_n[x]["k"]) / 8 for x in whole], "--", color="C7",
+        ax.plot(whole, [x * floor_bits(x, by_n[x]["d"], by_n[x]["k"]) / 8 for x in whole], "_--", color="C7", ms=12,
                 label="floor: d + ⌈log2 N⌉ bits a place")
     ax.set(xscale="log", yscale="log", xlabel="reference places N_ref", ylabel="bytes",
            title="Storage growth (paper Fig. 4c, with the lists)")
