@@ -370,9 +370,10 @@ def _block_ranks(bits: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _bitmap_range(bits: np.ndarray, ones: np.ndarray, a: np.int64, b: np.int64) -> np.ndarray:
-    """The positions of set bits ``a … b − 1``."""
-    out = np.empty(b - a, np.int64)
+def one_positions(bits: np.ndarray, ones: np.ndarray, a: np.int64, b: np.int64) -> np.ndarray:
+    """Positions of the set bits ``a … b − 1`` of a bit vector: one select, then the following
+    set bits in order (a bitmap's values; an Elias–Fano sequence's high parts plus index)."""
+    out = np.empty(max(0, b - a), np.int64)
     if b <= a:
         return out
     p = select(bits, ones, a, True)
@@ -441,7 +442,7 @@ class RankBitmap:
 
     def decode(self, a: int = 0, b: int | None = None) -> np.ndarray:
         b = self.n if b is None else min(b, self.n)
-        return _bitmap_range(self.bits, self.ones, np.int64(a), np.int64(max(a, b)))
+        return one_positions(self.bits, self.ones, np.int64(a), np.int64(max(a, b)))
 
     def args(self) -> tuple:
         """The occupancy tuple the look-up kernels take (:func:`occupancy_structure`)."""
@@ -543,23 +544,13 @@ def ef_take(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, idx: n
 
 @numba.njit(cache=True, nogil=True)
 def ef_range(high: np.ndarray, low: np.ndarray, lb: int, ones: np.ndarray, a: np.int64, b: np.int64) -> np.ndarray:
-    """Values ``a … b − 1``: one select, then the following one bits in order."""
-    out = np.empty(b - a, np.int64)
-    if b <= a:
-        return out
-    p = select(high, ones, a, True)
-    w = p >> 6
-    x = high[w] & (ALL << np.uint64(p & 63))
-    for i in range(a, b):
-        while x == np.uint64(0):
-            w += 1
-            x = high[w]
-        q = w * 64 + trailing_zeros(x)
-        x &= x - np.uint64(1)
-        v = np.uint64(q - i) << np.uint64(lb)
+    """Values ``a … b − 1``, decoded in one pass over their one bits."""
+    out = one_positions(high, ones, a, b)
+    for i in range(out.shape[0]):
+        v = np.uint64(out[i] - (a + i)) << np.uint64(lb)
         if lb:
-            v |= get_packed(low, lb, i)
-        out[i - a] = np.int64(v)
+            v |= get_packed(low, lb, a + i)
+        out[i] = np.int64(v)
     return out
 
 
