@@ -267,7 +267,7 @@ class Index:
         if L == 1:  # the frame's own list, decoded with the per-frame work: its best first
             w, tables, dmax = self.delta_tables()
             span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
-            err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors, np.float64)[pos]
+            err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors)[pos].astype(np.float64)
             moved = address_delta(qf.hashes[pos], qf.taken[pos], w, tables, self.d, self.k)
             score = err / span + moved / float(dmax)
             return frame_top(qf.start, qf.stop, qf.ids, pos, n_best), score, qf.stop[pos] - qf.start[pos]
