@@ -102,8 +102,10 @@ class _Buckets:
     def write(self, addresses: np.ndarray, sizes: np.ndarray, offsets: np.ndarray) -> None:
         """Append a run of buckets; whole row groups are written as they fill, so the file is the
         same bytes however the runs were cut (partitions, upgrade chunks)."""
-        self.pending = [np.r_[p, np.asarray(x, t)] for p, x, t in
-                        zip(self.pending, (addresses, sizes, offsets), (np.uint64, np.uint32, np.uint64), strict=True)]
+        new = [np.asarray(x, t) for x, t in zip((addresses, sizes, offsets), (np.uint64, np.uint32, np.uint64),
+                                                strict=True)]
+        self.pending = new if not len(self.pending[0]) else [np.concatenate([p, x]) for p, x in
+                                                              zip(self.pending, new, strict=True)]
         full = len(self.pending[0]) // ROW_GROUP * ROW_GROUP
         if full:
             self._flush(full)
@@ -261,8 +263,22 @@ def _best_first_run(order: np.ndarray, sizes: np.ndarray, best: np.ndarray) -> n
     return order
 
 
+_BYTE_BITS = (np.arange(256)[:, None] >> np.arange(8)[None, :]) & 1  # bit b of each byte value
+
+
 def level_counts(addresses: np.ndarray, d: int, k: int) -> np.ndarray:
-    """References per code level, (d × K), of addresses (the first component is the top digit)."""
+    """References per code level, (d × K), of addresses (the first component is the top digit).
+
+    For K = 2 a component is a bit: a histogram of each byte of the addresses gives every
+    bit's count at once (eight bincounts instead of d passes of division over the array).
+    """
+    if k == 2:
+        raw = np.ascontiguousarray(addresses, np.dtype(np.asarray(addresses).dtype).newbyteorder("<"))
+        columns = raw.view(np.uint8).reshape(len(raw), raw.dtype.itemsize)
+        ones = np.concatenate([np.bincount(columns[:, i], minlength=256) @ _BYTE_BITS
+                               for i in range(raw.dtype.itemsize)])[:d]  # ones[b]: addresses with bit b set
+        ones = ones[::-1].astype(np.int64)  # bit d − 1 − j is component j
+        return np.stack([len(raw) - ones, ones], axis=1)
     rest = np.asarray(addresses, np.uint64).copy()
     counts = np.zeros((d, k), np.int64)
     for j in range(d - 1, -1, -1):
