@@ -40,8 +40,9 @@ class QueryFrames:
     decoded (the paper's O(1) list look-up per new frame); for K = 2 its address also
     goes into bit planes like the references' (:func:`bit_planes`). Every window that
     contains the frame then reads these, so a query's sequence match never goes back to
-    the index's lists. Each distinct list is decoded once, so frames that share an address
-    (a coarse index) share its copy.
+    the index's lists. The lists lie in frame order; past ``SHARED_ABOVE`` ids together (a
+    coarse index, whose frames share a few long lists) each distinct list is decoded once
+    and shared (:func:`~vprscale.method.invlists.gather`).
 
     Only the frames worked on are held, ascending; arrays are indexed by position among
     them, and a window's frames, consecutive in the sequence, are consecutive here too.

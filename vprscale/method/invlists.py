@@ -3,8 +3,8 @@ functions the query engine reads them with.
 
 Three parts, what a query frame needs to find its list:
 
-- ``occupied``: the sorted occupied addresses, Elias–Fano (a frame's address → its slot, or
-  the numerically nearest occupied one);
+- ``occupied``: the sorted occupied addresses, a rank bitmap or Elias–Fano, whichever is
+  smaller (a frame's address → its slot, or the numerically nearest occupied one);
 - ``starts``: where each slot's list starts among the ids, Elias–Fano (``occupied + 1``
   values, the last one the number of ids);
 - ``ids``: the reference ids, grouped by address, bit-packed at ⌈log2 N⌉ bits; inside a
@@ -31,8 +31,7 @@ from vprscale.method.succinct import (
     ef_pair,
     get_packed,
     occupancy_structure,
-    pack_into,
-    packed_words,
+    pack,
     rb_nearest,
     unpack,
     width,
@@ -226,8 +225,7 @@ class InvertedLists:
         ``offsets`` (one more than the addresses) and the ids in list order (each list's
         single best first)."""
         bits = width(max(0, n_ref - 1))
-        words = np.zeros(packed_words(len(order), bits), np.uint64)
-        pack_into(words, bits, 0, np.asarray(order, np.uint64))
+        words = pack(order, bits)
         offsets = np.asarray(offsets, np.int64)
         return cls(occupancy_structure(np.asarray(addresses, np.uint64), universe), EliasFano.build(offsets), words,
                    bits, int(np.diff(offsets).max(initial=0)))

@@ -65,12 +65,6 @@ def get_packed(words: np.ndarray, bits: int, i: np.int64) -> np.uint64:
     return v
 
 
-@numba.njit(cache=True, nogil=True)
-def pack_into(words: np.ndarray, bits: int, start: np.int64, values: np.ndarray) -> None:
-    """Write ``values`` as entries ``start …`` of a packed array whose words there are still zero."""
-    pack_bits_into(words, bits, start * bits, values)
-
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _put(words: np.ndarray, bits: int, pos: np.uint64, v: np.uint64) -> None:
     """Or the ``bits``-bit value ``v`` into ``words`` at bit ``pos``."""
@@ -100,7 +94,7 @@ def unpack(words: np.ndarray, bits: int, a: np.int64, b: np.int64) -> np.ndarray
 def pack(values: np.ndarray, bits: int) -> np.ndarray:
     """A packed array of ``values`` (non-negative, below ``2**bits``)."""
     words = np.zeros(packed_words(len(values), bits), np.uint64)
-    pack_into(words, bits, 0, np.asarray(values, np.uint64))
+    pack_bits_into(words, bits, np.int64(0), np.asarray(values, np.uint64))
     return words
 
 
