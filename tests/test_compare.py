@@ -1,8 +1,9 @@
 """``vprscale eval --compare``: FAISS compact codes evaluated beside CoarseHash (docs/protocol.md).
 
 One shared evaluation of the tiny store with a FAISS method of each scoring form (product
-quantiser tables, 8-bit and bit-packed; Hamming tables of binary codes; decoded vectors of
-an IVF index), checked against FAISS itself and against a brute-force window score.
+quantiser tables, 8-bit and bit-packed; Hamming tables of binary codes; residual tables of
+an IVF-PQ index), checked against FAISS itself and against a brute-force window score; the
+table forms are also checked against the decoded-vector form on the same codes.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import zarr
 from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
-from vprscale.compared.faisscodes import ID_BYTES, training_rows
+from vprscale.compared.codescore import score_windows
+from vprscale.compared.faisscodes import ID_BYTES, REF_TERM_BYTES, FaissCodes, FrameTerms, training_rows
 
 FACTORIES = ["PQ4", "OPQ4,PQ4x6", "ITQ16,LSH", "IVF32,PQ4"]
 L_SEQ = 9
@@ -122,7 +124,8 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
     assert all(len(v) == 1 and v[0] > 0 for v in per_method)
     assert per_method["faiss:PQ4"][0] == 4 and per_method["faiss:ITQ16,LSH"][0] == 2
     assert per_method["faiss:OPQ4,PQ4x6"][0] == 3  # 24 bits
-    assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5  # list entry, and the code in id order
+    # list entry; the code in id order with its list number and its distance term
+    assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5 + REF_TERM_BYTES
     assert per_method["baseline"][0] == 4
     engine = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("codes", "ids", "occupied", "starts"))
     assert per_method["coarsehash"][0] == pytest.approx(engine / 52_500)  # codes, packed ids and directory
@@ -160,7 +163,36 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
     assert not out.exists()
 
 
-
+@pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("OPQ4,IVF16,PQ4x6", "residual"),
+                                           ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq")])
+def test_table_scores_equal_decoded_vector_scores(factory, form):
+    """Every candidate's window score from the tables (IVF-PQ: coarse row + per-list table +
+    frame table) equals, to float rounding, the sum of squared distances to the decoded codes."""
+    rng = np.random.default_rng(3)
+    ref = np.cumsum(rng.standard_normal((4000, 32)), axis=0).astype(np.float32) * 0.1
+    query = ref[1000:1200] + rng.standard_normal((200, 32)).astype(np.float32) * 0.05
+    codes = FaissCodes(factory, 32, k=8)
+    codes.train(ref)
+    codes.start(len(ref))
+    for i in range(0, len(ref), 1500):
+        codes.encode(ref[i : i + 1500])
+    codes.finish()
+    assert codes.form == form
+    decoded = codes.inner.sa_decode(codes.inner.sa_encode(codes._transform(ref)))
+    terms = codes.frame_terms(query)
+    L, centres = 15, np.array([20, 90, 150])
+    cand = np.concatenate([np.arange(900, 1300), np.arange(0, 40), np.arange(3980, 4000)]).astype(np.int64)
+    first, n_r = np.arange(3) * len(cand), np.full(3, len(cand))
+    both = []
+    for t, vectors, codes_arg in ((terms, np.zeros((0, 0), np.float32), codes.codes),
+                                  (FrameTerms(np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32),
+                                              codes._transform(query)), decoded, np.zeros((0, 1), np.uint8))):
+        top, scores = score_windows(centres, L, np.tile(cand, 3), first, n_r, len(ref), t.tables, t.coarse,
+                                    codes.ref_terms, codes.lists_of, codes_arg, t.vectors, vectors, len(cand))
+        both.append({(q, int(c)): s for q in range(3) for c, s in zip(top[q], scores[q], strict=True)})
+    assert both[0].keys() == both[1].keys() and len(both[0]) == 3 * len(cand)
+    got, want = (np.array([b[key] for key in sorted(both[0])]) for b in both)
+    np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6 * want.max())
 
 
 @pytest.mark.slow

@@ -17,7 +17,7 @@ import re
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import faiss
 import numpy as np
@@ -31,7 +31,21 @@ DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own
 DECODE_ROWS = 1 << 16  # codes decoded at a time
 BLOCK_ROWS = 256  # rows one thread encodes or searches at a time (fixed: the bytes must not depend on threads)
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
+REF_TERM_BYTES = 4  # residual IVF-PQ: each place's ‖ρ‖² + 2⟨c_l, ρ⟩, float32
 _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
+
+
+class FrameTerms(NamedTuple):
+    """What the window scores need of each query frame (the forms' unused parts empty):
+    per-byte ``tables`` (frames, bytes, 256), ``coarse`` distances to every inverted list
+    (frames, nlist; residual IVF-PQ codes), the frames' ``vectors`` (decoded-vector form)."""
+
+    tables: np.ndarray
+    coarse: np.ndarray
+    vectors: np.ndarray
+
+
+_NO_TABLES, _NO_ROWS = np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32)
 
 
 def training_rows(n_ref: int) -> np.ndarray:
@@ -39,6 +53,18 @@ def training_rows(n_ref: int) -> np.ndarray:
     if n_ref <= TRAIN_ROWS:
         return np.arange(n_ref)
     return np.unique(np.linspace(0, n_ref - 1, TRAIN_ROWS).round().astype(np.int64))
+
+
+def _form(inner: Any) -> str:
+    """How the window scores read a FAISS index's codes (:mod:`vprscale.compared.codescore`)."""
+    if isinstance(inner, faiss.IndexLSH):
+        return "hamming"
+    if isinstance(inner, faiss.IndexPQ) and inner.pq.nbits <= 8:
+        return "pq"
+    if (isinstance(inner, faiss.IndexIVFPQ) and inner.by_residual and inner.pq.nbits <= 8
+            and inner.metric_type == faiss.METRIC_L2):
+        return "residual"
+    return "vectors"
 
 
 def _one_thread(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> Any:
@@ -83,12 +109,14 @@ class FaissCodes:
         self.ivf = faiss.try_extract_index_ivf(self.inner)
         if self.ivf is not None:
             self.ivf.nprobe = nprobe
-        pq = getattr(self.inner, "pq", None)
-        self.form = ("hamming" if isinstance(self.inner, faiss.IndexLSH) else
-                     "pq" if isinstance(self.inner, faiss.IndexPQ) and pq.nbits <= 8 else "vectors")
+        self.form = _form(self.inner)
         self.codes = np.zeros((0, self.inner.sa_code_size()), np.uint8)
         self._filled = 0
-        self.vectors = np.zeros((0, 0), np.float32)
+        self.vectors = _NO_ROWS
+        self.lists_of = np.zeros(0, np.uint32)  # residual form: each reference's inverted list
+        self.per_list = _NO_TABLES  # residual form: ‖ρ‖² + 2⟨c_l, ρ⟩ per list, sub-quantiser and code
+        self.ref_terms = np.zeros(0, np.float32)  # residual form: each reference's ‖ρ‖² + 2⟨c_l, ρ⟩
+        self.centroids = _NO_ROWS  # residual form: the coarse centroids
 
     @property
     def name(self) -> str:
@@ -108,11 +136,13 @@ class FaissCodes:
 
         A flat index: its code (whose position is the id). An IVF index: its list entry
         (code and 64-bit id), and for sequences each place's code again in id order, where
-        the window scores find it.
+        the window scores find it (with its list number); residual IVF-PQ codes also keep
+        each place's query-independent distance term (a float32) there.
         """
         if self.ivf is None:
             return float(self.inner.sa_code_size())
-        return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size())
+        extra = REF_TERM_BYTES if self.form == "residual" else 0
+        return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size() + extra)
 
     def scan_per_frame(self) -> float:
         """Places (codes) a frame's search visits: all of them, or the probed lists' share."""
@@ -126,10 +156,13 @@ class FaissCodes:
         width = self.codes.shape[1]
         tables = 3.0 * 256 * self.dim if self.form != "hamming" else 256.0 * width
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
+        coarse *= 2 if self.form == "residual" else 1  # the window scores' coarse row, beside the search's
         return transform + tables + coarse + width * self.scan_per_frame()
 
     def pair_ops(self) -> float:
         """Operations of one (candidate, frame) term of a window score."""
+        if self.form == "residual":
+            return 2.0 * self.codes.shape[1] + 1
         return float(self.codes.shape[1]) if self.form != "vectors" else 3.0 * self.vectors.shape[1]
 
     def _transform(self, x: np.ndarray) -> np.ndarray:
@@ -144,9 +177,13 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.inner.pq.M if self.form == "pq" else self.inner.sa_code_size()
+        width = self.inner.pq.M if self.form in ("pq", "residual") else self.inner.sa_code_size()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
+        if self.form == "residual":
+            self.lists_of = np.empty(n_ref, np.uint16 if self.ivf.nlist <= 1 << 16 else np.uint32)
+            self.ref_terms = np.empty(n_ref, np.float32)
+            self._residual_tables()
 
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray) -> list[Any]:
         """``fn`` of each block of ``BLOCK_ROWS`` rows of ``x``, on ``threads`` threads, in order."""
@@ -162,7 +199,15 @@ class FaissCodes:
         codes = np.concatenate(self._blocks(lambda b: self.inner.sa_encode(self._transform(b)), x))
         self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
-        self.codes[lo : self._filled] = codes if self.form != "pq" else self._pq_indices(codes)
+        if self.form == "residual":  # FAISS's standalone IVF code: the list number (little-endian), then the PQ code
+            coarse = self.ivf.coarse_code_size()
+            self.lists_of[lo : self._filled] = (codes[:, :coarse].astype(np.uint32)
+                                                << (8 * np.arange(coarse, dtype=np.uint32))).sum(axis=1)
+            codes = codes[:, coarse:]
+        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form in ("pq", "residual") else codes
+        if self.form == "residual":
+            lists, sub = self.lists_of[lo : self._filled], self.codes[lo : self._filled]
+            self.ref_terms[lo : self._filled] = sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1]))
 
     def finish(self) -> None:
         if self._filled != len(self.codes):
@@ -173,10 +218,23 @@ class FaissCodes:
             for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
 
+    def _pq(self) -> Any:
+        """The product quantiser of a PQ or IVF-PQ index."""
+        return self.inner.pq
+
+    def _residual_tables(self) -> None:
+        """The coarse centroids and, per list ``l``, sub-quantiser ``m`` and code ``v``,
+        ``‖ρ_mv‖² + 2⟨c_l[m], ρ_mv⟩`` (the query-independent part of a residual distance)."""
+        pq = self._pq()
+        self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
+        cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
+        sub = self.centroids.reshape(self.ivf.nlist, pq.M, pq.dsub)
+        self.per_list = ((cents**2).sum(-1)[None, :, :] + 2 * np.einsum("lmd,mkd->lmk", sub, cents)).astype(np.float32)
+
     def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
         """A product quantiser's packed codes as one centroid index per sub-quantiser (FAISS
         packs ``nbits`` per index, least significant bit first)."""
-        pq = self.inner.pq
+        pq = self._pq()
         if pq.nbits == 8:
             return codes
         bits = np.unpackbits(codes, axis=1, bitorder="little")[:, : pq.M * pq.nbits].reshape(len(codes), pq.M, pq.nbits)
@@ -187,24 +245,36 @@ class FaissCodes:
         found = self._blocks(lambda b: self.index.search(b, self.k), rows)
         return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
 
-    def frame_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(tables, vectors)``: what the window scores need of each query frame (the other empty)."""
+    def frame_terms(self, rows: np.ndarray) -> FrameTerms:
+        """What the window scores need of each query frame (:class:`FrameTerms`)."""
+        if self.form == "residual":  # in blocks, FAISS's BLAS on one thread each: the same bits for any threads
+            parts = self._blocks(self._residual_terms, np.asarray(rows, np.float32))
+            return FrameTerms(np.concatenate([t for t, _ in parts]), np.concatenate([c for _, c in parts]), _NO_ROWS)
         y = self._transform(np.asarray(rows, np.float32))
-        no_tables, no_vectors = np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32)
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
-            return _POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], no_vectors
+            return FrameTerms(_POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], _NO_ROWS,
+                              _NO_ROWS)
         if self.form == "pq":
-            pq = self.inner.pq
-            cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
-            ys = y.reshape(len(y), pq.M, pq.dsub)
-            tables = ((ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents)
-                      + (cents**2).sum(-1)[None, :, :])
-            return np.maximum(tables, 0).astype(np.float32), no_vectors
-        return no_tables, y
+            ys, cents = self._sub_products(y)
+            tables = (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
+            return FrameTerms(np.maximum(tables, 0).astype(np.float32), _NO_ROWS, _NO_ROWS)
+        return FrameTerms(_NO_TABLES, _NO_ROWS, y)
 
-    def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, tables: np.ndarray,
-              q_vectors: np.ndarray, n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _sub_products(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The frames split by sub-quantiser, and the sub-quantisers' centroids."""
+        pq = self._pq()
+        return y.reshape(len(y), pq.M, pq.dsub), faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
+
+    def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A block's ``−2⟨y[m], ρ_mv⟩`` tables and its coarse distances to every list."""
+        y = self._transform(rows)
+        ys, cents = self._sub_products(y)
+        tables = (-2 * np.einsum("nmd,mkd->nmk", ys, cents)).astype(np.float32)
+        return tables, faiss.pairwise_distances(y, self.centroids)
+
+    def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, terms: FrameTerms,
+              n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sequence match of the windows centred at query-frame ``positions``: ``(top, scores,
         n_r)``, the ``n_best`` best candidates best first (:func:`score_windows`).
 
@@ -214,6 +284,6 @@ class FaissCodes:
         positions = np.asarray(positions, np.int64)
         cand, first, n_r = window_proposals(positions, L, aligned, lists, self.n_ref)
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
-        top, scores = score_windows(positions, L, cand, first, n_r, self.n_ref, tables, codes, q_vectors,
-                                    self.vectors, n_best)
+        top, scores = score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.coarse,
+                                    self.ref_terms, self.lists_of, codes, terms.vectors, self.vectors, n_best)
         return top, scores, n_r

@@ -97,15 +97,15 @@ class FaissMethod(Algorithm):
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
         self._apply()
         dist, ids = self.codes.search(rows)
-        return (ids, dist, ranked_lists(ids), *self.codes.frame_terms(rows))
+        return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows)
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         self._apply()  # its counted operations depend on this point's nprobe
-        ids, dist, lists, tables, q_vectors = state
+        ids, dist, lists, terms = state
         frame_ops = self.codes.frame_ops()
         if L == 1:  # FAISS's own ranking and distances
             return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), frame_ops)
-        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", lists, tables, q_vectors, n_best)
+        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", lists, terms, n_best)
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
         return Answer(top, scores[:, 0], n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
 

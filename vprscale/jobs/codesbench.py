@@ -1,0 +1,127 @@
+"""``vprscale bench codes``: the cost of one window-score term on FAISS codes, ours against FAISS's.
+
+A window score adds one distance term per (candidate, window frame): a query frame against
+a reference's code. :mod:`vprscale.compared.codescore` computes each term from per-frame
+tables; FAISS computes the same distance from the same tables in its own scans. This
+benchmark prints, per FAISS method and in one process, on the same codes:
+
+- **ours**: CPU ns per term of :func:`~vprscale.compared.codescore.score_windows` on windows
+  of ``L`` frames centred at random query frames, each scoring random candidate centres
+  (the candidates' codes read as a window reads them: ``L`` consecutive references);
+- **FAISS**: CPU ns per code of FAISS's own search over the same codes, one thread: the
+  flat index's scan (``IndexPQ.search``: one table per query, one look-up per code byte),
+  and for IVF-PQ its inverted-list scan with precomputed tables over every list
+  (``nprobe = nlist``: coarse term per list, one look-up per code byte). These are FAISS's
+  distance computations in its fastest, sequential loop;
+- the ratio ours / FAISS, and for residual IVF-PQ codes ours / ours on the flat PQ of the
+  same code size (the issue's bar: at most 2×).
+
+Times are CPU seconds of the calling thread (numba and FAISS on one thread), medians of
+``repeats`` with min and max; nothing here is asserted in a test.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import faiss
+import numba
+import numpy as np
+import zarr
+
+from vprscale.compared.codescore import score_windows
+from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.core.errors import InputError
+from vprscale.dataset.store import open_complete_group, store_layout
+
+DEFAULT_FACTORIES = ("PQ3", "OPQ3,PQ3", "IVF1024,PQ3")
+WINDOWS = 256  # windows whose candidates are scored per repeat
+CANDIDATES = 256  # random candidate centres per window
+
+
+def _cpu_ns(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float, float]:
+    """(median, min, max) CPU ns of the calling thread per item over ``repeats`` calls."""
+    fn()  # compile and warm outside the timing
+    took = []
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        fn()
+        took.append((time.thread_time() - t0) / n * 1e9)
+    return float(np.median(took)), min(took), max(took)
+
+
+def _fmt(t: tuple[float, float, float]) -> str:
+    return f"{t[0]:6.2f} ({t[1]:.2f}–{t[2]:.2f})"
+
+
+def _ours(codes: FaissCodes, query: np.ndarray, L: int, rng: np.random.Generator, repeats: int
+          ) -> tuple[float, float, float]:
+    """Our window score per term, on random windows and random candidates."""
+    terms = codes.frame_terms(query)
+    half = L // 2
+    centres = rng.integers(half, len(query) - L + half + 1, WINDOWS)
+    cand = rng.integers(0, codes.n_ref, WINDOWS * CANDIDATES)
+    first = np.arange(WINDOWS, dtype=np.int64) * CANDIDATES
+    n_r = np.full(WINDOWS, CANDIDATES, np.int64)
+    ref_codes = codes.codes if codes.form != "vectors" else np.zeros((0, 1), np.uint8)
+
+    def run() -> None:
+        score_windows(centres, L, cand, first, n_r, codes.n_ref, terms.tables, terms.coarse, codes.ref_terms,
+                      codes.lists_of, ref_codes, terms.vectors, codes.vectors, 1)
+
+    return _cpu_ns(run, WINDOWS * CANDIDATES * L, repeats)
+
+
+def _faiss_scan(codes: FaissCodes, query: np.ndarray, repeats: int) -> tuple[float, float, float]:
+    """FAISS's own search over the same codes, per code visited (one thread)."""
+    y = np.ascontiguousarray(codes._transform(query[:16]), np.float32)
+    inner = codes.inner
+    if codes.ivf is not None:
+        codes.ivf.nprobe = codes.ivf.nlist
+        visited = codes.n_ref
+    else:
+        visited = inner.ntotal
+    faiss.omp_set_num_threads(1)
+    try:
+        return _cpu_ns(lambda: inner.search(y, 1), len(y) * visited, repeats)
+    finally:
+        if codes.ivf is not None:
+            codes.ivf.nprobe = codes.nprobe
+
+
+def bench_codes(store: str, factories: list[str], places: int | None, L: int, repeats: int = 5) -> str:
+    """Print the per-term cost of our window scores and FAISS's scans (module docstring)."""
+    path = Path(store)
+    group = open_complete_group(path)
+    if store_layout(group)["kind"] == "compact":
+        raise InputError(f"bench codes: {store} is a compact store; give a full one (it encodes its reference rows)")
+    ref_array = group["ref"]
+    assert isinstance(ref_array, zarr.Array)
+    n = min(places or ref_array.shape[0], ref_array.shape[0])
+    ref = np.asarray(ref_array[:n], np.float32)
+    query = np.asarray(group["query_qm1"][: max(4 * L, 1024)], np.float32)
+    rng = np.random.default_rng(0)
+    numba.set_num_threads(1)
+    lines = [f"window-score term cost, CPU ns per term, one thread, median (min–max) of {repeats}; "
+             f"{n:,} references of {path.name}, L = {L}, {WINDOWS} windows × {CANDIDATES} random candidates",
+             f"{'method':<18} {'form':<9} {'B/code':>6} {'ours':>22} {'FAISS scan':>22} {'ours/FAISS':>10} "
+             f"{'ours/PQ':>8}"]
+    flat_pq: dict[int, float] = {}
+    for factory in factories:
+        codes = FaissCodes(factory, ref.shape[1], k=1)
+        codes.train(ref[training_rows(n)])
+        codes.start(n)
+        for i in range(0, n, 1 << 16):
+            codes.encode(ref[i : i + (1 << 16)])
+        codes.finish()
+        ours = _ours(codes, query, L, rng, repeats)
+        theirs = _faiss_scan(codes, query, repeats)
+        width = codes.codes.shape[1]
+        if codes.form == "pq":
+            flat_pq.setdefault(width, ours[0])
+        vs_pq = f"{ours[0] / flat_pq[width]:8.2f}" if codes.form == "residual" and width in flat_pq else f"{'-':>8}"
+        lines.append(f"{factory:<18} {codes.form:<9} {width:>6} {_fmt(ours):>22} {_fmt(theirs):>22} "
+                     f"{ours[0] / theirs[0]:10.2f} {vs_pq}")
+    return "\n".join(lines)
