@@ -135,17 +135,24 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
 @pytest.mark.slow
 def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch):
     """A run whose frames would visit more codes than the budget localises an evenly spaced
-    sample of the centres (the same ones for every flat method); IVF visits few and does all."""
+    sample of the centres (the same ones for every flat method), never fewer than the floor;
+    IVF visits few and does all."""
     import vprscale.evaluation.algorithms.faisscodes as fc
 
     monkeypatch.setattr(fc, "SCAN_BUDGET", 52_500 * 5 * 40)
-    out = tmp_path / "e"
-    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "5", "--z", "97", "--noise", "qm1",
-                 "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare", "IVF32,PQ4",
-                 "--faiss-nprobe", "1", "--out", str(out)]) == 0
-    res = pq.read_table(out / "results.parquet").to_pandas()
-    n = res[res.part == "all"].groupby("method")["n_queries"].first()
-    assert n["faiss:PQ4"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40
+    runs = {}
+    for floor in (30, 40, 1000):
+        monkeypatch.setattr(fc, "MIN_CENTRES", floor)
+        out = tmp_path / f"e{floor}"
+        assert main(["eval", str(tiny_store), str(tiny_index), "--L", "5", "--z", "97", "--noise", "qm1",
+                     "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare", "IVF32,PQ4",
+                     "--faiss-nprobe", "1", "--repeats", "1", "--out", str(out)]) == 0
+        res = pq.read_table(out / "results.parquet").to_pandas()
+        runs[floor] = res[res.part == "all"].groupby("method")["n_queries"].first()
+    n = runs[30]
+    assert n["faiss:PQ4"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40  # the budget's 40 over a floor of 30
+    assert runs[40]["faiss:PQ4"] == 40
+    assert runs[1000]["faiss:PQ4"] == n["coarsehash"] < 1000  # the floor: every centre when there are fewer
 
 
 @pytest.mark.parametrize("argv, message", [
