@@ -69,14 +69,35 @@ def test_same_addresses_lists_and_model(both_indexes):
                                       np.load(full / "model" / f"{name}.npy"), err_msg=name)
 
 
-def test_same_matches(both_indexes, compact_store, tiny_store, tmp_path):
+def test_same_matches(both_indexes, compact_store, tiny_store, sources, tmp_path):
+    """Every method, FAISS codes included (the compact store's references recomputed from its
+    sources, the full store's read), answers the same on both layouts."""
     compact, full = both_indexes
+    compare = ["--compare", "PQ4", "--compare", "IVF32,PQ4", "--compare", "OPQ4,PQ4x6"]
+    files = ["--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"])]
     tables = []
-    for store, index, out in ((compact_store, compact, tmp_path / "c"), (tiny_store, full, tmp_path / "f")):
-        assert main(["eval", str(store), str(index), "--L", "1,50", "--noise", "qm1", "--out", str(out)]) == 0
+    for store, index, out, extra in ((compact_store, compact, tmp_path / "c", files),
+                                     (tiny_store, full, tmp_path / "f", [])):
+        assert main(["eval", str(store), str(index), "--L", "1,50", "--noise", "qm1", "--repeats", "1",
+                     "--out", str(out), *compare, *extra]) == 0
         tables.append(pq.read_table(out / "queries.parquet").to_pandas())
-    cols = ["method", "mode", "L", "t", "gt", "match", "n_r", "in_list", "part"]
+    cols = ["method", "params", "mode", "L", "t", "gt", "match", "score", "n_r", "in_list", "part"]
+    assert {"faiss:PQ4", "faiss:IVF32,PQ4", "faiss:OPQ4,PQ4x6"} < set(tables[0].method)
     assert len(tables[0]) > 1000 and tables[0][cols].equals(tables[1][cols])
+
+
+def test_compact_store_from_files_needs_its_sources_to_compare(both_indexes, compact_store, sources, tmp_path,
+                                                              capsys):
+    out = tmp_path / "e"
+    assert main(["eval", str(compact_store), str(both_indexes[0]), "--L", "1", "--compare", "PQ4",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--deep1b" in err and "compact store built from files" in err and len(err.splitlines()) == 1
+    assert main(["eval", str(compact_store), str(both_indexes[0]), "--L", "1", "--compare", "PQ4", "--out", str(out),
+                 "--deep1b", str(sources["fbin"]), "--fas", str(sources["fbin"])]) == 2
+    err = capsys.readouterr().err.strip()  # a FAS file that is not one: named, one line
+    assert "base.fbin: not an .npz" in err and len(err.splitlines()) == 1
+    assert not out.exists()
 
 
 def test_compact_store_refuses_what_it_cannot_answer(compact_store, both_indexes, tmp_path, capsys):

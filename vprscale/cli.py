@@ -251,7 +251,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                       z=args.z, baseline_queries=args.baseline_queries,
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,
                       faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
-                      out=Path(args.out) if args.out else None,
+                      deep1b=args.deep1b, fas=args.fas, out=Path(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
                       force=args.force)
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
@@ -466,7 +466,11 @@ def parser() -> argparse.ArgumentParser:
                         "each (default: CoarseHash's mean list size on INDEX)")
     p.add_argument("--compare-queries", type=_positive_int, default=None,
                    help="centres per compared (FAISS or --method) run (default: FAISS: all while the run's frames "
-                        "visit at most 2^35 codes, beyond, an evenly spaced sample that fits; --method: all)")
+                        "visit at most 2^35 codes, beyond, an evenly spaced sample that fits, at least 1,000; "
+                        "--method: all)")
+    p.add_argument("--deep1b", metavar="PATH", help="a compact store built from files: its Deep1B file (--compare "
+                   "and --method recompute the references from the sources; not needed for synthetic stores)")
+    p.add_argument("--fas", metavar="PATH", help="a compact store built from files: its FAS file (as --deep1b)")
     p.add_argument("--force", action="store_true",
                    help="replace an evaluation already in the output; the old one is kept beside, as <out>.previous")
     p.add_argument("--repeats", type=_positive_int, default=3,

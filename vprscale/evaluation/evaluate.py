@@ -28,7 +28,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
-from vprscale.core.zarrio import rows_of
+from vprscale.dataset.references import reference_rows
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
 from vprscale.evaluation.algorithms.base import Answer
@@ -72,6 +72,8 @@ class EvalRequest:
     methods: list[str] = field(default_factory=list)  # your own methods: package.module:Class or installed names
     method_k: list[int] | None = None  # their k per frame, one operating point each (None: as faiss_k's default)
     compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
+    deep1b: str | None = None  # a compact store's sources, to recompute its references (synthetic: not needed)
+    fas: str | None = None
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
     out: Path | None = None
@@ -185,10 +187,6 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
     dim = int(meta["recipe"]["dim"])
-    if (req.compare or req.methods) and layout["kind"] == "compact":
-        flag = "--compare" if req.compare else "--method"
-        raise InputError(f"{flag}: {req.store} is a compact store and keeps no reference descriptors to "
-                         "fit on; build it with --layout full")
     plugged = [load_method(spec, registry.installed_methods()) for spec in req.methods]
     with dask_client(req.scheduler, req.workers) as client:
         index_paths = req.indexes
@@ -226,9 +224,10 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 raise InputError(_HOLDS.format(out=out))
             partial.open()
             t_fit = time.perf_counter()
-            fit_codes(compared, rows_of(group["ref"]), req.quiet) if compared else None
+            ref = reference_rows(req.store, group, req.deep1b, req.fas) if compared or plugged else None
+            fit_codes(compared, ref, req.quiet) if compared else None
             fit_s = time.perf_counter() - t_fit
-            method_fit_s = _fit_methods(plugged, rows_of(group["ref"]), req.quiet) if plugged else {}
+            method_fit_s = _fit_methods(plugged, ref, req.quiet) if plugged else {}
             rows, queries = _grid(req, qs, z, dim, indexes, base, compared, plugged)
             columns = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                        "store_identity": identity}
