@@ -6,11 +6,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.sources.writers import write_fas_npz, write_fbin, write_fvecs
 from vprscale.method.hashkernels import hash_rows
 from vprscale.method.kmeans1d import kmeans_1d
+
+# Hypothesis's per-example deadline is a wall-clock assertion: the first example of a test
+# compiles its numba kernels (0.5 s on a fresh checkout), and a loaded machine is slower.
+settings.register_profile("vprscale", deadline=None)
+settings.load_profile("vprscale")
 
 
 def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
