@@ -172,6 +172,19 @@ def _build_own(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_encode(args: argparse.Namespace) -> int:
+    from vprscale.jobs.encoding import encode_store
+
+    summary = encode_store(Path(args.store), args.compare or [], deep1b=args.deep1b, fas=args.fas,
+                           workers=args.workers, scheduler=args.scheduler, force=args.force)
+    for factory, m in summary["methods"].items():
+        done = "up to date, kept" if m.get("skipped") else f"{m['wall_s']:,.1f} s, {m['code_bytes']} B a code"
+        print(f"faiss:{factory}: {summary['n_ref']:,} references → {m['out']} ({done})")
+    print(f"  peak memory {summary['peak_rss_bytes'] / 2**30:.2f} GiB")
+    _write_summary(args, summary)
+    return 0
+
+
 def cmd_index(args: argparse.Namespace) -> int:
     from vprscale.evaluation.storage import format_parts, format_storage, index_parts
     from vprscale.jobs.indexing import build_index, upgrade_index
@@ -433,6 +446,17 @@ def parser() -> argparse.ArgumentParser:
                    help="re-index even if the index holds evaluations (they are kept in <index>.previous-eval/)")
     p.add_argument("--out", help="index directory (default: beside the store, <scale>-d<d>-k<K>.index)")
     p.set_defaults(func=cmd_index)
+
+    p = sub.add_parser("encode", parents=[cluster, summary],
+                       help="encode a store's references with FAISS methods, beside it, for eval --compare "
+                            "(resumable; needed at 100M and 1B)")
+    p.add_argument("store", help="a complete <scale>.zarr dataset store (full or compact)")
+    p.add_argument("--compare", action="append", metavar="FACTORY", required=True,
+                   help="a FAISS index_factory string (repeat for several)")
+    p.add_argument("--deep1b", metavar="PATH", help="a compact store built from files: its Deep1B file")
+    p.add_argument("--fas", metavar="PATH", help="a compact store built from files: its FAS file")
+    p.add_argument("--force", action="store_true", help="encode again (the old encoding replaced once done)")
+    p.set_defaults(func=cmd_encode)
 
     p = sub.add_parser("eval", parents=[cluster, summary],
                        help="localise query sequences and evaluate the grid of docs/protocol.md")

@@ -102,14 +102,7 @@ class FaissCodes:
         if index.metric_type != faiss.METRIC_L2:
             raise InputError(f"--compare {factory}: the index does not search by L2 distance")
         self.factory, self.dim, self.k, self.nprobe, self.threads = factory, dim, k, nprobe, threads
-        self.index = index
-        self.chain = ([faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
-                      if isinstance(index, faiss.IndexPreTransform) else [])
-        self.inner = faiss.downcast_index(index.index) if self.chain else index
-        self.ivf = faiss.try_extract_index_ivf(self.inner)
-        if self.ivf is not None:
-            self.ivf.nprobe = nprobe
-        self.form = _form(self.inner)
+        self.bind(index)
         self.codes = np.zeros((0, self.inner.sa_code_size()), np.uint8)
         self._filled = 0
         self.vectors = _NO_ROWS
@@ -117,6 +110,17 @@ class FaissCodes:
         self.per_list = _NO_TABLES  # residual form: ‖ρ‖² + 2⟨c_l, ρ⟩ per list, sub-quantiser and code
         self.ref_terms = np.zeros(0, np.float32)  # residual form: each reference's ‖ρ‖² + 2⟨c_l, ρ⟩
         self.centroids = _NO_ROWS  # residual form: the coarse centroids
+
+    def bind(self, index: Any) -> None:
+        """Work on ``index`` (a fresh one from the factory, or a trained one read from disk)."""
+        self.index = index
+        self.chain = ([faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
+                      if isinstance(index, faiss.IndexPreTransform) else [])
+        self.inner = faiss.downcast_index(index.index) if self.chain else faiss.downcast_index(index)
+        self.ivf = faiss.try_extract_index_ivf(self.inner)
+        if self.ivf is not None:
+            self.ivf.nprobe = self.nprobe
+        self.form = _form(self.inner)
 
     @property
     def name(self) -> str:
@@ -196,7 +200,14 @@ class FaissCodes:
 
     def encode(self, x: np.ndarray) -> None:
         """Encode and add the next block of references."""
-        codes = np.concatenate(self._blocks(lambda b: self.inner.sa_encode(self._transform(b)), x))
+        self.add_codes(self.encode_rows(x))
+
+    def encode_rows(self, x: np.ndarray) -> np.ndarray:
+        """FAISS's standalone codes of rows ``x``, in blocks of ``BLOCK_ROWS`` on one FAISS thread each."""
+        return np.concatenate(self._blocks(lambda b: self.inner.sa_encode(self._transform(b)), x))
+
+    def add_codes(self, codes: np.ndarray) -> None:
+        """Add the next references by their standalone codes (:meth:`encode_rows`, or stored ones)."""
         self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
         if self.form == "residual":  # FAISS's standalone IVF code: the list number (little-endian), then the PQ code

@@ -31,8 +31,29 @@ from vprscale.dataset.store import ATTR
 _CHECKED = ("deep1b_mean", "deep1b_scale")  # fitted transforms that must come out equal from the sources
 
 
-def reference_rows(store: Path, group: zarr.Group, deep1b: str | None = None, fas: str | None = None) -> da.Array:
-    """The reference rows of ``store`` (its ``ref``, or recomputed for a compact store).
+class StoredRows:
+    """Reference rows ``[a, b)`` of a full store, read from its ``ref`` (opened in the task)."""
+
+    def __init__(self, store: Path) -> None:
+        self.store = str(store)
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        return np.asarray(zarr.open_group(self.store, mode="r")["ref"][a:b], np.float32)
+
+
+class RecomputedRows:
+    """Reference rows ``[a, b)`` of a compact store, computed from its sources as the build did."""
+
+    def __init__(self, writer: ChunkWriter) -> None:
+        self.writer = writer
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        return np.asarray(self.writer.ref_rows(a, b), np.float32)
+
+
+def reference_reader(store: Path, group: zarr.Group, deep1b: str | None = None,
+                     fas: str | None = None) -> tuple[StoredRows | RecomputedRows, list[tuple[int, int]]]:
+    """A task that gives the reference rows ``[a, b)`` of ``store``, and the chunks to ask it for.
 
     ``deep1b`` and ``fas`` name the source files a compact store was built from; a store
     built from the synthetic generator needs neither.
@@ -40,7 +61,7 @@ def reference_rows(store: Path, group: zarr.Group, deep1b: str | None = None, fa
     meta = group.attrs[ATTR]
     lay = meta["layout"]
     if lay["kind"] != "compact":
-        return rows_of(group["ref"])
+        return StoredRows(store), chunk_bounds(int(group["ref"].shape[0]), int(group["ref"].chunks[0]))
     recipe = Recipe.from_dict({k: v for k, v in meta["recipe"].items() if k != "layout"}, str(store))
     sources = meta["sources"]
     for flag, given, fingerprint in (("--deep1b", deep1b, sources["deep1b"]), ("--fas", fas, sources["fas"])):
@@ -65,14 +86,18 @@ def reference_rows(store: Path, group: zarr.Group, deep1b: str | None = None, fa
     writer = ChunkWriter(str(store), deep, recipe, layout, t["deep1b_mean"][:],
                          t["deep1b_components"][:].T * t["deep1b_scale"][:], t["noise_mean"][:], t["noise_std"][:],
                          traverse.gt, merge.fas_ref_, merge.fas_query_)
-    shared = dask.delayed(writer, pure=True)  # hashed once, not once per chunk
-    chunks = [da.from_delayed(dask.delayed(_rows)(shared, a, b), shape=(b - a, recipe.dim), dtype=np.float32)
-              for a, b in chunk_bounds(layout.n_ref, recipe.chunk_rows)]
+    return RecomputedRows(writer), chunk_bounds(layout.n_ref, recipe.chunk_rows)
+
+
+def reference_rows(store: Path, group: zarr.Group, deep1b: str | None = None, fas: str | None = None) -> da.Array:
+    """The reference rows of ``store`` as a Dask array (its ``ref``, or recomputed for a compact store)."""
+    if group.attrs[ATTR]["layout"]["kind"] != "compact":
+        return rows_of(group["ref"])
+    read, bounds = reference_reader(store, group, deep1b, fas)
+    shared = dask.delayed(read, pure=True)  # hashed once, not once per chunk
+    dim = int(group.attrs[ATTR]["recipe"]["dim"])
+    chunks = [da.from_delayed(shared(a, b), shape=(b - a, dim), dtype=np.float32) for a, b in bounds]
     return da.concatenate(chunks, axis=0)
-
-
-def _rows(writer: ChunkWriter, a: int, b: int) -> np.ndarray:
-    return np.asarray(writer.ref_rows(a, b), np.float32)
 
 
 def _plain(fingerprint: object) -> object:

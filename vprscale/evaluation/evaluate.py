@@ -22,6 +22,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import zarr
 
+from vprscale.compared.encoding import load_encoding, stored_encoding
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
@@ -211,6 +212,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(_HOLDS.format(out=out))
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
+        stored = {m.factory: stored_encoding(req.store, m.factory, identity) for m in compared}  # vprscale encode's
         _check_methods(req, plugged, indexes[0][1])
         base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
@@ -224,8 +226,12 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 raise InputError(_HOLDS.format(out=out))
             partial.open()
             t_fit = time.perf_counter()
-            ref = reference_rows(req.store, group, req.deep1b, req.fas) if compared or plugged else None
-            fit_codes(compared, ref, req.quiet) if compared else None
+            for m in compared:
+                if stored[m.factory] is not None:  # encoded by vprscale encode: read, not redone
+                    load_encoding(stored[m.factory], m)
+            to_fit = [m for m in compared if stored[m.factory] is None]
+            ref = reference_rows(req.store, group, req.deep1b, req.fas) if to_fit or plugged else None
+            fit_codes(to_fit, ref, req.quiet) if to_fit else None
             fit_s = time.perf_counter() - t_fit
             method_fit_s = _fit_methods(plugged, ref, req.quiet) if plugged else {}
             rows, queries = _grid(req, qs, z, dim, indexes, base, compared, plugged)
@@ -241,7 +247,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
                        "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
-                                            "bytes_per_place": c.bytes_per_place}
+                                            "bytes_per_place": c.bytes_per_place,
+                                            "encoding": str(stored[c.factory]) if stored[c.factory] else None}
                                    for c in compared}, "compare_fit_s": fit_s if compared else None,
                        "methods": {label: {"k": _method_k(req, indexes[0][1]), "fit_s": method_fit_s[label]}
                                    for label, _ in plugged}, **columns,

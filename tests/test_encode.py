@@ -1,0 +1,117 @@
+"""``vprscale encode``: FAISS encodings stored beside a store, resumable, read by ``eval --compare``."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from vprscale.cli import main
+from vprscale.compared.encoding import encoding_dir
+
+FACTORIES = ["PQ4", "IVF32,PQ4"]
+
+
+@pytest.fixture
+def store(tiny_store, tmp_path) -> Path:
+    """A copy of the tiny store, so that its encodings do not reach other tests' evaluations."""
+    copy = tmp_path / "data" / "tiny.zarr"
+    shutil.copytree(tiny_store, copy)
+    return copy
+
+
+def _compare(factories: list[str]) -> list[str]:
+    return [arg for f in factories for arg in ("--compare", f)]
+
+
+def _codes(store: Path) -> dict[str, bytes]:
+    return {f: np.load(encoding_dir(store, f) / "codes.npy").tobytes() for f in FACTORIES}
+
+
+def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path):
+    """An evaluation reading the stored encodings gives the answers, scores included, of one
+    that encodes in its own process; and it says which it did."""
+    argv = ["eval", str(store), str(tiny_index), "--L", "1,9", "--z", "97", "--noise", "qm1", "--no-baseline",
+            "--repeats", "1", *_compare(FACTORIES)]
+    assert main([*argv, "--out", str(tmp_path / "inproc")]) == 0
+    assert main(["encode", str(store), *_compare(FACTORIES), "--workers", "2"]) == 0
+    for f in FACTORIES:
+        meta = json.loads((encoding_dir(store, f) / "encoding.json").read_text())
+        assert meta["factory"] == f and meta["n_ref"] == 52_500 and "commit" in json.dumps(meta["provenance"])
+    assert main([*argv, "--out", str(tmp_path / "stored")]) == 0
+    tables = [pq.read_table(tmp_path / d / "queries.parquet").to_pandas().sort_values(["method", "mode", "L", "t"])
+              .reset_index(drop=True) for d in ("inproc", "stored")]
+    cols = ["method", "params", "mode", "L", "t", "match", "score", "n_r", "in_list", "top"]
+    assert len(tables[0]) > 500 and tables[0][cols].astype(str).equals(tables[1][cols].astype(str))
+    used = json.loads((tmp_path / "stored" / "eval.json").read_text())["compare"]
+    assert all(used[f"faiss:{f}"]["encoding"] == str(encoding_dir(store, f)) for f in FACTORIES)
+    assert json.loads((tmp_path / "inproc" / "eval.json").read_text())["compare"]["faiss:PQ4"]["encoding"] is None
+
+
+def test_an_encoding_is_not_redone_and_bad_input_is_refused(store, capsys):
+    assert main(["encode", str(store), "--compare", "PQ4", "--workers", "1"]) == 0
+    before = (encoding_dir(store, "PQ4") / "codes.npy").stat().st_mtime_ns
+    assert main(["encode", str(store), "--compare", "PQ4"]) == 0
+    assert (encoding_dir(store, "PQ4") / "codes.npy").stat().st_mtime_ns == before
+    capsys.readouterr()
+    for argv, message in ((["--compare", "Banana"], "--compare Banana: not a FAISS index_factory string"),
+                          (["--compare", "IVF100000,PQ4"], "100,000 inverted lists for 52,500 references")):
+        assert main(["encode", str(store), *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1
+    assert not encoding_dir(store, "Banana").exists()
+
+
+@pytest.mark.slow
+def test_killed_encoding_resumes_to_the_bytes_of_one_run_on_any_workers(store, monkeypatch):
+    """A run that fails after some chunks resumes from its checkpoint (the chunks done are not
+    redone) and ends with the codes an uninterrupted run wrote, on 1 or 2 workers."""
+    import vprscale.jobs.encoding as enc
+
+    assert main(["encode", str(store), *_compare(FACTORIES), "--workers", "2"]) == 0
+    whole = _codes(store)
+    monkeypatch.setattr(enc, "ENCODE_GROUP", 1)
+    calls = {"n": 0}
+    real = enc._EncodeChunk.__call__
+
+    def failing(self, a, b):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OSError("disk vanished")
+        return real(self, a, b)
+
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", failing)
+    assert main(["encode", str(store), "--compare", "PQ4", "--force", "--workers", "1"]) == 1
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", real)
+    counted = {"n": 0}
+
+    def counting(self, a, b):
+        counted["n"] += 1
+        return real(self, a, b)
+
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", counting)
+    assert main(["encode", str(store), "--compare", "PQ4", "--force", "--workers", "1"]) == 0
+    assert counted["n"] == 4 - 2  # 52,500 rows in chunks of 16,384: two were done before the failure
+    assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"]) == 0
+    assert _codes(store) == whole
+
+
+@pytest.mark.slow
+def test_compact_store_encodes_to_the_full_store_s_bytes(store, sources, tmp_path):
+    """The compact layout's references are recomputed from the sources: the same codes."""
+    from vprscale.dataset.build import BuildRequest, build
+
+    from .conftest import write_recipe
+
+    recipe = write_recipe(tmp_path / "tiny.toml")
+    build(BuildRequest(scale=str(recipe), out=tmp_path / "compact", deep1b=str(sources["fbin"]),
+                       fas=str(sources["fas"]), workers=2, quiet=True, layout="compact"))
+    compact = tmp_path / "compact" / "tiny.zarr"
+    assert main(["encode", str(compact), *_compare(FACTORIES), "--deep1b", str(sources["fbin"]),
+                 "--fas", str(sources["fas"])]) == 0
+    assert main(["encode", str(store), *_compare(FACTORIES)]) == 0
+    assert _codes(compact) == _codes(store)

@@ -1,0 +1,151 @@
+"""``vprscale encode``: a store's references encoded by FAISS methods, once, resumably, beside the store.
+
+An evaluation that compares FAISS codes (``eval --compare``) needs every reference encoded.
+At 100M and 1B places that is one or two passes over references a compact store has to
+recompute from its sources (:mod:`vprscale.dataset.references`), far longer than the
+evaluation itself, so it is a job of its own, like a build:
+
+1. the training sample: the same evenly spaced references an evaluation trains on
+   (:func:`~vprscale.compared.faisscodes.training_rows`), drawn in one streamed pass
+   (chunks that hold none are not read); every method trained on it, each on one thread
+   (their trained indexes must not depend on ``--workers``), and saved;
+2. one pass per method over the references, chunk by chunk (Dask tasks, ``--workers`` at a
+   time), each chunk's codes written in place into the method's code array; a checkpoint
+   after every group of chunks (:func:`~vprscale.core.passes.reduce_pass`), so a killed run
+   resumes where it stopped;
+3. each method's directory published whole (:mod:`vprscale.core.publish`).
+
+Every task encodes its rows in fixed blocks on one FAISS thread, exactly as an evaluation
+encodes them in process: the same bytes for any ``--workers``, local or distributed.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from vprscale.compared.encoding import describe, encoding_dir, read_trained, write_trained
+from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.core.cluster import cluster_peak_rss, dask_client
+from vprscale.core.errors import InputError
+from vprscale.core.passes import reduce_pass
+from vprscale.core.progress import Timings
+from vprscale.core.provenance import provenance
+from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.dataset.references import reference_reader
+from vprscale.dataset.store import ATTR, open_complete_group, store_identity
+
+ENCODE_GROUP = 16  # chunks encoded between checkpoints (more with more workers)
+SAMPLE_GROUP = 64  # chunks read between checkpoints of the training sample (each rewrites the rows kept so far)
+
+
+class _EncodeChunk:
+    """Pass task: encode the references ``[a, b)`` with one method and write their codes in place."""
+
+    def __init__(self, read: Any, out: str, factory: str, dim: int) -> None:
+        self.read, self.out, self.factory, self.dim = read, out, factory, dim
+        self._codes: FaissCodes | None = None
+
+    def __call__(self, a: int, b: int) -> None:
+        if self._codes is None:  # read once per process (threads share it: encoding is read-only)
+            self._codes = read_trained(Path(self.out), self.factory, self.dim)
+        codes = self._codes.encode_rows(self.read(a, b))
+        stored = np.load(Path(self.out) / "codes.npy", mmap_mode="r+")
+        stored[a:b] = codes
+        stored.flush()
+        del stored
+
+
+class _Pick:
+    """Pass task: the rows of ``wanted`` (ascending) among the references ``[a, b)``."""
+
+    def __init__(self, read: Any, wanted: np.ndarray) -> None:
+        self.read, self.wanted = read, wanted
+
+    def __call__(self, a: int, b: int) -> np.ndarray:
+        rows = self.wanted[(self.wanted >= a) & (self.wanted < b)]
+        return self.read(a, b)[rows - a] if len(rows) else np.zeros((0, 0), np.float32)
+
+
+def _sample(work: Path, read: Any, bounds: list[tuple[int, int]], rows: np.ndarray, quiet: bool) -> np.ndarray:
+    """The references at ``rows`` (ascending), streamed: a group of chunks at a time, only the
+    chunks that hold some, keeping only those rows (resumable like every pass)."""
+    starts = np.array([a for a, _ in bounds])
+    holding = [bounds[c] for c in np.unique(np.searchsorted(starts, rows, side="right") - 1)]
+    parts = reduce_pass(work, "training sample", holding, _Pick(read, rows), lambda s, r: [*s, r], [],
+                        group=SAMPLE_GROUP, quiet=quiet)
+    return np.concatenate([p for p in parts if p.size])
+
+
+def encode_store(store: Path, factories: list[str], deep1b: str | None = None, fas: str | None = None,
+                 workers: int = 2, scheduler: str | None = None, force: bool = False,
+                 quiet: bool = False) -> dict[str, Any]:
+    """Encode the references of ``store`` with each FAISS ``factory``; a summary per method."""
+    if not factories:
+        raise InputError("encode: give at least one --compare FACTORY")
+    if len(set(factories)) != len(factories):
+        raise InputError(f"--compare: {next(f for f in factories if factories.count(f) > 1)} given twice")
+    group = open_complete_group(store)
+    meta = group.attrs[ATTR]
+    dim, identity = int(meta["recipe"]["dim"]), store_identity(group)
+    methods = {f: FaissCodes(f, dim, k=1) for f in factories}  # a bad factory string: refused before any work
+    read, bounds = reference_reader(store, group, deep1b, fas)
+    n_ref = bounds[-1][1]
+    for f, m in methods.items():
+        if m.ivf is not None and m.ivf.nlist > n_ref:
+            raise InputError(f"--compare {f}: {m.ivf.nlist:,} inverted lists for {n_ref:,} references")
+    check_writable(encoding_dir(store, factories[0]).parent)
+    timings = Timings(quiet)
+    summary: dict[str, Any] = {"store": str(store), "n_ref": n_ref, "methods": {}}
+    t0 = time.perf_counter()
+    with dask_client(scheduler, workers) as client:
+        for f in factories:
+            out = encoding_dir(store, f)
+            with exclusive(out):
+                key = {"encode": f, "store_identity": identity}
+                partial_out = PartialOutput(out, key)
+                if partial_out.recover() and not quiet:
+                    print(f"{out}: finished publishing the encoding a killed run had completed", file=sys.stderr)
+                if (out / "encoding.json").is_file() and not force:
+                    if json.loads((out / "encoding.json").read_text()).get("store_identity") == identity:
+                        summary["methods"][f] = {"out": str(out), "skipped": True}
+                        continue
+                partial_out.open()
+                summary["methods"][f] = _encode_one(f, methods[f], partial_out, read, bounds, dim, identity,
+                                                   workers, timings, quiet)
+        summary["peak_rss_bytes"] = cluster_peak_rss(client)
+    summary["wall_s"] = time.perf_counter() - t0
+    return summary
+
+
+def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, read: Any,
+                bounds: list[tuple[int, int]], dim: int, identity: str, workers: int, timings: Timings,
+                quiet: bool) -> dict[str, Any]:
+    """Train (or reload) one method, encode every chunk resumably, publish; its summary."""
+    n_ref = bounds[-1][1]
+    rows = training_rows(n_ref)
+    work = partial_out.path / ".work"
+    work.mkdir(exist_ok=True)
+    t_start = time.perf_counter()
+    if not partial_out.done("trained"):
+        with timings.stage(f"{factory}: train on {len(rows):,} evenly spaced references"):
+            sample = _sample(work, read, bounds, rows, quiet)
+            with threadpool_limits(limits=1, user_api="blas"):  # one thread: the same trained index for any workers
+                method.train(sample)
+            write_trained(method, partial_out.path, n_ref)
+        partial_out.mark("trained")
+    with timings.stage(f"{factory}: encode {n_ref:,} references"):
+        reduce_pass(work, f"encode {factory}", bounds, _EncodeChunk(read, str(partial_out.path), factory, dim),
+                    lambda s, _: s, None, group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
+    record = provenance(inputs={"store_identity": identity, "factory": factory}, workers=workers)
+    (partial_out.path / "encoding.json").write_text(json.dumps(describe(factory, identity, n_ref, len(rows), record),
+                                                               indent=1))
+    partial_out.publish()
+    return {"out": str(partial_out.final), "wall_s": time.perf_counter() - t_start,
+            "code_bytes": int(method.index.sa_code_size())}
