@@ -95,8 +95,7 @@ def encode_store(store: Path, factories: list[str], deep1b: str | None = None, f
     meta = group.attrs[ATTR]
     dim, identity = int(meta["recipe"]["dim"]), store_identity(group)
     methods = {f: FaissCodes(f, dim, k=1) for f in factories}  # a bad factory string: refused before any work
-    read, bounds = reference_reader(store, group, deep1b, fas)
-    n_ref = bounds[-1][1]
+    n_ref = int(meta["layout"].get("n_ref") or group["ref"].shape[0])
     for f, m in methods.items():
         if m.ivf is not None and m.ivf.nlist > n_ref:
             raise InputError(f"--compare {f}: {m.ivf.nlist:,} inverted lists for {n_ref:,} references")
@@ -105,6 +104,7 @@ def encode_store(store: Path, factories: list[str], deep1b: str | None = None, f
     summary: dict[str, Any] = {"store": str(store), "n_ref": n_ref, "methods": {}}
     t0 = time.perf_counter()
     with dask_client(scheduler, workers) as client:
+        read, bounds = reference_reader(store, group, deep1b, fas)  # refits a compact store's transforms as its build
         for f in factories:
             out = encoding_dir(store, f)
             with exclusive(out):
