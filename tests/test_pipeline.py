@@ -221,3 +221,48 @@ def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, mon
     (tmp_path / "store" / "chunk").write_text("a file the build did not write")
     assert status() == "ran" and status() == "skipped"
     assert ran == ["b"] * 5
+
+
+@pytest.mark.slow
+def test_an_encode_stage_feeds_the_evaluation_and_is_skipped_when_up_to_date(tmp_path):
+    """``kind = "encode"`` stores FAISS encodings beside the store; the evaluation that lists it
+    in ``encodings`` reads them (its eval.json says so); a second run does nothing."""
+    out = tmp_path / "data"
+    path = _write(tmp_path / "p.toml", BASE.format(out=out) + """
+[[stages]]
+name = "build"
+kind = "build"
+scale = "20K"
+
+[[stages]]
+name = "enc"
+kind = "encode"
+store = "build"
+compare = ["PQ4"]
+
+[[stages]]
+name = "index"
+kind = "index"
+store = "build"
+
+[[stages]]
+name = "eval"
+kind = "eval"
+store = "build"
+index = "index"
+encodings = ["enc"]
+noise = ["qm1"]
+L = [1]
+baseline = false
+compare = ["PQ4"]
+repeats = 1
+""")
+    first = run_pipeline(path)
+    assert [s["status"] for s in first["stages"]] == ["ran"] * 4
+    encoding = out / "20K.faiss" / "PQ4"
+    assert (encoding / "encoding.json").is_file() and (encoding / "manifest.json").is_file()
+    evaluation = json.loads(next(out.glob("20K-*.index/eval/eval.json")).read_text())
+    assert evaluation["compare"]["faiss:PQ4"]["encoding"] == str(encoding)
+    assert [s["status"] for s in run_pipeline(path)["stages"]] == ["skipped"] * 4
+    shutil.rmtree(encoding)  # a deleted encoding: its stage and the evaluation reading it re-run
+    assert [s["status"] for s in run_pipeline(path)["stages"]] == ["skipped", "ran", "skipped", "ran"]

@@ -44,7 +44,9 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "build": {"scale": ("str", True), "source": ("stage", False), "deep1b": ("str", False), "fas": ("str", False),
               "fas_dim": ("int", False), "rescale": ("bool", False)},
     "index": {"store": ("stage", True), "d": ("int", False), "k": ("int", False)},
-    "eval": {"store": ("stage", True), "index": ("stage", False), "d_sweep": ("list[int]", False),
+    "encode": {"store": ("stage", True), "compare": ("list[str]", True)},
+    "eval": {"store": ("stage", True), "index": ("stage", False), "encodings": ("list[stage]", False),
+             "d_sweep": ("list[int]", False),
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
              "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
@@ -52,7 +54,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
 PRODUCERS = {"source": {"synth"}, "store": {"build"}, "index": {"index"}, "results": {"eval"},
-             "indexes": {"index"}}
+             "indexes": {"index"}, "encodings": {"encode"}}
 
 
 @dataclass
@@ -246,6 +248,7 @@ def _write_json(path: Path, data: dict) -> None:
 # import (function-level imports included), the command line and the package's version.
 ENTRY_MODULES = {"synth": ["vprscale.dataset.synth"], "build": ["vprscale.dataset.build"],
                  "index": ["vprscale.jobs.indexing"], "report": ["vprscale.evaluation.report"],
+                 "encode": ["vprscale.jobs.encoding"],
                  "eval": ["vprscale.evaluation.evaluate", "vprscale.jobs.indexing",
                           *(target.partition(":")[0] for target in BUILTIN.values())]}
 ALWAYS = ("vprscale", "vprscale.cli")  # the version and the command itself (not every job it can import)
@@ -411,6 +414,9 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         # --force: a re-run index stage replaces its old evaluations, which re-run downstream anyway
         cmd = ["index", outputs[p["store"]]["store"], "--k", str(p.get("k", 2)), "--force"]
         return cmd + (["--d", str(p["d"])] if "d" in p else []) + cluster
+    if stage.kind == "encode":  # --force: the pipeline decided these encodings are out of date
+        return ["encode", outputs[p["store"]]["store"], *(a for f in p["compare"] for a in ("--compare", f)),
+                "--force", *cluster]
     if stage.kind == "eval":
         cmd = ["eval", outputs[p["store"]]["store"]] + ([outputs[p["index"]]["index"]] if "index" in p else [])
         cmd += (["--noise", ",".join(p["noise"])] if "noise" in p else []) + [
@@ -435,7 +441,7 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
 
 
 _OUTPUT_KEYS = {"synth": ("dir", "fvecs", "fbin", "fas"), "build": ("store",), "index": ("index",),
-                "eval": ("out",), "report": ("report", "figures")}
+                "encode": (), "eval": ("out",), "report": ("report", "figures")}
 
 
 def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
@@ -458,6 +464,8 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
     out = {k: result[k] for k in _OUTPUT_KEYS[stage.kind] if k in result}
     if stage.kind == "eval":
         out = {"eval": out["out"]}
+    if stage.kind == "encode":  # one directory per method
+        out = {f"encoding {f}": m["out"] for f, m in result["methods"].items()}
     out["peak_rss_bytes"] = result.get("peak_rss_bytes")
     main = out.get("store") or out.get("index") or out.get("eval") or out.get("dir")
     if main and Path(main).exists():
