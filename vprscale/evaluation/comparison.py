@@ -291,10 +291,12 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
             "candidate budget; each k and nprobe evaluated is an operating point), and its windows are scored "
             "on its own distances. Bytes per place count the code and whatever else the method keeps per "
             "place to answer (CoarseHash: its bit planes and inverted lists; IVF: 64-bit ids and the codes "
-            "again in id order). Times are per query per core with the per-frame work included, so queries "
+            "again in id order, for IVF-PQ with each place's distance term). Times are per query per core "
+            "with the per-frame work included, so queries "
             "per second per core is their inverse; a flat FAISS index scans every code for every frame, so "
-            "past a scan budget its runs localise an evenly spaced sample of the centres (the queries "
-            "column, and the recall intervals, say how many). Lines join each method's Pareto front: the "
+            "past a scan budget its runs localise an evenly spaced sample of the centres, never fewer than "
+            "1,000 unless asked (the queries column, and the recall intervals, say how many). Lines join "
+            "each method's Pareto front: the "
             "operating points no other point of the method beats on both recall and throughput.", "",
             "![compare](fig_compare.png)", "", "![compare bytes](fig_compare_bytes.png)", "",
             "![compare trends](fig_compare_trends.png)", "", *_words(points, scales), "",
