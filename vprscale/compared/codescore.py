@@ -11,7 +11,7 @@ compute it without decoding anything per pair:
   ``popcount(q_m xor v)``), the distance their index searches with.
 - *residual tables*: IVF-PQ codes encode ``x − c_l``, the residual from the centroid of the
   reference's inverted list ``l = lists_of[r]``. With ``‖y − c_l − ρ‖² = ‖y − c_l‖² +
-  (‖ρ‖² + 2⟨c_l, ρ⟩) − 2⟨y, ρ⟩`` the distance is ``coarse[l, p] + ref_terms[r] + Σ_m
+  (‖ρ‖² + 2⟨c_l, ρ⟩) − 2⟨y, ρ⟩`` the distance is ``coarse[p, l] + ref_terms[r] + Σ_m
   tables[p, m, code]``: the frame's coarse distance to every list (what a flat coarse
   quantiser computes per frame), the reference's query-independent term (computed once, at
   encoding, from FAISS's per-list tables), and one look-up per code byte in the frame's
@@ -64,12 +64,9 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
     the candidate centres ``cand``: each candidate's sum of terms inside the map, its count
     of reference frames outside it, and the largest term seen.
 
-    The window's frames are the outer loop of the table look-ups: each frame's tables (3 KB
-    for 3 code bytes) stay in the first-level cache while every candidate reads its reference
+    The window's frames are the outer loop: each frame's tables (3 KB for 3 code bytes, and
+    its coarse row) stay in the first-level cache while every candidate reads its reference
     at that offset, and the candidates' code lines stay there from one frame to the next.
-    Residual codes add their coarse and per-place terms in a second pass, candidate by
-    candidate: ``coarse`` is held list-major (``coarse[l, p]``), so the terms of a candidate
-    whose references stay in one list (consecutive places usually do) are read in sequence.
     """
     half = L // 2
     form = 0 if coarse.shape[0] > 0 else 1 if tables.shape[0] > 0 else 2  # residual, tables, vectors
@@ -77,7 +74,6 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
     outside = np.zeros(m, np.int64)
-    part = np.zeros((m, L) if form == 0 else (0, 0), np.float64)  # residual: each term's table part
     largest = 0.0
     for i in range(L):
         p = t + i - half
@@ -91,19 +87,9 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
             else:
                 dist = _table_dist(tables, p, codes, r, width)
                 if form == 0:
-                    part[j, i] = dist
-                    continue
+                    dist += np.float64(coarse[p, lists_of[r]]) + np.float64(ref_terms[r])
             sums[j] += dist
             largest = max(largest, dist)
-    if form == 0:
-        for j in range(m):
-            s = 0.0
-            for i in range(max(0, half - cand[j]), min(L, n_ref - cand[j] + half)):
-                r = cand[j] + i - half
-                dist = part[j, i] + np.float64(coarse[lists_of[r], t + i - half]) + np.float64(ref_terms[r])
-                s += dist
-                largest = max(largest, dist)
-            sums[j] = s
     return sums, outside, largest
 
 

@@ -38,7 +38,7 @@ _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 class FrameTerms(NamedTuple):
     """What the window scores need of each query frame (the forms' unused parts empty):
     per-byte ``tables`` (frames, bytes, 256), ``coarse`` distances to every inverted list
-    (nlist, frames: list-major; residual IVF-PQ codes), the frames' ``vectors`` (decoded-vector form)."""
+    (frames, nlist; residual IVF-PQ codes), the frames' ``vectors`` (decoded-vector form)."""
 
     tables: np.ndarray
     coarse: np.ndarray
@@ -260,8 +260,7 @@ class FaissCodes:
         """What the window scores need of each query frame (:class:`FrameTerms`)."""
         if self.form == "residual":  # in blocks, FAISS's BLAS on one thread each: the same bits for any threads
             parts = self._blocks(self._residual_terms, np.asarray(rows, np.float32))
-            coarse = np.ascontiguousarray(np.concatenate([c for _, c in parts]).T)  # list-major: see codescore
-            return FrameTerms(np.concatenate([t for t, _ in parts]), coarse, _NO_ROWS)
+            return FrameTerms(np.concatenate([t for t, _ in parts]), np.concatenate([c for _, c in parts]), _NO_ROWS)
         y = self._transform(np.asarray(rows, np.float32))
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
