@@ -214,11 +214,11 @@ class FaissCodes:
             coarse = self.ivf.coarse_code_size()
             self.lists_of[lo : self._filled] = (codes[:, :coarse].astype(np.uint32)
                                                 << (8 * np.arange(coarse, dtype=np.uint32))).sum(axis=1)
-            codes = codes[:, coarse:]
-        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form in ("pq", "residual") else codes
-        if self.form == "residual":
-            lists, sub = self.lists_of[lo : self._filled], self.codes[lo : self._filled]
+            sub = self._pq_indices(codes[:, coarse:])
+            lists = self.lists_of[lo : self._filled]
             self.ref_terms[lo : self._filled] = sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1]))
+            codes = sub
+        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" else codes
 
     def finish(self) -> None:
         if self._filled != len(self.codes):
@@ -229,14 +229,10 @@ class FaissCodes:
             for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
 
-    def _pq(self) -> Any:
-        """The product quantiser of a PQ or IVF-PQ index."""
-        return self.inner.pq
-
     def _residual_tables(self) -> None:
         """The coarse centroids and, per list ``l``, sub-quantiser ``m`` and code ``v``,
         ``‖ρ_mv‖² + 2⟨c_l[m], ρ_mv⟩`` (the query-independent part of a residual distance)."""
-        pq = self._pq()
+        pq = self.inner.pq
         self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
         cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
         sub = self.centroids.reshape(self.ivf.nlist, pq.M, pq.dsub)
@@ -245,7 +241,7 @@ class FaissCodes:
     def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
         """A product quantiser's packed codes as one centroid index per sub-quantiser (FAISS
         packs ``nbits`` per index, least significant bit first)."""
-        pq = self._pq()
+        pq = self.inner.pq
         if pq.nbits == 8:
             return codes
         bits = np.unpackbits(codes, axis=1, bitorder="little")[:, : pq.M * pq.nbits].reshape(len(codes), pq.M, pq.nbits)
@@ -274,7 +270,7 @@ class FaissCodes:
 
     def _sub_products(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The frames split by sub-quantiser, and the sub-quantisers' centroids."""
-        pq = self._pq()
+        pq = self.inner.pq
         return y.reshape(len(y), pq.M, pq.dsub), faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
 
     def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -294,7 +290,12 @@ class FaissCodes:
         """
         positions = np.asarray(positions, np.int64)
         cand, first, n_r = window_proposals(positions, L, aligned, lists, self.n_ref)
-        codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
-        top, scores = score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.coarse,
-                                    self.ref_terms, self.lists_of, codes, terms.vectors, self.vectors, n_best)
+        top, scores = self.score(positions, L, cand, first, n_r, terms, n_best)
         return top, scores, n_r
+
+    def score(self, positions: np.ndarray, L: int, cand: np.ndarray, first: np.ndarray, n_r: np.ndarray,
+              terms: FrameTerms, n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`score_windows` of given candidates over this method's codes, in its form."""
+        codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
+        return score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.coarse,
+                             self.ref_terms, self.lists_of, codes, terms.vectors, self.vectors, n_best)

@@ -5,7 +5,7 @@ a reference's code. :mod:`vprscale.compared.codescore` computes each term from p
 tables; FAISS computes the same distance from the same tables in its own scans. This
 benchmark prints, per FAISS method and in one process, on the same codes:
 
-- **ours**: CPU ns per term of :func:`~vprscale.compared.codescore.score_windows` on windows
+- **ours**: CPU ns per term of the window scores (:meth:`FaissCodes.score`) on windows
   of ``L`` frames centred at random query frames, each scoring random candidate centres
   (the candidates' codes read as a window reads them: ``L`` consecutive references);
 - **FAISS**: CPU ns per code of FAISS's own search over the same codes, one thread: the
@@ -31,7 +31,6 @@ import numba
 import numpy as np
 import zarr
 
-from vprscale.compared.codescore import score_windows
 from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.errors import InputError
 from vprscale.dataset.store import open_complete_group, store_layout
@@ -65,13 +64,7 @@ def _ours(codes: FaissCodes, query: np.ndarray, L: int, rng: np.random.Generator
     cand = rng.integers(0, codes.n_ref, WINDOWS * CANDIDATES)
     first = np.arange(WINDOWS, dtype=np.int64) * CANDIDATES
     n_r = np.full(WINDOWS, CANDIDATES, np.int64)
-    ref_codes = codes.codes if codes.form != "vectors" else np.zeros((0, 1), np.uint8)
-
-    def run() -> None:
-        score_windows(centres, L, cand, first, n_r, codes.n_ref, terms.tables, terms.coarse, codes.ref_terms,
-                      codes.lists_of, ref_codes, terms.vectors, codes.vectors, 1)
-
-    return _cpu_ns(run, WINDOWS * CANDIDATES * L, repeats)
+    return _cpu_ns(lambda: codes.score(centres, L, cand, first, n_r, terms), WINDOWS * CANDIDATES * L, repeats)
 
 
 def _faiss_scan(codes: FaissCodes, query: np.ndarray, repeats: int) -> tuple[float, float, float]:
