@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from vprscale.cli import main
-from vprscale.compared.encoding import encoding_dir
+from vprscale.compared.encoding import LISTS, SEARCHED, WINDOW, encoding_dir
 
 FACTORIES = ["PQ4", "IVF32,PQ4"]
 
@@ -32,9 +32,13 @@ def _codes(store: Path) -> dict[str, bytes]:
     return {f: np.load(encoding_dir(store, f) / "codes.npy").tobytes() for f in FACTORIES}
 
 
-def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path):
+def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path, monkeypatch):
     """An evaluation reading the stored encodings gives the answers, scores included, of one
-    that encodes in its own process; and it says which it did."""
+    that encodes in its own process (IVF-PQ's searched on on-disk inverted lists merged from
+    several shards, its window arrays memory-mapped); and it says which it did."""
+    import vprscale.compared.encoding as stored_format
+
+    monkeypatch.setattr(stored_format, "SHARD_ROWS", 20_000)  # 52,500 places: three shards merged
     argv = ["eval", str(store), str(tiny_index), "--L", "1,9", "--z", "97", "--noise", "qm1", "--no-baseline",
             "--repeats", "1", *_compare(FACTORIES)]
     assert main([*argv, "--out", str(tmp_path / "inproc")]) == 0
@@ -42,6 +46,9 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
     for f in FACTORIES:
         meta = json.loads((encoding_dir(store, f) / "encoding.json").read_text())
         assert meta["factory"] == f and meta["n_ref"] == 52_500 and "commit" in json.dumps(meta["provenance"])
+    ivf = {p.name for p in encoding_dir(store, "IVF32,PQ4").iterdir()}
+    assert {SEARCHED, LISTS, *WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
+    assert SEARCHED not in {p.name for p in encoding_dir(store, "PQ4").iterdir()}  # flat codes load in memory
     assert main([*argv, "--out", str(tmp_path / "stored")]) == 0
     tables = [pq.read_table(tmp_path / d / "queries.parquet").to_pandas().sort_values(["method", "mode", "L", "t"])
               .reset_index(drop=True) for d in ("inproc", "stored")]

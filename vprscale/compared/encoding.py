@@ -10,6 +10,14 @@ only, not on a CoarseHash index:
   the list number, then the code), in id order: from them the inverted lists
   (``add_sa_codes``), the window scores' codes, list numbers and distance terms are all
   rebuilt in one sequential read, so nothing else is stored;
+- for residual IVF-PQ methods (``IVF4096,PQ3``, ``OPQ…,IVF…,PQ…``), what an evaluation
+  searches and scores at 100M and 1B without holding them in memory: ``searched.faiss``,
+  the index populated with every code, whose inverted lists (code and 64-bit id per place:
+  11 GB at 1B for ``IVF4096,PQ3``) are FAISS's own on-disk lists in ``lists.ivfdata``
+  (``OnDiskInvertedLists``, memory-mapped when read), and the window scores' arrays
+  ``window_lists.npy`` (each place's list), ``window_codes.npy`` (its sub-quantiser
+  indices) and ``window_terms.npy`` (its query-independent distance term, float32), also
+  memory-mapped;
 - ``encoding.json``: the factory, the store's identity, the number of references and the
   training rows, with the provenance of the run.
 
@@ -21,17 +29,22 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import faiss
 import numpy as np
+from faiss.contrib.ondisk import merge_ondisk
 
 from vprscale.compared.faisscodes import FaissCodes
 from vprscale.core.errors import InputError
 
-ENCODING_FORMAT = 1
-LOAD_ROWS = 1 << 20  # codes added to the FAISS index at a time when an encoding is loaded
+ENCODING_FORMAT = 2  # 2: residual IVF-PQ encodings hold their on-disk inverted lists and window arrays
+LOAD_ROWS = 1 << 20  # codes added to the FAISS index (or turned into window arrays) at a time
+SHARD_ROWS = 1 << 26  # places in one in-memory shard of the inverted lists before the on-disk merge (0.7 GB)
+SEARCHED, LISTS = "searched.faiss", "lists.ivfdata"
+WINDOW = ("window_lists.npy", "window_codes.npy", "window_terms.npy")
 
 
 def encodings_dir(store: Path) -> Path:
@@ -79,8 +92,58 @@ def stored_encoding(store: Path, factory: str, identity: str) -> Path | None:
     return out
 
 
+def write_searched(out: Path, factory: str, dim: int, done: Callable[[str], bool],
+                   mark: Callable[[str], None]) -> None:
+    """A residual IVF-PQ encoding's searched index on on-disk lists and its window arrays, from
+    ``codes.npy`` in ``out`` (a work copy), each step marked ``done`` once whole (resumable).
+
+    The lists are built as FAISS builds billion-scale indexes: shards of ``SHARD_ROWS`` places
+    added in memory (``add_sa_codes`` with their ids) and written, then merged into one
+    on-disk list file (``merge_ondisk``); the shards are removed.
+    """
+    stored = np.load(out / "codes.npy", mmap_mode="r")
+    n_ref = len(stored)
+    shards = [out / ".work" / f"shard{i:05d}.faiss" for i in range(-(-n_ref // SHARD_ROWS))]
+    for i, shard in enumerate(shards):
+        if not done(shard.name):
+            lo, hi = i * SHARD_ROWS, min(n_ref, (i + 1) * SHARD_ROWS)
+            codes = read_trained(out, factory, dim)
+            codes.inner.add_sa_codes(np.ascontiguousarray(stored[lo:hi]), np.arange(lo, hi, dtype=np.int64))
+            faiss.write_index(codes.index, str(shard))
+            mark(shard.name)
+    if not done(SEARCHED):
+        (out / LISTS).unlink(missing_ok=True)  # a merge a kill interrupted starts over
+        index = read_trained(out, factory, dim).index
+        merge_ondisk(index, [str(p) for p in shards], str(out / LISTS))
+        faiss.write_index(index, str(out / SEARCHED))
+        mark(SEARCHED)
+    for shard in shards:
+        shard.unlink(missing_ok=True)
+    if not done("window"):
+        codes = read_trained(out, factory, dim)
+        codes.start(0)  # its per-list tables only
+        dtypes = (codes.list_dtype, np.uint8, np.float32)
+        shapes = ((n_ref,), (n_ref, codes.inner.pq.M), (n_ref,))
+        arrays = [np.lib.format.open_memmap(out / f".{name}.tmp", mode="w+", dtype=t, shape=shape)
+                  for name, t, shape in zip(WINDOW, dtypes, shapes, strict=True)]
+        for i in range(0, n_ref, LOAD_ROWS):
+            for array, part in zip(arrays, codes.window_parts(np.ascontiguousarray(stored[i : i + LOAD_ROWS])),
+                                   strict=True):
+                array[i : i + LOAD_ROWS] = part
+        for array, name in zip(arrays, WINDOW, strict=True):
+            array.flush()
+            (out / f".{name}.tmp").replace(out / name)
+        mark("window")
+
+
 def load_encoding(out: Path, codes: FaissCodes) -> None:
-    """Give ``codes`` (a method not yet trained) the stored trained index and every reference's code."""
+    """Give ``codes`` (a method not yet trained) the stored index and every reference's code:
+    a residual IVF-PQ method its searched index on on-disk lists and its memory-mapped window
+    arrays (nothing read until searched), any other its trained index and codes in memory."""
+    if (out / SEARCHED).is_file():
+        index = faiss.read_index(str(out / SEARCHED), faiss.IO_FLAG_ONDISK_SAME_DIR)
+        codes.attach(index, *(np.load(out / name, mmap_mode="r") for name in WINDOW))
+        return
     codes.bind(faiss.read_index(str(out / "trained.faiss")))
     stored = np.load(out / "codes.npy", mmap_mode="r")
     codes.start(len(stored))

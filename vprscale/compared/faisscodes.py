@@ -188,9 +188,14 @@ class FaissCodes:
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
         if self.form == "residual":
-            self.lists_of = np.empty(n_ref, np.uint16 if self.ivf.nlist <= 1 << 16 else np.uint32)
+            self.lists_of = np.empty(n_ref, self.list_dtype)
             self.ref_terms = np.empty(n_ref, np.float32)
             self._residual_tables()
+
+    @property
+    def list_dtype(self) -> type:
+        """The type of a residual place's list number."""
+        return np.uint16 if self.ivf.nlist <= 1 << 16 else np.uint32
 
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray, rows: int = BLOCK_ROWS) -> list[Any]:
         """``fn`` of each block of ``rows`` rows of ``x``, on ``threads`` threads, in order."""
@@ -213,15 +218,27 @@ class FaissCodes:
         """Add the next references by their standalone codes (:meth:`encode_rows`, or stored ones)."""
         self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
-        if self.form == "residual":  # FAISS's standalone IVF code: the list number (little-endian), then the PQ code
-            coarse = self.ivf.coarse_code_size()
-            self.lists_of[lo : self._filled] = (codes[:, :coarse].astype(np.uint32)
-                                                << (8 * np.arange(coarse, dtype=np.uint32))).sum(axis=1)
-            sub = self._pq_indices(codes[:, coarse:])
-            lists = self.lists_of[lo : self._filled]
-            self.ref_terms[lo : self._filled] = sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1]))
-            codes = sub
+        if self.form == "residual":
+            lists, codes, terms = self.window_parts(codes)
+            self.lists_of[lo : self._filled], self.ref_terms[lo : self._filled] = lists, terms
         self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" else codes
+
+    def window_parts(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the window scores read of residual IVF-PQ places, from their standalone codes:
+        each one's list number, sub-quantiser indices and ``‖ρ‖² + 2⟨c_l, ρ⟩`` (after :meth:`start`)."""
+        coarse = self.ivf.coarse_code_size()  # a standalone IVF code: the list number (little-endian), the PQ code
+        lists = (codes[:, :coarse].astype(np.uint32) << (8 * np.arange(coarse, dtype=np.uint32))).sum(axis=1)
+        sub = self._pq_indices(codes[:, coarse:])
+        terms = sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1]))
+        return lists.astype(self.lists_of.dtype), sub, np.asarray(terms, np.float32)
+
+    def attach(self, index: Any, lists_of: np.ndarray, codes: np.ndarray, ref_terms: np.ndarray) -> None:
+        """Work on a populated IVF ``index`` (inverted lists on disk, say) and the window scores'
+        arrays of its places (:meth:`window_parts`; memory-mapped, say), instead of adding codes."""
+        self.bind(index)
+        self.codes, self.lists_of, self.ref_terms, self._filled = codes, lists_of, ref_terms, len(codes)
+        if self.form == "residual":
+            self._residual_tables()
 
     def finish(self) -> None:
         if self._filled != len(self.codes):

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from vprscale.compared.encoding import describe, encoding_dir, read_trained, write_trained
+from vprscale.compared.encoding import describe, encoding_dir, read_trained, write_searched, write_trained
 from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
@@ -143,6 +143,9 @@ def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, re
     with timings.stage(f"{factory}: encode {n_ref:,} references"):
         reduce_pass(work, f"encode {factory}", bounds, _EncodeChunk(read, str(partial_out.path), factory, dim),
                     lambda s, _: s, None, group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
+    if method.form == "residual":
+        with timings.stage(f"{factory}: inverted lists on disk and window arrays"):
+            write_searched(partial_out.path, factory, dim, partial_out.done, partial_out.mark)
     record = provenance(inputs={"store_identity": identity, "factory": factory}, workers=workers)
     (partial_out.path / "encoding.json").write_text(json.dumps(describe(factory, identity, n_ref, len(rows), record),
                                                                indent=1))
