@@ -155,7 +155,23 @@ def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, t
     assert runs[1000]["faiss:PQ4"] == n["coarsehash"] < 1000  # the floor: every centre when there are fewer
 
 
+def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tmp_path):
+    """``--flat-noise qm1``: flat codes (an exhaustive scan per frame) run on QM1 alone, IVF
+    codes and CoarseHash on every noise level; the evaluation records what was run."""
+    out = tmp_path / "e"
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1,qm2",
+                 "--flat-noise", "qm1", "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare",
+                 "IVF32,PQ4", "--repeats", "1", "--out", str(out)]) == 0
+    res = pq.read_table(out / "results.parquet").to_pandas()
+    ran = res.groupby("method")["noise"].agg(lambda n: sorted(set(n)))
+    assert ran["faiss:PQ4"] == ["qm1"]
+    assert ran["faiss:IVF32,PQ4"] == ran["coarsehash"] == ["qm1", "qm2"]
+    assert json.loads((out / "eval.json").read_text())["flat_noise"] == ["qm1"]
+
+
 @pytest.mark.parametrize("argv, message", [
+    (["--compare", "PQ4", "--noise", "qm1", "--flat-noise", "qm2"], "--flat-noise qm2: not among the evaluated"),
+    (["--compare", "PQ4", "--flat-noise", "qm1,qm1"], "--flat-noise: a query set is given twice"),
     (["--compare", "PQ5"], "--compare PQ5: not a FAISS index_factory string"),
     (["--compare", "Banana"], "--compare Banana: not a FAISS index_factory string"),
     (["--compare", "PQ4", "--compare", "PQ4"], "--compare: PQ4 given twice"),

@@ -264,6 +264,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                       z=args.z, baseline_queries=args.baseline_queries,
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,
                       faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
+                      flat_noise=args.flat_noise,
                       deep1b=args.deep1b, fas=args.fas, out=Path(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
                       force=args.force)
@@ -492,6 +493,10 @@ def parser() -> argparse.ArgumentParser:
                    help="centres per compared (FAISS or --method) run (default: FAISS: all while the run's frames "
                         "visit at most 2^35 codes, beyond, an evenly spaced sample that fits, at least 1,000; "
                         "--method: all)")
+    p.add_argument("--flat-noise", type=_csv(str), default=None,
+                   help="noise levels flat (exhaustive-scan) FAISS codes run on, e.g. qm1 (default: every --noise): "
+                        "at least 1,000 centres of L frames each scan every code, about an hour per flat code and "
+                        "noise level at 10M on 2 cores")
     p.add_argument("--deep1b", metavar="PATH", help="a compact store built from files: its Deep1B file (--compare "
                    "and --method recompute the references from the sources; not needed for synthetic stores)")
     p.add_argument("--fas", metavar="PATH", help="a compact store built from files: its FAS file (as --deep1b)")

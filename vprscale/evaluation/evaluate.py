@@ -73,6 +73,7 @@ class EvalRequest:
     methods: list[str] = field(default_factory=list)  # your own methods: package.module:Class or installed names
     method_k: list[int] | None = None  # their k per frame, one operating point each (None: as faiss_k's default)
     compare_queries: int | None = None  # centres per compared run (None: all within the scan budget)
+    flat_noise: list[str] | None = None  # noise levels flat (exhaustive-scan) FAISS codes run on (None: all)
     deep1b: str | None = None  # a compact store's sources, to recompute its references (synthetic: not needed)
     fas: str | None = None
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
@@ -138,11 +139,13 @@ class QuerySet:
 
 def check_request(req: EvalRequest) -> None:
     """Refuse bad parameters before anything is read or built (the index list is checked by :func:`evaluate`)."""
-    for flag, values in (("--noise", req.noises), ("--L", req.lengths), ("--modes", req.modes)):
+    for flag, values in (("--noise", req.noises), ("--flat-noise", req.flat_noise), ("--L", req.lengths),
+                         ("--modes", req.modes)):
         if values is not None and not values:
             raise InputError(f"{flag}: the list is empty; give at least one value")
-    if req.noises is not None and len(set(req.noises)) != len(req.noises):
-        raise InputError("--noise: a query set is given twice")
+    for flag, values in (("--noise", req.noises), ("--flat-noise", req.flat_noise)):
+        if values is not None and len(set(values)) != len(values):
+            raise InputError(f"{flag}: a query set is given twice")
     bad = [m for m in req.modes if m not in SEQUENCE_MODES]
     if bad:
         raise InputError(f"--modes {','.join(bad)}: unknown mode; choose from {', '.join(SEQUENCE_MODES)}")
@@ -183,6 +186,10 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         raise InputError(f"--noise {','.join(unknown)}: {req.store} holds no such query set; choose from "
                          f"{', '.join(qs.noises)}")
     req.noises = req.noises or qs.noises
+    outside = [n for n in req.flat_noise or [] if n not in req.noises]
+    if outside:
+        raise InputError(f"--flat-noise {','.join(outside)}: not among the evaluated noise levels "
+                         f"({', '.join(req.noises)})")
     too_long = [L for L in req.lengths if L > qs.n_query]
     if too_long:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
@@ -243,7 +250,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             _write_parquet(partial.path / "results.parquet", rows, columns, record)
             _write_parquet(partial.path / "queries.parquet", queries, columns, record)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
-                       "noises": req.noises, "lengths": req.lengths, "modes": req.modes, "baseline": req.baseline,
+                       "noises": req.noises, "flat_noise": req.flat_noise, "lengths": req.lengths, "modes": req.modes,
+                       "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
                        "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
@@ -330,17 +338,20 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
     methods = [(path, registry.create(registry.Context(
         index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
-        compared=compared, compare_queries=req.compare_queries, faiss_k=req.faiss_k,
+        compared=compared, compare_queries=req.compare_queries, flat_noise=req.flat_noise, faiss_k=req.faiss_k,
         faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx))))
         for path, idx in indexes]
-    steps = len(req.noises) * sum(sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths) for a in algos)
-                                  for _, algos in methods)
+    def runs_on(algos: list, noise: str) -> list:
+        return [a for a in algos if a.noises is None or noise in a.noises]
+
+    steps = sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths)
+                for noise in req.noises for _, algos in methods for a in runs_on(algos, noise))
     bar = StepProgress("evaluate", steps, req.quiet)
     for noise in req.noises:
         x_q = qs.rows(noise, frames)
         for path, algos in methods:
             prepared = []
-            for alg in algos:  # the per-frame work of each method, on the frames of the centres it localises
+            for alg in runs_on(algos, noise):  # each method's per-frame work, on the frames of the centres it localises
                 bar.step(f"{noise} {alg.name}: per-frame work")
                 alg.prepare(noise, frames, x_q, {L: centres[L].t for L in req.lengths})
                 sample = {L: spread(len(centres[L].t), alg.query_limit) for L in req.lengths}

@@ -50,6 +50,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
              "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
+             "flat_noise": ("list[str]", False),
              "methods": ("list[str]", False), "method_k": ("list[int]", False), "repeats": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
@@ -419,7 +420,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
                 "--force", *cluster]
     if stage.kind == "eval":
         cmd = ["eval", outputs[p["store"]]["store"]] + ([outputs[p["index"]]["index"]] if "index" in p else [])
-        cmd += (["--noise", ",".join(p["noise"])] if "noise" in p else []) + [
+        cmd += (["--noise", ",".join(p["noise"])] if "noise" in p else []) + (
+                ["--flat-noise", ",".join(p["flat_noise"])] if "flat_noise" in p else []) + [
                 "--L", ",".join(map(str, p.get("L", [1, 50, 100]))),
                 "--modes", ",".join(p.get("modes", ["paper", "aligned"])),
                 "--baseline" if p.get("baseline", True) else "--no-baseline"]

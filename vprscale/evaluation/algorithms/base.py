@@ -51,13 +51,15 @@ class Algorithm(ABC):
     ``name`` is the ``method`` column of the results, :meth:`columns` its other identifying
     columns (``d``, ``K``, ``params``), ``bytes_per_place`` what it stores per place to
     answer a query. ``query_limit`` is the number of centres per run it localises (an
-    evenly spaced sample; None: all), for methods whose every query scans the whole map.
+    evenly spaced sample; None: all), for methods whose every query scans the whole map;
+    ``noises`` the noise levels it runs on (None: all the evaluation's).
     ``threads`` is how many threads the runner lets it use (1 while it is being timed).
     """
 
     name: str
     bytes_per_place: float
     query_limit: int | None = None
+    noises: list[str] | None = None
     threads: int = 1
 
     @abstractmethod

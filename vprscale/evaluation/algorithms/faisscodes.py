@@ -58,11 +58,13 @@ class FaissMethod(Algorithm):
     scores. Flat codes are searched exhaustively (every frame visits every place), so beyond
     a scan budget (``SCAN_BUDGET`` codes per run) a run localises an evenly spaced sample,
     never fewer than ``MIN_CENTRES`` centres: a recall from 34 centres (what the budget
-    alone left at 10M) has a 95 % interval ±16 points wide, one from 1,000 about ±3.
+    alone left at 10M) has a 95 % interval ±16 points wide, one from 1,000 about ±3. That
+    floor makes a flat scan cost (1,000 centres × L frames × n_ref codes) what no budget
+    absorbs at 10M and beyond, so ``flat_noise`` may run flat codes on fewer noise levels.
     """
 
     def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None,
-                 k: int | None = None, nprobe: int | None = None) -> None:
+                 k: int | None = None, nprobe: int | None = None, flat_noise: list[str] | None = None) -> None:
         self.codes = codes
         self.name = codes.name
         self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
@@ -72,6 +74,7 @@ class FaissMethod(Algorithm):
             scan = codes.scan_per_frame() * max_L
             query_limit = None if n_centres * scan <= SCAN_BUDGET else max(MIN_CENTRES, int(SCAN_BUDGET // scan))
         self.query_limit = query_limit
+        self.noises = flat_noise if codes.ivf is None else None
 
     @property
     def threads(self) -> int:  # FAISS's searches run on the codes' threads
@@ -124,6 +127,6 @@ def create(context: Any) -> list[Algorithm]:
     for codes in context.compared:
         nprobes = (context.faiss_nprobe or [codes.nprobe]) if codes.ivf is not None else [codes.nprobe]
         for k in context.faiss_k or [codes.k]:
-            found += [FaissMethod(codes, context.n_centres, max(context.lengths), context.compare_queries, k, n)
-                      for n in nprobes]
+            found += [FaissMethod(codes, context.n_centres, max(context.lengths), context.compare_queries, k, n,
+                                  context.flat_noise) for n in nprobes]
     return found

@@ -51,6 +51,7 @@ class Context:
     baseline_queries: int | None = None
     compared: list[Any] = field(default_factory=list)  # fitted FAISS codes (--compare)
     compare_queries: int | None = None
+    flat_noise: list[str] | None = None  # noise levels flat (exhaustive-scan) FAISS codes run on (None: all)
     faiss_k: list[int] | None = None  # FAISS operating points: every k (None: the codes' own) …
     faiss_nprobe: list[int] | None = None  # … with every nprobe (IVF codes only)
     plugged: list[tuple[str, Any]] = field(default_factory=list)  # fitted --method methods, with their labels
