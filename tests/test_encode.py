@@ -123,3 +123,41 @@ def test_compact_store_encodes_to_the_full_store_s_bytes(store, sources, tmp_pat
                  "--fas", str(sources["fas"])]) == 0
     assert main(["encode", str(store), *_compare(FACTORIES)]) == 0
     assert _codes(compact) == _codes(store)
+
+
+def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
+    """A run that fails while writing the on-disk lists' shards resumes without re-encoding or
+    rewriting the shards already written, and publishes the lists of an uninterrupted run."""
+    import faiss
+
+    import vprscale.compared.encoding as stored_format
+    import vprscale.jobs.encoding as enc
+
+    monkeypatch.setattr(stored_format, "SHARD_ROWS", 20_000)
+    assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--workers", "1"]) == 0
+    out = encoding_dir(store, "IVF32,PQ4")
+    whole = {name: (out / name).read_bytes() for name in (LISTS, *WINDOW)}
+    written: list[str] = []
+    real_write = faiss.write_index
+
+    def failing_write(index, path):
+        if "shard" in str(path):
+            written.append(path)
+            if len(written) == 2:
+                raise OSError("disk vanished")
+        return real_write(index, path)
+
+    monkeypatch.setattr(stored_format.faiss, "write_index", failing_write)
+    with pytest.raises(OSError, match="disk vanished"):
+        main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"])
+    encoded = {"n": 0}
+    real_chunk = enc._EncodeChunk.__call__
+
+    def counting(self, a, b):
+        encoded["n"] += 1
+        return real_chunk(self, a, b)
+
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", counting)
+    assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"]) == 0
+    assert encoded["n"] == 0 and len(written) == 2 + 2  # the first shard kept; the second and third written
+    assert {name: (out / name).read_bytes() for name in (LISTS, *WINDOW)} == whole

@@ -495,7 +495,7 @@ def parser() -> argparse.ArgumentParser:
                         "--method: all)")
     p.add_argument("--flat-noise", type=_csv(str), default=None,
                    help="noise levels flat (exhaustive-scan) FAISS codes run on, e.g. qm1 (default: every --noise): "
-                        "at least 1,000 centres of L frames each scan every code, about an hour per flat code and "
+                        "at least 1,000 centres of L frames each scan every code, about 20 minutes per flat code and "
                         "noise level at 10M on 2 cores")
     p.add_argument("--deep1b", metavar="PATH", help="a compact store built from files: its Deep1B file (--compare "
                    "and --method recompute the references from the sources; not needed for synthetic stores)")
