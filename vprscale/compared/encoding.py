@@ -7,9 +7,8 @@ only, not on a CoarseHash index:
 
 - ``trained.faiss``: the trained, empty FAISS index (``faiss.write_index``);
 - ``codes.npy``: every reference's standalone FAISS code (``sa_code_size`` bytes: for IVF
-  the list number, then the code), in id order: from them the inverted lists
-  (``add_sa_codes``), the window scores' codes, list numbers and distance terms are all
-  rebuilt in one sequential read, so nothing else is stored;
+  the list number, then the code), in id order: for any other method its index and window
+  codes are rebuilt from them in one sequential read, so nothing else is stored;
 - for residual IVF-PQ methods (``IVF4096,PQ3``, ``OPQ…,IVF…,PQ…``), what an evaluation
   searches and scores at 100M and 1B without holding them in memory: ``searched.faiss``,
   the index populated with every code, whose inverted lists (code and 64-bit id per place:
