@@ -186,7 +186,8 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
     assert not out.exists()
 
 
-@pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("OPQ4,IVF16,PQ4x6", "residual"),
+@pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("IVF256,PQ4", "residual"),
+                                           ("OPQ4,IVF16,PQ4x6", "residual"),
                                            ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq")])
 def test_table_scores_equal_decoded_vector_scores(factory, form):
     """Every candidate's window score from the tables (IVF-PQ: coarse row + per-list table +
@@ -216,6 +217,12 @@ def test_table_scores_equal_decoded_vector_scores(factory, form):
     assert both[0].keys() == both[1].keys() and len(both[0]) == 3 * len(cand)
     got, want = (np.array([b[key] for key in sorted(both[0])]) for b in both)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6 * want.max())
+    few = cand[:5]  # few candidates for the coarse row's length: the row read in place, not copied
+    top, scores = score_windows(centres[:1], L, few, np.zeros(1, np.int64), np.full(1, len(few)), len(ref),
+                                terms.tables, terms.coarse, codes.ref_terms, codes.lists_of, codes.codes,
+                                terms.vectors, np.zeros((0, 0), np.float32), len(few))
+    np.testing.assert_allclose(scores[0], [both[1][(0, int(c))] for c in top[0]], rtol=2e-5,
+                               atol=1e-6 * want.max())
 
 
 @pytest.mark.slow
