@@ -14,7 +14,7 @@ import pytest
 from vprscale.cli import main
 from vprscale.core.errors import InputError
 from vprscale.core.publish import exclusive
-from vprscale.jobs.pipeline import load_pipeline, run_pipeline
+from vprscale.jobs.pipeline import load_pipeline, run_pipeline, stage_command
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,6 +47,16 @@ def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, messa
     assert main(["run", str(path)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_an_eval_stage_passes_its_flat_noise_levels(tmp_path):
+    stages = ('[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "i"\nkind = "index"\n'
+              'store = "b"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "b"\nindex = "i"\ncompare = ["PQ4"]\n'
+              'flat_noise = ["qm1"]\n')
+    pipe = load_pipeline(_write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") + stages))
+    outputs = {"b": {"store": "s.zarr"}, "i": {"index": "s.index"}}
+    cmd = stage_command(pipe, pipe.stages[2], outputs, None)
+    assert cmd[cmd.index("--flat-noise") + 1] == "qm1" and cmd[cmd.index("--compare") + 1] == "PQ4"
 
 
 def test_shipped_pipelines_are_valid():
