@@ -136,23 +136,25 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
 def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch):
     """A run whose frames would visit more codes than the budget localises an evenly spaced
     sample of the centres (the same ones for every flat method), never fewer than the floor;
-    IVF visits few and does all."""
+    IVF visits a few lists per frame and localises every centre, whatever the budget."""
     import vprscale.evaluation.algorithms.faisscodes as fc
 
-    monkeypatch.setattr(fc, "SCAN_BUDGET", 52_500 * 5 * 40)
     runs = {}
-    for floor in (30, 40, 1000):
+    for floor, budget in ((30, 52_500 * 5 * 40), (40, 52_500 * 5 * 40), (1000, 52_500 * 5 * 40), (30, 1)):
         monkeypatch.setattr(fc, "MIN_CENTRES", floor)
-        out = tmp_path / f"e{floor}"
+        monkeypatch.setattr(fc, "SCAN_BUDGET", budget)
+        out = tmp_path / f"e{floor}-{budget}"
         assert main(["eval", str(tiny_store), str(tiny_index), "--L", "5", "--z", "97", "--noise", "qm1",
                      "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare", "IVF32,PQ4",
                      "--faiss-nprobe", "1", "--repeats", "1", "--out", str(out)]) == 0
         res = pq.read_table(out / "results.parquet").to_pandas()
-        runs[floor] = res[res.part == "all"].groupby("method")["n_queries"].first()
-    n = runs[30]
+        runs[floor, budget] = res[res.part == "all"].groupby("method")["n_queries"].first()
+    n = runs[30, 52_500 * 5 * 40]
     assert n["faiss:PQ4"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40  # the budget's 40 over a floor of 30
-    assert runs[40]["faiss:PQ4"] == 40
-    assert runs[1000]["faiss:PQ4"] == n["coarsehash"] < 1000  # the floor: every centre when there are fewer
+    assert runs[40, 52_500 * 5 * 40]["faiss:PQ4"] == 40
+    assert runs[1000, 52_500 * 5 * 40]["faiss:PQ4"] == n["coarsehash"] < 1000  # the floor: all when there are fewer
+    tight = runs[30, 1]  # beyond any budget: flat codes at the floor, IVF codes still at every centre
+    assert tight["faiss:PQ4"] == 30 and tight["faiss:IVF32,PQ4"] == n["coarsehash"]
 
 
 def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tmp_path):

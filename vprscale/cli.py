@@ -490,9 +490,9 @@ def parser() -> argparse.ArgumentParser:
                    help="references each query frame retrieves from a --method, e.g. 4,16,64: one operating point "
                         "each (default: CoarseHash's mean list size on INDEX)")
     p.add_argument("--compare-queries", type=_positive_int, default=None,
-                   help="centres per compared (FAISS or --method) run (default: FAISS: all while the run's frames "
-                        "visit at most 2^35 codes, beyond, an evenly spaced sample that fits, at least 1,000; "
-                        "--method: all)")
+                   help="centres per compared (FAISS or --method) run (default: flat FAISS codes: all while the "
+                        "run's frames visit at most 2^35 codes, beyond, an evenly spaced sample that fits, at least "
+                        "1,000; IVF codes and --method: all)")
     p.add_argument("--flat-noise", type=_csv(str), default=None,
                    help="noise levels flat (exhaustive-scan) FAISS codes run on, e.g. qm1 (default: every --noise): "
                         "at least 1,000 centres of L frames each scan every code, about 20 minutes per flat code and "

@@ -70,7 +70,7 @@ class FaissMethod(Algorithm):
         self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
         self.bytes_per_place = codes.bytes_per_place
         self._apply()
-        if query_limit is None:
+        if query_limit is None and codes.ivf is None:  # an IVF frame visits a few lists: every centre
             scan = codes.scan_per_frame() * max_L
             query_limit = None if n_centres * scan <= SCAN_BUDGET else max(MIN_CENTRES, int(SCAN_BUDGET // scan))
         self.query_limit = query_limit
