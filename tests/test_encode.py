@@ -161,3 +161,22 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
     assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"]) == 0
     assert encoded["n"] == 0 and len(written) == 2 + 2  # the first shard kept; the second and third written
     assert {name: (out / name).read_bytes() for name in (LISTS, *WINDOW)} == whole
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("format", 1, "not an encoding of PQ4 in this version's format; re-run vprscale encode with --force"),
+    ("store_identity", "0123456789abcdef", "encodes another store than"),
+])
+def test_a_stale_encoding_is_refused_in_one_line(store, tiny_index, tmp_path, capsys, field, value, message):
+    """An evaluation does not read an encoding of an older format or of another store: one
+    line naming it, exit 2, and no evaluation written."""
+    assert main(["encode", str(store), "--compare", "PQ4", "--workers", "1"]) == 0
+    meta_file = encoding_dir(store, "PQ4") / "encoding.json"
+    meta_file.write_text(json.dumps({**json.loads(meta_file.read_text()), field: value}))
+    capsys.readouterr()
+    out = tmp_path / "e"
+    assert main(["eval", str(store), str(tiny_index), "--L", "1", "--compare", "PQ4", "--no-baseline",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and str(encoding_dir(store, "PQ4")) in err and len(err.splitlines()) == 1
+    assert not out.exists()
