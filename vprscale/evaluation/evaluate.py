@@ -341,17 +341,14 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
         compared=compared, compare_queries=req.compare_queries, flat_noise=req.flat_noise, faiss_k=req.faiss_k,
         faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx))))
         for path, idx in indexes]
-    def runs_on(algos: list, noise: str) -> list:
-        return [a for a in algos if a.noises is None or noise in a.noises]
-
     steps = sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths)
-                for noise in req.noises for _, algos in methods for a in runs_on(algos, noise))
+                for noise in req.noises for _, algos in methods for a in algos if a.runs_on(noise))
     bar = StepProgress("evaluate", steps, req.quiet)
     for noise in req.noises:
         x_q = qs.rows(noise, frames)
         for path, algos in methods:
             prepared = []
-            for alg in runs_on(algos, noise):  # each method's per-frame work, on the frames of the centres it localises
+            for alg in (a for a in algos if a.runs_on(noise)):  # per-frame work on the frames it localises
                 bar.step(f"{noise} {alg.name}: per-frame work")
                 alg.prepare(noise, frames, x_q, {L: centres[L].t for L in req.lengths})
                 sample = {L: spread(len(centres[L].t), alg.query_limit) for L in req.lengths}

@@ -62,6 +62,10 @@ class Algorithm(ABC):
     noises: list[str] | None = None
     threads: int = 1
 
+    def runs_on(self, noise: str) -> bool:
+        """Whether this method runs on query set ``noise`` (``noises``)."""
+        return self.noises is None or noise in self.noises
+
     @abstractmethod
     def columns(self) -> dict[str, Any]:
         """``d``, ``K`` and ``params`` of this method's rows."""
