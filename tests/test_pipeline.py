@@ -125,9 +125,15 @@ def _dry_run(path: Path, pythonpath: Path | None = None) -> dict[str, dict]:
 
 
 @pytest.mark.slow
-def test_a_changed_report_module_reruns_only_the_report(quickstart_run, tmp_path):
-    """The code a stage depends on is the modules its job imports: a change to the report code
-    re-runs the report stage, not the builds, indexes or evaluations."""
+@pytest.mark.parametrize(("module", "reruns"), [
+    ("evaluation/report.py", {"report"}),  # the report's code: the report alone
+    ("cli/report.py", {"report"}),  # the report command: the report alone
+    ("cli/sql.py", set()),  # a command no stage runs: nothing
+])
+def test_a_changed_module_reruns_only_the_stages_that_run_it(quickstart_run, tmp_path, module, reruns):
+    """The code a stage depends on is the modules its job imports and its own command: a change
+    to the report code or the report command re-runs the report stage, not the builds, indexes
+    or evaluations; a change to another command re-runs nothing."""
     _, path, _ = quickstart_run
     assert not any(s["run"] for s in _dry_run(path).values())
     import vprscale
@@ -135,11 +141,12 @@ def test_a_changed_report_module_reruns_only_the_report(quickstart_run, tmp_path
     copy = tmp_path / "pkg"
     shutil.copytree(Path(vprscale.__file__).parent, copy / "vprscale", ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copytree(ROOT / "datasets", copy / "datasets")  # the recipes live beside the package
-    with (copy / "vprscale" / "evaluation" / "report.py").open("a") as f:
-        f.write("\n# a change to the report code\n")
+    with (copy / "vprscale" / module).open("a") as f:
+        f.write("\n# a change\n")
     plan = _dry_run(path, pythonpath=copy)
-    assert {name for name, s in plan.items() if s["run"]} == {"report"}
-    assert "code changed (vprscale.evaluation.report)" in plan["report"]["why"]
+    assert {name for name, s in plan.items() if s["run"]} == reruns
+    name = "vprscale." + module.removesuffix(".py").replace("/", ".")
+    assert all(f"code changed ({name})" in plan[stage]["why"] for stage in reruns)
 
 
 @pytest.mark.slow

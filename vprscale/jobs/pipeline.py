@@ -252,7 +252,9 @@ ENTRY_MODULES = {"synth": ["vprscale.dataset.synth"], "build": ["vprscale.datase
                  "encode": ["vprscale.jobs.encoding"],
                  "eval": ["vprscale.evaluation.evaluate", "vprscale.jobs.indexing",
                           *(target.partition(":")[0] for target in BUILTIN.values())]}
-ALWAYS = ("vprscale", "vprscale.cli")  # the version and the command itself (not every job it can import)
+# The package's version and the command line's dispatcher and shared flags; a stage's own command
+# module (vprscale.cli.<kind>) joins its entry modules, so a change to another command re-runs nothing.
+ALWAYS = ("vprscale", "vprscale.cli", "vprscale.cli.common")
 
 
 def _import_graph() -> Any:
@@ -264,7 +266,7 @@ def _import_graph() -> Any:
 def stage_code(kind: str, graph: Any) -> dict[str, str]:
     """Digest of every module the job of a ``kind`` stage runs, by module name."""
     modules = set(ALWAYS)
-    for entry in ENTRY_MODULES[kind]:
+    for entry in [*ENTRY_MODULES[kind], f"vprscale.cli.{kind}"]:
         modules |= {entry} | graph.find_upstream_modules(entry)
     root = Path(vprscale.__file__).parent
     code = {}

@@ -1,0 +1,58 @@
+"""``vprscale bench``: benchmarks a build, an index, look-ups, an evaluation or the code scores."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+
+from vprscale.cli.common import positive_int
+from vprscale.core.errors import InputError
+
+
+def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
+        summary: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")
+    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes"])
+    p.add_argument("target", help="build: a scale; index/eval/online/format/codes: a store; lookup: an index")
+    p.add_argument("--out", default="data/bench", help="build: output directory")
+    p.add_argument("--deep1b")
+    p.add_argument("--fas")
+    p.add_argument("--d", type=positive_int)
+    p.add_argument("--index", help="eval, online, format: the index to evaluate")
+    p.add_argument("--L", type=positive_int, default=100, help="online, codes: sequence length (default 100)")
+    p.add_argument("--compare", action="append", metavar="FACTORY",
+                   help="codes: a FAISS index_factory string (repeat; default PQ3, OPQ3,PQ3, IVF1024,PQ3)")
+    p.add_argument("--places", type=positive_int, help="codes: references encoded (default: all of the store's)")
+    p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
+    p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vprscale.jobs import bench
+
+    if args.job == "build":
+        print(bench.bench_build(args.target, args.out, args.deep1b, args.fas, args.workers))
+    elif args.job == "index":
+        print(bench.bench_index(args.target, args.d, args.workers))
+    elif args.job == "lookup":
+        print(bench.bench_lookup(args.target))
+    elif args.job == "codes":
+        from vprscale.jobs.codesbench import DEFAULT_FACTORIES, bench_codes
+
+        print(bench_codes(args.target, args.compare or list(DEFAULT_FACTORIES), args.places, args.L))
+    elif args.job in ("online", "format"):
+        if not args.index:
+            raise InputError(f"bench {args.job}: give --index")
+        if args.job == "online":
+            print(bench.bench_online(args.target, args.index, args.L))
+        else:
+            from vprscale.jobs.formatbench import bench_format
+
+            print(bench_format(args.target, args.index, (1, args.L)))
+    else:
+        if not args.index:
+            raise InputError("bench eval: give --index")
+        print(bench.bench_eval(args.target, args.index, shlex.split(args.eval_args), args.workers))
+    return 0

@@ -1,0 +1,80 @@
+"""``vprscale build``: builds a localisation dataset store from a recipe (docs/dataset.md) or your own descriptors."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_int, write_summary
+from vprscale.core.errors import InputError
+
+INPUTS = ('deep1b', 'fas', 'scale')  # the flags naming what it reads: no output may be written over them
+
+
+def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
+        summary: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("build", parents=[cluster, summary],
+                       help="build a localisation dataset (docs/dataset.md) into <out>/<scale>.zarr")
+    p.add_argument("--scale", help="20K, 1M, 10M, 100M, 1B or a recipe .toml")
+    own = p.add_argument_group("your own descriptors (docs/bring-your-own.md), instead of --scale")
+    own.add_argument("--ref", help="reference rows: .npy, .fbin or fvecs")
+    own.add_argument("--query", action="append", default=[], metavar="NAME=PATH",
+                     help="a query set (rows aligned with the other sets'), evaluated as --noise NAME; repeatable")
+    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth")
+    own.add_argument("--part", help=".npy of 0/1 per query row (0s first): two parts reported apart (optional)")
+    own.add_argument("--name", help="the store's name, <out>/<name>.zarr (default: the --ref file's stem)")
+    own.add_argument("--stride", type=positive_int, default=1,
+                     help="the evaluation's default query stride z (default 1: every centre)")
+    p.add_argument("--deep1b", help="fvecs file, directory of fvecs chunks, or .fbin (default: synthetic)")
+    p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")
+    p.add_argument("--out", default="data", help="output directory (default: data)")
+    p.add_argument("--fas-dim", type=bounded_int(MAX_FAS_DIM, "the real FAS100K has 4,096"), default=4096,
+                   help="width of the synthetic FAS descriptors when --fas is not given")
+    p.add_argument("--dry-run", action="store_true", help="print what would be read, written and needed")
+    p.add_argument("--force", action="store_true", help="rebuild a complete store (replaced only when done)")
+    p.add_argument("--no-rescale", dest="rescale", action="store_false",
+                   help="skip the variance rescaling of Deep1B (ablation of Fig. 4d; writes <scale>-norescale.zarr)")
+    p.add_argument("--layout", choices=["full", "compact"], default=None,
+                   help="full: every row of every array; compact: only what the index and the evaluation read "
+                        "(default: the recipe's; compact at 100M and 1B)")
+    p.set_defaults(func=run, input_flags=INPUTS, out_is_dir=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vprscale.dataset.build import BuildRequest, build, format_summary
+
+    if args.ref or args.query or args.gt:
+        return _build_own(args)
+    if not args.scale:
+        raise InputError("build: give --scale (a recipe), or --ref, --query and --gt (your own descriptors)")
+    summary = build(BuildRequest(scale=args.scale, out=Path(args.out), deep1b=args.deep1b, fas=args.fas,
+                                 workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
+                                 force=args.force, fas_dim=args.fas_dim, rescale=args.rescale,
+                                 layout=args.layout))
+    if not summary.get("dry_run") and not summary.get("skipped"):
+        print(format_summary(summary))
+    write_summary(args, summary)
+    return 0
+
+
+def _build_own(args: argparse.Namespace) -> int:
+    from vprscale.dataset.build import format_summary
+    from vprscale.dataset.own import OwnRequest, build_own, parse_query
+
+    for flag in ("scale", "deep1b", "fas", "layout"):
+        if getattr(args, flag):
+            raise InputError(f"--{flag}: a recipe's option; your own descriptors (--ref) are stored as given")
+    missing = [f for f, v in (("--ref", args.ref), ("--query", args.query), ("--gt", args.gt)) if not v]
+    if missing:
+        raise InputError(f"build: {' and '.join(missing)} missing (your own descriptors need --ref, --query, --gt)")
+    if args.dry_run:
+        raise InputError("--dry-run: plans a recipe's build; your own descriptors are copied as they are")
+    queries = dict(parse_query(q) for q in args.query)
+    if len(queries) != len(args.query):
+        raise InputError("--query: a name is given twice")
+    summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=args.gt, part=args.part, out=Path(args.out),
+                                   name=args.name, stride=args.stride, force=args.force, workers=args.workers,
+                                   scheduler=args.scheduler))
+    print(format_summary(summary))
+    write_summary(args, summary)
+    return 0

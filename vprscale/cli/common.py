@@ -1,0 +1,149 @@
+"""What every command shares: exit statuses, argument types, the ``--summary`` file, the
+flags of the cluster, and the checks that refuse an output before any work."""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import json
+import os
+import shutil
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from vprscale.core.errors import InputError
+
+EXIT_USAGE = 2  # bad input
+EXIT_FAILURE = 1  # vprscale itself failed
+MAX_FAS_DIM = 16_384  # a synthetic FAS row of more features is drawn in memory, a chunk at a time
+OUTPUT_FLAGS = ("out", "summary")  # the flags that name what a command writes
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text.replace("_", "").replace(",", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be positive")
+    return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive, finite number")
+    return value
+
+
+def bounded_int(upper: int, why: str) -> Callable[[str], int]:
+    """A positive whole number of at most ``upper`` (``why`` says where the bound comes from)."""
+    def parse(text: str) -> int:
+        value = positive_int(text)
+        if value > upper:
+            raise argparse.ArgumentTypeError(f"{text!r} is more than {upper:,} ({why})")
+        return value
+    return parse
+
+
+def csv_of(kind: type) -> Callable[[str], list]:
+    """A comma-separated list of ``kind`` values."""
+    def parse(text: str) -> list:
+        try:
+            return [kind(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list") from None
+    return parse
+
+
+def write_summary(args: argparse.Namespace, data: dict) -> None:
+    """``--summary FILE``: the command's summary as JSON (what pipelines read back), written whole."""
+    if getattr(args, "summary", None):
+        path = Path(args.summary)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(json.dumps(data, indent=1, default=str))
+        tmp.replace(path)
+
+
+def shared_flags() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
+    """The flags several commands share, declared once: (cluster, summary)."""
+    cluster = argparse.ArgumentParser(add_help=False)
+    cluster.add_argument("--scheduler", metavar="ADDRESS",
+                         help="address of a Dask distributed scheduler (tcp://host:8786); default: none, the "
+                              "work runs on threads of this process")
+    cluster.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
+                         help="threads of this process for Dask and for the numba kernels (default: all cores)")
+    summary = argparse.ArgumentParser(add_help=False)
+    summary.add_argument("--summary", metavar="FILE", help="also write the command's summary as JSON to FILE")
+    return cluster, summary
+
+
+def _flag_paths(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[str, Path]]:
+    found = []
+    for name in names:
+        value = getattr(args, name, None)
+        for v in value if isinstance(value, list) else [value]:
+            if isinstance(v, str) and v and (name != "scale" or Path(v).suffix == ".toml"):
+                found.append((name, Path(v)))
+    return found
+
+
+def _owner(path: Path) -> Path | None:
+    """The vprscale store or index that ``path`` lies inside (symlinks followed), if any."""
+    for parent in path.resolve().parents:
+        if (parent / "index.json").is_file() or (parent / "zarr.json").is_file():
+            return parent
+    return None
+
+
+def _check_not_over_inputs(args: argparse.Namespace) -> None:
+    """No output flag may name one of the command's inputs, lie inside one, or lie inside a
+    store or index the command does not own (paths resolved, symlinks followed)."""
+    inputs = _flag_paths(args, getattr(args, "input_flags", ()))
+    for out_flag, out in _flag_paths(args, OUTPUT_FLAGS):
+        target = out.resolve()
+        for in_flag, src in inputs:
+            where = src.resolve()
+            if target == where or where in target.parents:
+                raise InputError(f"--{out_flag} {out}: would write {'over' if target == where else 'into'} the "
+                                 f"input {src} (--{in_flag})")
+        owner = _owner(out)
+        own_eval = (args.command == "eval" and out_flag == "out" and getattr(args, "index", None)
+                    and target == (Path(args.index) / "eval").resolve())
+        if owner is not None and not own_eval:
+            raise InputError(f"--{out_flag} {out}: lies inside {owner}, a vprscale store or index this command does "
+                             "not own; write elsewhere")
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse unusable output paths before any work (a bad --summary must not fail after publishing)."""
+    _check_not_over_inputs(args)
+    summary = getattr(args, "summary", None)
+    if summary:
+        path = Path(summary)
+        if path.is_dir():
+            raise InputError(f"--summary {summary}: is a directory; give a file name")
+        if not path.parent.is_dir():
+            raise InputError(f"--summary {summary}: the folder {path.parent} does not exist")
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise InputError(f"--summary {summary}: the folder {path.parent} is not writable")
+    out = getattr(args, "out", None)
+    if out and getattr(args, "out_is_dir", False) and Path(out).exists() and not Path(out).is_dir():
+        raise InputError(f"--out {out}: is a file, not a directory")
+
+
+def disk_full(exc: OSError, args: argparse.Namespace) -> bool:
+    """Whether an I/O error is a full disk: ENOSPC/EDQUOT, or (numpy's short writes carry no errno)
+    the output's filesystem has less than a mebibyte left."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    out = getattr(args, "out", None)
+    if not out:
+        return False
+    path = Path(out).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return shutil.disk_usage(path).free < 1 << 20

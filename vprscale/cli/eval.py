@@ -1,0 +1,92 @@
+"""``vprscale eval``: localises query sequences and evaluates the grid of docs/protocol.md."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vprscale.cli.common import csv_of, positive_int, write_summary
+from vprscale.core.errors import InputError
+
+INPUTS = ('store', 'index')  # the flags naming what it reads: no output may be written over them
+
+
+def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
+        summary: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("eval", parents=[cluster, summary],
+                       help="localise query sequences and evaluate the grid of docs/protocol.md")
+    p.add_argument("store", help="a complete <scale>.zarr dataset store")
+    p.add_argument("index", nargs="?", help="an index of that store (or use --d to index several widths)")
+    p.add_argument("--noise", type=csv_of(str), default=None,
+                   help="the store's query sets to evaluate, e.g. qm1,qm2 (default: every one it holds)")
+    p.add_argument("--L", type=csv_of(int), default=[1, 50, 100], help="sequence lengths, e.g. 1,50,100")
+    p.add_argument("--modes", type=csv_of(str), default=["paper", "aligned"], help="paper,aligned")
+    p.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True,
+                   help="also run the baseline of docs/method.md (default on)")
+    p.add_argument("--z", type=positive_int, default=None, help="query stride (default: the recipe's)")
+    p.add_argument("--baseline-queries", type=positive_int, default=None,
+                   help="localise an evenly spaced sample of this many centres per baseline run (default: all "
+                        "below 10^8 query rows, 64 beyond: each baseline query scans every place)")
+    p.add_argument("--d", type=csv_of(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
+    p.add_argument("--compare", metavar="FACTORY", action="append", default=[],
+                   help="also evaluate a FAISS index_factory string as method faiss:FACTORY, e.g. PQ3, OPQ3,PQ3, "
+                        "ITQ24,LSH, IVF4096,PQ3 (repeat for several; docs/protocol.md)")
+    p.add_argument("--faiss-k", type=csv_of(int), default=None,
+                   help="references each query frame retrieves from a FAISS index, e.g. 4,16,64: one operating "
+                        "point each (default: CoarseHash's mean list size on INDEX, the same candidate budget)")
+    p.add_argument("--faiss-nprobe", type=csv_of(int), default=[16],
+                   help="inverted lists an IVF index visits per frame, e.g. 1,8,64: one operating point each, "
+                        "with every --faiss-k (default 16)")
+    p.add_argument("--method", metavar="CLASS", action="append", default=[], dest="methods",
+                   help="also evaluate your own method: package.module:Class of the contract in "
+                        "docs/bring-your-own.md, or an installed method's name (repeat for several)")
+    p.add_argument("--method-k", type=csv_of(int), default=None,
+                   help="references each query frame retrieves from a --method, e.g. 4,16,64: one operating point "
+                        "each (default: CoarseHash's mean list size on INDEX)")
+    p.add_argument("--compare-queries", type=positive_int, default=None,
+                   help="centres per compared (FAISS or --method) run (default: flat FAISS codes: all while the "
+                        "run's frames visit at most 2^35 codes, beyond, an evenly spaced sample that fits, at least "
+                        "1,000; IVF codes and --method: all)")
+    p.add_argument("--flat-noise", type=csv_of(str), default=None,
+                   help="noise levels flat (exhaustive-scan) FAISS codes run on, e.g. qm1 (default: every --noise): "
+                        "at least 1,000 centres of L frames each scan every code, about 20 minutes per flat code and "
+                        "noise level at 10M on 2 cores")
+    p.add_argument("--deep1b", metavar="PATH", help="a compact store built from files: its Deep1B file (--compare "
+                   "and --method recompute the references from the sources; not needed for synthetic stores)")
+    p.add_argument("--fas", metavar="PATH", help="a compact store built from files: its FAS file (as --deep1b)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an evaluation already in the output; the old one is kept beside, as <out>.previous")
+    p.add_argument("--repeats", type=positive_int, default=3,
+                   help="timing repeats of every timed kernel, on one thread (default 3; docs/accounting.md)")
+    p.add_argument("--out", help="output directory (default: INDEX/eval)")
+    p.set_defaults(func=run, input_flags=INPUTS, out_is_dir=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vprscale.evaluation.evaluate import EvalRequest, check_request, evaluate
+    from vprscale.jobs.indexing import sweep_indexes
+
+    req = EvalRequest(store=Path(args.store), indexes=[Path(args.index)] if args.index else [],
+                      noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
+                      z=args.z, baseline_queries=args.baseline_queries,
+                      compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,
+                      faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
+                      flat_noise=args.flat_noise,
+                      deep1b=args.deep1b, fas=args.fas, out=Path(args.out) if args.out else None,
+                      workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
+                      force=args.force)
+    if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
+        if args.compare or args.methods:
+            flag = "--compare" if args.compare else "--method"
+            raise InputError(f"{flag}: compares with one index at a time, not with a --d sweep")
+        check_request(req)
+        req.indexes = sweep_indexes(args.store, args.d, scheduler=args.scheduler, workers=args.workers)
+    summary = evaluate(req)
+    if summary.get("recovered"):
+        write_summary(args, summary)
+        return 0
+    print(summary["table"])
+    print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
+          f"({summary['queries']:,} rows); z = {summary['z']}")
+    write_summary(args, summary)
+    return 0

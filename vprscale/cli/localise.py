@@ -1,0 +1,32 @@
+"""``vprscale localise``: matches a traverse frame by frame (online)."""
+
+from __future__ import annotations
+
+import argparse
+
+from vprscale.cli.common import positive_int, write_summary
+
+INPUTS = ('index', 'queries')  # the flags naming what it reads: no output may be written over them
+
+
+def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
+        summary: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("localise", parents=[summary],
+                       help="match a traverse frame by frame (online) and write one row per frame")
+    p.add_argument("index", help="an index directory")
+    p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
+    p.add_argument("--L", type=positive_int, default=100, help="sequence length (default 100)")
+    p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
+    p.add_argument("--out", help="Parquet file of (frame, centre, match, n_r), one row per frame")
+    p.set_defaults(func=run, input_flags=INPUTS)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vprscale.jobs.localise import localise
+
+    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out)
+    if args.out is None:
+        print(f"{summary['frames']:,} frames localised ({summary['us_per_frame']:.1f} µs per frame); "
+              "give --out FILE to keep the matches")
+    write_summary(args, summary)
+    return 0

@@ -1,0 +1,29 @@
+"""``vprscale report``: draws the figures and writes report.md from evaluation results."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vprscale.cli.common import write_summary
+
+INPUTS = ('results', 'index')  # the flags naming what it reads: no output may be written over them
+
+
+def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
+        summary: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("report", parents=[summary],
+                       help="figures and report.md from evaluation results")
+    p.add_argument("results", nargs="+", help="eval output directories (or results.parquet files)")
+    p.add_argument("--out", required=True, help="report directory, e.g. reports/<name>")
+    p.add_argument("--index", action="append", default=[], help="an extra index (e.g. the no-rescale ablation)")
+    p.set_defaults(func=run, input_flags=INPUTS, out_is_dir=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vprscale.evaluation.report import write_report
+
+    rep = write_report(args.results, Path(args.out), extra_indexes=args.index)
+    print(f"wrote {rep['report']} and {len(rep['figures'])} figure files")
+    write_summary(args, rep)
+    return 0

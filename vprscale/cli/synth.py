@@ -1,0 +1,34 @@
+"""``vprscale synth``: writes synthetic Deep1B and FAS100K source files (the embedded default's inputs)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_int, write_summary
+
+
+def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
+        summary: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("synth", parents=[summary],
+                       help="write synthetic Deep1B (fvecs, fbin) and FAS100K (npz) files")
+    p.add_argument("--out", required=True, help="directory to write into")
+    p.add_argument("--deep1b-rows", type=positive_int, default=1_000_000)
+    p.add_argument("--fas-dim", type=bounded_int(MAX_FAS_DIM, "the real FAS100K has 4,096"), default=4096,
+                   help="FAS descriptor width (real: 4096)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rows-per-file", type=positive_int, default=None,
+                   help="split the fvecs output into base_NN files of this many rows")
+    p.set_defaults(func=run, out_is_dir=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vprscale.dataset.synth import write_synthetic
+
+    paths = write_synthetic(Path(args.out), args.deep1b_rows, args.fas_dim, args.seed,
+                            rows_per_file=args.rows_per_file)
+    for p in paths:
+        print(p)
+    write_summary(args, {"dir": args.out, "fvecs": str(paths[0].parent), "fbin": str(paths[-2]),
+                          "fas": str(paths[-1])})
+    return 0
