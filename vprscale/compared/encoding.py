@@ -26,9 +26,13 @@ writes (the same training rows, the same blocks), so an evaluation answers the s
 
 from __future__ import annotations
 
+import ctypes
 import json
+import os
 import re
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +48,24 @@ LOAD_ROWS = 1 << 20  # codes added to the FAISS index (or turned into window arr
 SHARD_ROWS = 1 << 26  # places in one in-memory shard of the inverted lists before the on-disk merge (0.7 GB)
 SEARCHED, LISTS = "searched.faiss", "lists.ivfdata"
 WINDOW = ("window_lists.npy", "window_codes.npy", "window_terms.npy")
+
+
+@contextmanager
+def _faiss_quiet() -> Iterator[None]:
+    """Silence FAISS's on-disk lists' bookkeeping ("resizing …", "IO_FLAG_ONDISK_SAME_DIR:
+    updating ondisk filename …"): its C++ ``printf``s them to the process's standard output,
+    which is the command's own (its table, or a pipeline's log), so standard output is pointed
+    at the null device at the file-descriptor level while FAISS merges or opens the lists."""
+    sys.stdout.flush()
+    saved, null = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    try:
+        yield
+    finally:
+        ctypes.CDLL(None).fflush(None)  # what C's stdio still buffers goes to the null device too
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(null)
 
 
 def encodings_dir(store: Path) -> Path:
@@ -113,7 +135,8 @@ def write_searched(out: Path, factory: str, dim: int, done: Callable[[str], bool
     if not done(SEARCHED):
         (out / LISTS).unlink(missing_ok=True)  # a merge a kill interrupted starts over
         index = read_trained(out, factory, dim).index
-        merge_ondisk(index, [str(p) for p in shards], str(out / LISTS))
+        with _faiss_quiet():
+            merge_ondisk(index, [str(p) for p in shards], str(out / LISTS))
         faiss.write_index(index, str(out / SEARCHED))
         mark(SEARCHED)
     for shard in shards:
@@ -140,7 +163,8 @@ def load_encoding(out: Path, codes: FaissCodes) -> None:
     a residual IVF-PQ method its searched index on on-disk lists and its memory-mapped window
     arrays (nothing read until searched), any other its trained index and codes in memory."""
     if (out / SEARCHED).is_file():
-        index = faiss.read_index(str(out / SEARCHED), faiss.IO_FLAG_ONDISK_SAME_DIR)
+        with _faiss_quiet():  # publishing renamed the directory FAISS wrote the lists' path into
+            index = faiss.read_index(str(out / SEARCHED), faiss.IO_FLAG_ONDISK_SAME_DIR)
         codes.attach(index, *(np.load(out / name, mmap_mode="r") for name in WINDOW))
         return
     codes.bind(faiss.read_index(str(out / "trained.faiss")))
