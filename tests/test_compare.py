@@ -272,6 +272,24 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     assert section.count("| tiny | QM1 |") == 3 * (1 + len(FACTORIES))  # L = 1: single; L = 9: two modes
 
 
+def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
+    """Against scale, CoarseHash (a different d at each scale) is one series per mode, joined
+    across the scales, as each compared method is."""
+    from vprscale.evaluation.comparison import family_label, fig_compare_trends
+
+    rows = [(scale, method, d, recall) for scale, d in (("1M", 20), ("10M", 24))
+            for method, recall in (("coarsehash", 0.9 if d == 20 else 0.8), ("faiss:PQ3", 0.95))]
+    points = pd.DataFrame([{"scale": s, "noise": "qm1", "method": m, "mode": "aligned", "L": 100, "d": d,
+                            "recall": r, "recall_lo": r - 0.01, "recall_hi": r + 0.01, "bytes_per_place": 3.0,
+                            "us_per_query": 10.0, "family": family_label(m, "aligned", d)} for s, m, d, r in rows])
+    drawn = {}
+    fig_compare_trends(points, ["1M", "10M"], tmp_path, lambda fig, out, name: drawn.setdefault(name, fig))
+    by_scale = drawn["fig_compare_trends"].axes[2]  # a 2 × 2 grid: the first panel of the second row
+    lines = {line.get_label(): list(line.get_ydata()) for line in by_scale.get_lines()}
+    assert lines["CoarseHash (aligned)"] == [90.0, 80.0] and lines["PQ3 (aligned)"] == [95.0, 95.0]
+    assert not any("d=" in label for label in lines)
+
+
 def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():
     from vprscale.evaluation.comparison import pareto_front
 

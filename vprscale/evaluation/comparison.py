@@ -16,6 +16,7 @@ Everything here is read from the results; nothing is written in advance of the d
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -184,6 +185,11 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) 
 def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
     """Each family's best recall against L (one panel per scale) and against scale (one per L)."""
     noise, scales, lengths, colours, best = _setup(points, scales)
+    # CoarseHash is compared at each scale's own width (d = ⌈log2 N_ref⌉): against scale it is
+    # one line per mode, drawn in the colour of its first scale's family (the tables give d)
+    merged = {fam: re.sub(r"^CoarseHash d=\d+ ", "CoarseHash ", fam) for fam in best.family.unique()}
+    colours = {**colours, **{new: colours[old] for old, new in reversed(merged.items())}}
+    best = best.assign(family=best.family.map(merged))
     order = {s: i for i, s in enumerate(scales)}
     fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
                              squeeze=False, sharey=True, layout="constrained")
