@@ -16,7 +16,6 @@ Everything here is read from the results; nothing is written in advance of the d
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any
 
@@ -74,8 +73,10 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
 
 
 def family_label(method: str, mode: str, d: Any) -> str:
-    name = f"CoarseHash d={int(d)}" if method == OURS else method.removeprefix("faiss:")
-    return f"{name} ({mode})"
+    """``PQ3 (aligned)``; CoarseHash with its width, ``CoarseHash d=24 (aligned)``, unless ``d`` is None."""
+    if method != OURS:
+        return f"{method.removeprefix('faiss:')} ({mode})"
+    return f"CoarseHash{'' if d is None else f' d={int(d)}'} ({mode})"
 
 
 def _label(method: str, mode: str, d: Any, params: Any = None) -> str:
@@ -187,9 +188,9 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save)
     noise, scales, lengths, colours, best = _setup(points, scales)
     # CoarseHash is compared at each scale's own width (d = ⌈log2 N_ref⌉): against scale it is
     # one line per mode, drawn in the colour of its first scale's family (the tables give d)
-    merged = {fam: re.sub(r"^CoarseHash d=\d+ ", "CoarseHash ", fam) for fam in best.family.unique()}
-    colours = {**colours, **{new: colours[old] for old, new in reversed(merged.items())}}
-    best = best.assign(family=best.family.map(merged))
+    series = [family_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)]
+    colours = {**colours, **{new: colours[old] for old, new in reversed(list(zip(best.family, series, strict=True)))}}
+    best = best.assign(family=series)
     order = {s: i for i, s in enumerate(scales)}
     fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
                              squeeze=False, sharey=True, layout="constrained")

@@ -252,9 +252,10 @@ ENTRY_MODULES = {"synth": ["vprscale.dataset.synth"], "build": ["vprscale.datase
                  "encode": ["vprscale.jobs.encoding"],
                  "eval": ["vprscale.evaluation.evaluate", "vprscale.jobs.indexing",
                           *(target.partition(":")[0] for target in BUILTIN.values())]}
-# The package's version and the command line's dispatcher and shared flags; a stage's own command
-# module (vprscale.cli.<kind>) joins its entry modules, so a change to another command re-runs nothing.
-ALWAYS = ("vprscale", "vprscale.cli", "vprscale.cli.common")
+# The package's version and the command line's dispatcher; a stage's own command module
+# (vprscale.cli.<kind>, with what it imports) joins its entry modules, so a change to another
+# command re-runs nothing.
+ALWAYS = ("vprscale", "vprscale.cli")
 
 
 def _import_graph() -> Any:
