@@ -1,9 +1,10 @@
 """``vprscale eval --compare``: FAISS compact codes evaluated beside CoarseHash (docs/protocol.md).
 
 One shared evaluation of the tiny store with a FAISS method of each scoring form (product
-quantiser tables, 8-bit and bit-packed; Hamming tables of binary codes; residual tables of
-an IVF-PQ index), checked against FAISS itself and against a brute-force window score; the
-table forms are also checked against the decoded-vector form on the same codes.
+quantiser tables: 8-bit, bit-packed and FAISS's 4-bit fast-scan codes; Hamming tables of
+binary codes; residual tables of an IVF-PQ index), checked against FAISS itself and against
+a brute-force window score; the table forms are also checked against the decoded-vector
+form on the same codes.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from vprscale.cli import main
 from vprscale.compared.codescore import score_windows
 from vprscale.compared.faisscodes import ID_BYTES, REF_TERM_BYTES, FaissCodes, FrameTerms, training_rows
 
-FACTORIES = ["PQ4", "OPQ4,PQ4x6", "ITQ16,LSH", "IVF32,PQ4"]
+FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4"]
 L_SEQ = 9
 
 
@@ -123,7 +124,7 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
     assert set(per_method.index) == {"coarsehash", "baseline", *(f"faiss:{f}" for f in FACTORIES)}
     assert all(len(v) == 1 and v[0] > 0 for v in per_method)
     assert per_method["faiss:PQ4"][0] == 4 and per_method["faiss:ITQ16,LSH"][0] == 2
-    assert per_method["faiss:OPQ4,PQ4x6"][0] == 3  # 24 bits
+    assert per_method["faiss:OPQ4,PQ4x6"][0] == 3 and per_method["faiss:PQ6x4fs"][0] == 3  # 24 bits
     # list entry; the code in id order with its list number and its distance term
     assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5 + REF_TERM_BYTES
     assert per_method["baseline"][0] == 4
@@ -190,7 +191,8 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
 
 @pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("IVF256,PQ4", "residual"),
                                            ("OPQ4,IVF16,PQ4x6", "residual"),
-                                           ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq")])
+                                           ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq"), ("PQ8x4fs", "pq"),
+                                           ("OPQ8,PQ8x4fs", "pq"), ("PQ1x4", "pq")])
 def test_table_scores_equal_decoded_vector_scores(factory, form):
     """Every candidate's window score from the tables (IVF-PQ: coarse row + per-list table +
     frame table) equals, to float rounding, the sum of squared distances to the decoded codes."""

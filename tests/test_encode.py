@@ -13,7 +13,7 @@ import pytest
 from vprscale.cli import main
 from vprscale.compared.encoding import LISTS, SEARCHED, WINDOW, encoding_dir
 
-FACTORIES = ["PQ4", "IVF32,PQ4"]
+FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4"]  # 8-bit, 4-bit fast-scan and residual codes
 
 
 @pytest.fixture

@@ -62,12 +62,23 @@ def _form(inner: Any) -> str:
     """How the window scores read a FAISS index's codes (:mod:`vprscale.compared.codescore`)."""
     if isinstance(inner, faiss.IndexLSH):
         return "hamming"
-    if isinstance(inner, faiss.IndexPQ) and inner.pq.nbits <= 8:
+    if isinstance(inner, (faiss.IndexPQ, faiss.IndexPQFastScan)) and inner.pq.nbits <= 8:
         return "pq"
     if (isinstance(inner, faiss.IndexIVFPQ) and inner.by_residual and inner.pq.nbits <= 8
             and inner.metric_type == faiss.METRIC_L2):
         return "residual"
     return "vectors"
+
+
+def _byte_tables(tables: np.ndarray) -> np.ndarray:
+    """Per-byte tables of 4-bit product-quantiser codes from per-sub-quantiser ones (frames,
+    M, 16): byte ``b`` packs index ``2b`` in its low and ``2b + 1`` in its high nibble (FAISS
+    packs least significant bit first), so its table at ``hi · 16 + lo`` is the sum of
+    theirs; an odd last sub-quantiser pairs with a zero table (its high nibble is 0)."""
+    if tables.shape[1] % 2:
+        tables = np.concatenate([tables, np.zeros_like(tables[:, :1])], axis=1)
+    low, high = tables[:, 0::2], tables[:, 1::2]
+    return (high[:, :, :, None] + low[:, :, None, :]).reshape(len(tables), low.shape[1], 256)
 
 
 def _one_thread(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> Any:
@@ -116,7 +127,7 @@ class FaissCodes:
 
     def bind(self, index: Any) -> None:
         """Work on ``index`` (a fresh one from the factory, or a trained one read from disk)."""
-        self.index = index
+        self.index = self.searched = index
         self.chain = ([faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
                       if isinstance(index, faiss.IndexPreTransform) else [])
         self.inner = faiss.downcast_index(index.index) if self.chain else faiss.downcast_index(index)
@@ -124,6 +135,13 @@ class FaissCodes:
         if self.ivf is not None:
             self.ivf.nprobe = self.nprobe
         self.form = _form(self.inner)
+
+    @property
+    def packed(self) -> bool:
+        """Whether the window scores read FAISS's packed code bytes, one table per byte: 8-bit
+        product quantisers, and 4-bit ones (FAISS's fast-scan codes), whose two indices per byte
+        get one 256-entry table, the sum of their two 16-entry ones (two look-ups become one)."""
+        return self.form == "pq" and self.inner.pq.nbits in (4, 8)
 
     @property
     def name(self) -> str:
@@ -161,7 +179,8 @@ class FaissCodes:
         """Unitary operations of a frame's search (transform, distance tables or coarse step, scan)."""
         transform = sum(2.0 * t.d_in * t.d_out for t in self.chain)
         width = self.codes.shape[1]
-        tables = 3.0 * 256 * self.dim if self.form != "hamming" else 256.0 * width
+        tables = 3.0 * self.inner.pq.ksub * self.dim if self.form in ("pq", "residual") else 256.0 * width
+        tables += 256.0 * width if self.packed and self.inner.pq.nbits == 4 else 0.0
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
         coarse *= 2 if self.form == "residual" else 1  # the window scores' coarse row, beside the search's
         return transform + tables + coarse + width * self.scan_per_frame()
@@ -184,7 +203,7 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.inner.pq.M if self.form in ("pq", "residual") else self.inner.sa_code_size()
+        width = self.inner.pq.M if self.form in ("pq", "residual") and not self.packed else self.inner.sa_code_size()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
         if self.form == "residual":
@@ -215,13 +234,17 @@ class FaissCodes:
         return np.concatenate(self._blocks(lambda b: self.inner.sa_encode(self._transform(b)), x, ENCODE_ROWS))
 
     def add_codes(self, codes: np.ndarray) -> None:
-        """Add the next references by their standalone codes (:meth:`encode_rows`, or stored ones)."""
-        self.inner.add_sa_codes(codes)
+        """Add the next references by their standalone codes (:meth:`encode_rows`, or stored ones).
+
+        A fast-scan index cannot take standalone codes; its searched copy is built from them
+        all at :meth:`finish`."""
+        if not isinstance(self.inner, faiss.IndexPQFastScan):
+            self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
         if self.form == "residual":
             lists, codes, terms = self.window_parts(codes)
             self.lists_of[lo : self._filled], self.ref_terms[lo : self._filled] = lists, terms
-        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" else codes
+        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" and not self.packed else codes
 
     def window_parts(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the window scores read of residual IVF-PQ places, from their standalone codes:
@@ -243,11 +266,36 @@ class FaissCodes:
     def finish(self) -> None:
         if self._filled != len(self.codes):
             raise ValueError(f"{self._filled:,} of {len(self.codes):,} references encoded")
+        if isinstance(self.inner, faiss.IndexPQFastScan):
+            self._fast_scan_copy()
         self.index.ntotal = self.inner.ntotal
         if self.form == "vectors":  # decoded once, block by block, in the space the inner index searches
             self.vectors = np.empty((len(self.codes), self.inner.d), np.float32)
             for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
+
+    def _fast_scan_copy(self) -> None:
+        """The searched index of a fast-scan code: FAISS lays its codes out in blocks of
+        ``bbs`` places, built from a plain product-quantiser index holding the standalone
+        codes (what ``IndexPQFastScan(IndexPQ)`` does); the transforms of the chain, if any,
+        go before it. The trained index stays as it was: it encodes and transforms."""
+        pq = self.inner.pq
+        plain = faiss.IndexPQ(self.inner.d, pq.M, pq.nbits)
+        plain.pq, plain.is_trained = pq, True
+        plain.add_sa_codes(self.codes)
+        fast = faiss.IndexPQFastScan(plain, self.inner.bbs)
+        del plain
+        if not self.chain:
+            self.searched = fast
+            return
+        self.searched = faiss.IndexPreTransform(fast)  # keeps a reference to ``fast``
+        for t in reversed(self.chain):  # owned by ``self.index``, which lives as long
+            self.searched.prepend_transform(t)
+
+    @property
+    def searched_inner(self) -> Any:
+        """The index the searches end in, after the transforms (for a fast-scan code, its copy holding the codes)."""
+        return faiss.downcast_index(self.searched.index) if self.chain else self.searched
 
     def _residual_tables(self) -> None:
         """The coarse centroids and, per list ``l``, sub-quantiser ``m`` and code ``v``,
@@ -269,7 +317,7 @@ class FaissCodes:
 
     def search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
-        found = self._blocks(lambda b: self.index.search(b, self.k), rows)
+        found = self._blocks(lambda b: self.searched.search(b, self.k), rows)
         return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
 
     def frame_terms(self, rows: np.ndarray) -> FrameTerms:
@@ -285,7 +333,8 @@ class FaissCodes:
         if self.form == "pq":
             ys, cents = self._sub_products(y)
             tables = (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
-            return FrameTerms(np.maximum(tables, 0).astype(np.float32), _NO_ROWS, _NO_ROWS)
+            tables = np.maximum(tables, 0).astype(np.float32)
+            return FrameTerms(_byte_tables(tables) if self.inner.pq.nbits == 4 else tables, _NO_ROWS, _NO_ROWS)
         return FrameTerms(_NO_TABLES, _NO_ROWS, y)
 
     def _sub_products(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

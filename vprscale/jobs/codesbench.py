@@ -70,7 +70,7 @@ def _ours(codes: FaissCodes, query: np.ndarray, L: int, rng: np.random.Generator
 def _faiss_scan(codes: FaissCodes, query: np.ndarray, repeats: int) -> tuple[float, float, float]:
     """FAISS's own search over the same codes, per code visited (one thread)."""
     y = np.ascontiguousarray(codes._transform(query[:16]), np.float32)
-    inner = codes.inner
+    inner = codes.searched_inner
     if codes.ivf is not None:
         codes.ivf.nprobe = codes.ivf.nlist
         visited = codes.n_ref
