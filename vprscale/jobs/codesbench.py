@@ -58,16 +58,16 @@ def _fmt(t: tuple[float, float, float]) -> str:
     return f"{t[0]:6.2f} ({t[1]:.2f}–{t[2]:.2f})"
 
 
-def _ours(codes: FaissCodes, query: np.ndarray, L: int, rng: np.random.Generator, repeats: int
-          ) -> tuple[float, float, float]:
+def _ours(codes: FaissCodes, query: np.ndarray, L: int, rng: np.random.Generator, repeats: int,
+          windows: int = WINDOWS, candidates: int = CANDIDATES) -> tuple[float, float, float]:
     """Our window score per term, on random windows and random candidates (L = 1: random ids)."""
     terms = codes.frame_terms(query)
     half = L // 2
-    centres = rng.integers(half, len(query) - L + half + 1, WINDOWS)
-    cand = rng.integers(0, codes.n_ref, WINDOWS * CANDIDATES)
-    first = np.arange(WINDOWS, dtype=np.int64) * CANDIDATES
-    n_r = np.full(WINDOWS, CANDIDATES, np.int64)
-    return _cpu_ns(lambda: codes.score(centres, L, cand, first, n_r, terms), WINDOWS * CANDIDATES * L, repeats)
+    centres = rng.integers(half, len(query) - L + half + 1, windows)
+    cand = rng.integers(0, codes.n_ref, windows * candidates)
+    first = np.arange(windows, dtype=np.int64) * candidates
+    n_r = np.full(windows, candidates, np.int64)
+    return _cpu_ns(lambda: codes.score(centres, L, cand, first, n_r, terms), windows * candidates * L, repeats)
 
 
 def _faiss_distance_computer(codes: FaissCodes, query: np.ndarray, repeats: int) -> tuple[float, float, float]:
@@ -129,7 +129,8 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
             codes.encode(ref[i : i + (1 << 16)])
         codes.finish()
         ours = _ours(codes, query, L, rng, repeats)
-        ours_random = _ours(codes, query, 1, rng, repeats)
+        # one-frame windows of as many random ids as FAISS's distance computer gets per query row
+        ours_random = _ours(codes, query, 1, rng, repeats, WINDOWS * CANDIDATES // PROPOSED, PROPOSED)
         computer = _faiss_distance_computer(codes, query, repeats)
         theirs = _faiss_scan(codes, query, repeats)
         width = codes.codes.shape[1]
