@@ -292,6 +292,22 @@ def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
     assert not any("d=" in label for label in lines)
 
 
+def test_a_method_keeps_its_colour_and_its_modes_their_line_styles():
+    """Colours go to methods (CoarseHash one at every width), line styles to modes, so a
+    report's thirty-odd families need no more colours than it has methods."""
+    from vprscale.evaluation.comparison import family_colours, family_label, family_line
+
+    families = [family_label(m, mode, d) for m, d in (("coarsehash", 20), ("coarsehash", 24), ("faiss:PQ3", None),
+                                                      ("faiss:IVF4096,PQ3", None))
+                for mode in ("aligned", "paper", "single")]
+    colours = family_colours(families)
+    assert len({colours[f] for f in families}) == 3
+    ours = {colours[f"CoarseHash d={d} ({mode})"] for d in (20, 24) for mode in ("aligned", "paper", "single")}
+    assert len(ours) == 1
+    assert colours["PQ3 (aligned)"] != colours["IVF4096,PQ3 (aligned)"] != colours["CoarseHash d=20 (aligned)"]
+    assert len({family_line(family_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
+
+
 def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():
     from vprscale.evaluation.comparison import pareto_front
 

@@ -10,12 +10,14 @@ Each method family (a method in one mode) has one point per operating point (its
 - ``fig_compare_bytes``: recall against bytes per place, on an axis that spans the data;
 - ``fig_compare_trends``: each family's best recall against L, and against scale.
 
-Colour is the only encoding of the family; every recall carries its 95 % Wilson interval.
+A family's colour is its method's (CoarseHash's the same at every width), its line style its
+mode's (``MODE_LINES``); every recall carries its 95 % Wilson interval.
 Everything here is read from the results; nothing is written in advance of the data.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,7 @@ from vprscale.evaluation.results import main_noise, noise_order
 RADIUS = 20
 OURS = "coarsehash"
 NOT_COMPARED = {OURS, "baseline"}
+MODE_LINES = {"aligned": "-", "paper": "--", "single": ":"}  # a family's line style, by its mode
 
 
 def _plain(v: float, _pos: int) -> str:
@@ -97,13 +100,28 @@ def pareto_front(points: pd.DataFrame, x: str = "qps", y: str = "recall") -> pd.
     return ordered.loc[keep]
 
 
+def _method_and_mode(family: str) -> tuple[str, str]:
+    """``("PQ3", "aligned")`` of ``PQ3 (aligned)``; CoarseHash without its width."""
+    method, _, mode = family.rpartition(" (")
+    return re.sub(r" d=\d+$", "", method), mode.rstrip(")")
+
+
 def family_colours(families: list[str]) -> dict[str, Any]:
-    """A distinct colour per family, CoarseHash's first, the others by name (the same family
-    gets the same colour in every figure of a report); no greys (the grid's colour)."""
-    families = sorted(set(families), key=lambda f: (not f.startswith("CoarseHash"), f))
+    """Each family's colour: its method's, one distinct colour per method, CoarseHash's first,
+    the others by name (a method has the same colour in every figure of a report, whatever its
+    mode or CoarseHash's width; :func:`family_line` tells the modes apart); no greys (the grid's
+    colour). Sixteen colours before one repeats: a colour per family would repeat at a report's
+    thirty-odd families (ten methods in up to three modes)."""
+    methods = sorted({_method_and_mode(f)[0] for f in families}, key=lambda m: (m != "CoarseHash", m))
     tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
     palette = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
-    return {f: palette[i % len(palette)] for i, f in enumerate(families)}
+    by_method = {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+    return {f: by_method[_method_and_mode(f)[0]] for f in families}
+
+
+def family_line(family: str) -> str:
+    """A family's line style: its mode's (``MODE_LINES``)."""
+    return MODE_LINES.get(_method_and_mode(family)[1], "-")
 
 
 def _families(points: pd.DataFrame) -> list[str]:
@@ -146,7 +164,8 @@ def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> Non
             for fam, g in sub.groupby("family", sort=False):
                 front = pareto_front(g)
                 ax.scatter(g.qps, 100 * g.recall, s=14, color=colours[fam], alpha=0.35, lw=0)
-                ax.plot(front.qps, 100 * front.recall, "o-", ms=4, lw=1.3, color=colours[fam], label=fam)
+                ax.plot(front.qps, 100 * front.recall, marker="o", ls=family_line(fam), ms=4, lw=1.3,
+                        color=colours[fam], label=fam)
                 _recall_bars(ax, front, "qps", colours[fam])
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(FuncFormatter(_si))
@@ -167,12 +186,13 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) 
         ax = axes[0][c]
         for fam, g in best[best.scale == scale].groupby("family", sort=False):
             g = g.sort_values("L")
+            fill = "none" if family_line(fam) == MODE_LINES["paper"] else colours[fam]
             for row in g.itertuples():
                 ax.scatter(row.bytes_per_place, 100 * row.recall, marker=marker.get(row.L, "o"), s=30,
-                           color=colours[fam], label=fam if row.L == g.L.iloc[0] else None)
+                           edgecolors=colours[fam], facecolors=fill, label=fam if row.L == g.L.iloc[0] else None)
             _recall_bars(ax, g, "bytes_per_place", colours[fam])
         ax.set_xscale("log")
-        ax.set_xlim(lo / 1.4, hi * 1.4)
+        ax.set_xlim(lo / 1.4, hi * 1.4)  # aligned (and single-frame) points filled, paper mode's hollow
         ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.xaxis.set_major_formatter(FuncFormatter(_plain))
         ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _p: ""))
@@ -185,12 +205,11 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) 
 
 def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
     """Each family's best recall against L (one panel per scale) and against scale (one per L)."""
-    noise, scales, lengths, colours, best = _setup(points, scales)
+    noise, scales, lengths, _, best = _setup(points, scales)
     # CoarseHash is compared at each scale's own width (d = ⌈log2 N_ref⌉): against scale it is
-    # one line per mode, drawn in the colour of its first scale's family (the tables give d)
-    series = [family_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)]
-    colours = {**colours, **{new: colours[old] for old, new in reversed(list(zip(best.family, series, strict=True)))}}
-    best = best.assign(family=series)
+    # one line per mode, in its one colour (the tables give d)
+    best = best.assign(family=[family_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)])
+    colours = family_colours(list(best.family))
     order = {s: i for i, s in enumerate(scales)}
     fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
                              squeeze=False, sharey=True, layout="constrained")
@@ -198,7 +217,7 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save)
         ax = axes[0][c]
         for fam, g in best[best.scale == scale].groupby("family", sort=False):
             g = g.sort_values("L")
-            ax.plot(g.L, 100 * g.recall, "o-", ms=4, color=colours[fam], label=fam)
+            ax.plot(g.L, 100 * g.recall, marker="o", ls=family_line(fam), ms=4, color=colours[fam], label=fam)
             _recall_bars(ax, g, "L", colours[fam])
         ax.set(xlabel="sequence length L (frames)", title=f"{scale}, {noise.upper()}: recall vs L", ylim=(0, 102))
         ax.grid(alpha=0.3)
@@ -206,7 +225,7 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save)
         ax = axes[1][c]
         for fam, g in best[best.L == L].groupby("family", sort=False):
             g = g.assign(pos=g.scale.map(order)).sort_values("pos")
-            ax.plot(g.pos, 100 * g.recall, "o-", ms=4, color=colours[fam], label=fam)
+            ax.plot(g.pos, 100 * g.recall, marker="o", ls=family_line(fam), ms=4, color=colours[fam], label=fam)
             _recall_bars(ax, g, "pos", colours[fam])
         ax.set_xticks(range(len(scales)), scales)
         ax.set(xlabel="scale (places)", title=f"L = {L}, {noise.upper()}: recall vs scale", ylim=(0, 102))

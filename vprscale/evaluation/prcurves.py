@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 import pyarrow.parquet as pq
 
-from vprscale.evaluation.comparison import family_colours, family_label, shared_legend
+from vprscale.evaluation.comparison import family_colours, family_label, family_line, shared_legend
 from vprscale.evaluation.metrics import pr_curve
 from vprscale.evaluation.results import main_noise
 
@@ -70,7 +70,7 @@ def fig_pr(q: pd.DataFrame, scales: list[str], out: Path, save) -> bool:
             ax = axes[r][c]
             for fam, g in q[(q.scale == scale) & (q.L == L)].groupby("family", sort=False):
                 precision, recall = pr_curve(g.score.to_numpy(), g.error.to_numpy() <= RADIUS)
-                ax.plot(100 * recall, 100 * precision, lw=1.2, color=colours[fam], label=fam)
+                ax.plot(100 * recall, 100 * precision, lw=1.2, ls=family_line(fam), color=colours[fam], label=fam)
             ax.set(xlim=(0, 100), ylim=(0, 102), title=f"{scale}, {main_noise(q).upper()}, L = {L}")
             ax.grid(alpha=0.3)
             if r == len(lengths) - 1:
