@@ -138,14 +138,19 @@ def test_reindexing_keeps_evaluations(tiny_store, tmp_path, capsys):
 
 
 def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys):
-    """An evaluation holds its index's lock: re-indexing meanwhile is refused, not run under it."""
-    from vprscale.core.publish import exclusive
+    """An evaluation holds its index's lock shared: re-indexing meanwhile is refused, not run
+    under it, while another evaluation into another output runs; an evaluation is refused
+    while the index is being written."""
+    from vprscale.core.publish import exclusive, shared
 
     index = tmp_path / "y.index"
     assert main(["index", str(tiny_store), "--d", "8", "--out", str(index)]) == 0
     before = (index / "ids.npy").read_bytes()
     capsys.readouterr()
-    with exclusive(index):  # what `vprscale eval STORE y.index` holds while it runs
+    with shared(index):  # what `vprscale eval STORE y.index` holds while it runs
         _fails(capsys, ["index", str(tiny_store), "--d", "9", "--out", str(index), "--force"], "another vprscale job")
+        assert main(["eval", str(tiny_store), str(index), "--L", "1", "--no-baseline", "--noise", "qm1",
+                     "--out", str(tmp_path / "second")]) == 0
+    with exclusive(index):  # what `vprscale index --out y.index` holds while it writes
         _fails(capsys, ["eval", str(tiny_store), str(index), "--L", "1", "--no-baseline"], "another vprscale job")
     assert (index / "ids.npy").read_bytes() == before

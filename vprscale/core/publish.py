@@ -9,6 +9,7 @@ incomplete output at the public path, a killed job resumes from its markers, and
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -34,11 +35,35 @@ def exclusive(path: Path):
     try:
         lock.acquire()
     except Timeout:
-        raise InputError(f"{path}: another vprscale job is writing this output (lock {lock.lock_file})") from None
+        raise InputError(f"{path}: another vprscale job is writing this output, or reading it "
+                         f"(lock {lock.lock_file})") from None
     try:
         yield
     finally:
         lock.release()
+
+
+@contextmanager
+def shared(path: Path):
+    """Hold a shared lock for ``path``, which this job reads: any number of readers hold it at
+    once (two evaluations of one index, into different outputs), and :func:`exclusive` (a
+    job replacing ``path``: re-indexing) is refused while they do, as they are while it runs.
+
+    The same file and primitive as :func:`exclusive` (``flock`` of ``.<name>.lock``; filelock
+    never removes the file), in shared mode; closing the descriptor, or a kill, releases it.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock_file = path.with_name(f".{path.name}.lock")
+    fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise InputError(f"{path}: another vprscale job is writing it (lock {lock_file})") from None
+    try:
+        yield
+    finally:
+        os.close(fd)
 
 
 class PartialOutput:

@@ -28,7 +28,7 @@ from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, shared
 from vprscale.dataset.references import reference_rows
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
@@ -223,8 +223,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         _check_methods(req, plugged, indexes[0][1])
         base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
-            for path in index_paths:  # re-indexing waits for (is refused during) an evaluation of the index
-                locks.enter_context(exclusive(path))
+            for path in index_paths:  # re-indexing is refused during evaluations of the index, not they of each other
+                locks.enter_context(shared(path))
             locks.enter_context(exclusive(out))
             if partial.recover():  # a killed run had sealed this evaluation: its publishing is finished, not redone
                 print(f"{out}: finished publishing the evaluation a killed run had completed", file=sys.stderr)
