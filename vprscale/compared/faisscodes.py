@@ -179,8 +179,12 @@ class FaissCodes:
         """Unitary operations of a frame's search (transform, distance tables or coarse step, scan)."""
         transform = sum(2.0 * t.d_in * t.d_out for t in self.chain)
         width = self.codes.shape[1]
-        tables = 3.0 * self.inner.pq.ksub * self.dim if self.form in ("pq", "residual") else 256.0 * width
-        tables += 256.0 * width if self.packed and self.inner.pq.nbits == 4 else 0.0
+        tables = 0.0  # decoded vectors: none
+        if self.form in ("pq", "residual"):
+            tables = 3.0 * self.inner.pq.ksub * self.dim  # a frame's sub-quantiser tables
+            tables += 256.0 * width if self.packed and self.inner.pq.nbits == 4 else 0.0  # and their byte sums
+        elif self.form == "hamming":
+            tables = 256.0 * width
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
         coarse *= 2 if self.form == "residual" else 1  # the window scores' coarse row, beside the search's
         return transform + tables + coarse + width * self.scan_per_frame()

@@ -52,7 +52,6 @@ def shared(path: Path):
     The same file and primitive as :func:`exclusive` (``flock`` of ``.<name>.lock``; filelock
     never removes the file), in shared mode; closing the descriptor, or a kill, releases it.
     """
-    path.parent.mkdir(parents=True, exist_ok=True)
     lock_file = path.with_name(f".{path.name}.lock")
     fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
     try:
