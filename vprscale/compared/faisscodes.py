@@ -137,11 +137,12 @@ class FaissCodes:
         self.form = _form(self.inner)
 
     @property
-    def packed(self) -> bool:
-        """Whether the window scores read FAISS's packed code bytes, one table per byte: 8-bit
-        product quantisers, and 4-bit ones (FAISS's fast-scan codes), whose two indices per byte
-        get one 256-entry table, the sum of their two 16-entry ones (two look-ups become one)."""
-        return self.form == "pq" and self.inner.pq.nbits in (4, 8)
+    def nibbles(self) -> bool:
+        """Whether this is a 4-bit product quantiser (FAISS's fast-scan codes among them): the
+        window scores read its packed bytes, each byte's two indices through one 256-entry
+        table, the sum of their two 16-entry ones (two look-ups become one). 8-bit codes are
+        their indices already; other widths are unpacked into one index per byte."""
+        return self.form == "pq" and self.inner.pq.nbits == 4
 
     @property
     def name(self) -> str:
@@ -182,7 +183,7 @@ class FaissCodes:
         tables = 0.0  # decoded vectors: none
         if self.form in ("pq", "residual"):
             tables = 3.0 * self.inner.pq.ksub * self.dim  # a frame's sub-quantiser tables
-            tables += 256.0 * width if self.packed and self.inner.pq.nbits == 4 else 0.0  # and their byte sums
+            tables += 256.0 * width if self.nibbles else 0.0  # and their byte sums
         elif self.form == "hamming":
             tables = 256.0 * width
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
@@ -207,7 +208,7 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.inner.pq.M if self.form in ("pq", "residual") and not self.packed else self.inner.sa_code_size()
+        width = self.inner.pq.M if self.form in ("pq", "residual") and not self.nibbles else self.inner.sa_code_size()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
         if self.form == "residual":
@@ -248,7 +249,7 @@ class FaissCodes:
         if self.form == "residual":
             lists, codes, terms = self.window_parts(codes)
             self.lists_of[lo : self._filled], self.ref_terms[lo : self._filled] = lists, terms
-        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" and not self.packed else codes
+        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" and not self.nibbles else codes
 
     def window_parts(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the window scores read of residual IVF-PQ places, from their standalone codes:
@@ -338,7 +339,7 @@ class FaissCodes:
             ys, cents = self._sub_products(y)
             tables = (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
             tables = np.maximum(tables, 0).astype(np.float32)
-            return FrameTerms(_byte_tables(tables) if self.inner.pq.nbits == 4 else tables, _NO_ROWS, _NO_ROWS)
+            return FrameTerms(_byte_tables(tables) if self.nibbles else tables, _NO_ROWS, _NO_ROWS)
         return FrameTerms(_NO_TABLES, _NO_ROWS, y)
 
     def _sub_products(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

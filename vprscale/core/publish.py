@@ -23,6 +23,11 @@ from vprscale.core.errors import InputError
 from vprscale.core.manifest import write_manifest
 
 
+def _lock_file(path: Path) -> Path:
+    """The lock of ``path``: ``.<name>.lock`` beside it, taken by :func:`exclusive` and :func:`shared`."""
+    return path.with_name(f".{path.name}.lock")
+
+
 @contextmanager
 def exclusive(path: Path):
     """Hold an advisory lock for ``path``; a second holder is refused at once (kill -9 frees it).
@@ -31,7 +36,7 @@ def exclusive(path: Path):
     without waiting: a scheduled job that finds its output busy should say so, not queue.
     """
     path.parent.mkdir(parents=True, exist_ok=True)
-    lock = FileLock(path.with_name(f".{path.name}.lock"), timeout=0, thread_local=False)
+    lock = FileLock(_lock_file(path), timeout=0, thread_local=False)
     try:
         lock.acquire()
     except Timeout:
@@ -52,7 +57,7 @@ def shared(path: Path):
     The same file and primitive as :func:`exclusive` (``flock`` of ``.<name>.lock``; filelock
     never removes the file), in shared mode; closing the descriptor, or a kill, releases it.
     """
-    lock_file = path.with_name(f".{path.name}.lock")
+    lock_file = _lock_file(path)
     fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)

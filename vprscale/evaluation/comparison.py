@@ -186,7 +186,7 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) 
         ax = axes[0][c]
         for fam, g in best[best.scale == scale].groupby("family", sort=False):
             g = g.sort_values("L")
-            fill = "none" if family_line(fam) == MODE_LINES["paper"] else colours[fam]
+            fill = "none" if _method_and_mode(fam)[1] == "paper" else colours[fam]
             for row in g.itertuples():
                 ax.scatter(row.bytes_per_place, 100 * row.recall, marker=marker.get(row.L, "o"), s=30,
                            edgecolors=colours[fam], facecolors=fill, label=fam if row.L == g.L.iloc[0] else None)

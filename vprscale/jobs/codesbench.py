@@ -36,7 +36,7 @@ import numba
 import numpy as np
 import zarr
 
-from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.compared.faisscodes import FaissCodes, FrameTerms, training_rows
 from vprscale.core.errors import InputError
 from vprscale.dataset.store import open_complete_group, store_layout
 
@@ -61,12 +61,13 @@ def _fmt(t: tuple[float, float, float]) -> str:
     return f"{t[0]:6.2f} ({t[1]:.2f}–{t[2]:.2f})"
 
 
-def _ours(codes: FaissCodes, query: np.ndarray, L: int, rng: np.random.Generator, repeats: int,
+def _ours(codes: FaissCodes, terms: FrameTerms, L: int, rng: np.random.Generator, repeats: int,
           windows: int = WINDOWS, candidates: int = CANDIDATES) -> tuple[float, float, float]:
-    """Our window score per term, on random windows and random candidates (L = 1: random ids)."""
-    terms = codes.frame_terms(query)
+    """Our window score per term, on random windows of the query frames of ``terms`` and random
+    candidates (L = 1: random ids)."""
     half = L // 2
-    centres = rng.integers(half, len(query) - L + half + 1, windows)
+    n_frames = len(terms.tables) or len(terms.vectors)
+    centres = rng.integers(half, n_frames - L + half + 1, windows)
     cand = rng.integers(0, codes.n_ref, windows * candidates)
     first = np.arange(windows, dtype=np.int64) * candidates
     n_r = np.full(windows, candidates, np.int64)
@@ -131,9 +132,10 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
         for i in range(0, n, 1 << 16):
             codes.encode(ref[i : i + (1 << 16)])
         codes.finish()
-        ours = _ours(codes, query, L, rng, repeats)
+        terms = codes.frame_terms(query)
+        ours = _ours(codes, terms, L, rng, repeats)
         # one-frame windows of as many random ids as FAISS's distance computer gets per query row
-        ours_random = _ours(codes, query, 1, rng, repeats, WINDOWS * CANDIDATES // PROPOSED, PROPOSED)
+        ours_random = _ours(codes, terms, 1, rng, repeats, WINDOWS * CANDIDATES // PROPOSED, PROPOSED)
         computer = _faiss_distance_computer(codes, query, repeats)
         theirs = _faiss_scan(codes, query, repeats)
         width = codes.codes.shape[1]
