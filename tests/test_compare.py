@@ -194,7 +194,7 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
                                            ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq"), ("PQ8x4fs", "pq"),
                                            ("OPQ8,PQ8x4fs", "pq"), ("PQ1x4", "pq")])
 def test_table_scores_equal_decoded_vector_scores(factory, form):
-    """Every candidate's window score from the tables (IVF-PQ: coarse row + per-list table +
+    """Every candidate's window score from the tables (IVF-PQ: coarse distance + per-list term +
     frame table) equals, to float rounding, the sum of squared distances to the decoded codes."""
     rng = np.random.default_rng(3)
     ref = np.cumsum(rng.standard_normal((4000, 32)), axis=0).astype(np.float32) * 0.1
@@ -213,20 +213,52 @@ def test_table_scores_equal_decoded_vector_scores(factory, form):
     first, n_r = np.arange(3) * len(cand), np.full(3, len(cand))
     both = []
     for t, vectors, codes_arg in ((terms, np.zeros((0, 0), np.float32), codes.codes),
-                                  (FrameTerms(np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32),
-                                              codes._transform(query)), decoded, np.zeros((0, 1), np.uint8))):
-        top, scores = score_windows(centres, L, np.tile(cand, 3), first, n_r, len(ref), t.tables, t.coarse,
-                                    codes.ref_terms, codes.lists_of, codes_arg, t.vectors, vectors, len(cand))
+                                  (FrameTerms(np.zeros((0, 1, 1), np.float32), codes._transform(query)), decoded,
+                                   np.zeros((0, 1), np.uint8))):
+        top, scores = _score(codes, t, centres, L, np.tile(cand, 3), first, n_r, len(cand), codes_arg, vectors)
         both.append({(q, int(c)): s for q in range(3) for c, s in zip(top[q], scores[q], strict=True)})
     assert both[0].keys() == both[1].keys() and len(both[0]) == 3 * len(cand)
     got, want = (np.array([b[key] for key in sorted(both[0])]) for b in both)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6 * want.max())
-    few = cand[:5]  # few candidates for the coarse row's length: the row read in place, not copied
-    top, scores = score_windows(centres[:1], L, few, np.zeros(1, np.int64), np.full(1, len(few)), len(ref),
-                                terms.tables, terms.coarse, codes.ref_terms, codes.lists_of, codes.codes,
-                                terms.vectors, np.zeros((0, 0), np.float32), len(few))
-    np.testing.assert_allclose(scores[0], [both[1][(0, int(c))] for c in top[0]], rtol=2e-5,
-                               atol=1e-6 * want.max())
+
+
+def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_best, codes_arg=None, vectors=None):
+    """:func:`score_windows` of ``codes`` with frame terms ``t`` (its own codes unless others are given)."""
+    codes_arg = codes.codes if codes_arg is None else codes_arg
+    vectors = np.zeros((0, 0), np.float32) if vectors is None else vectors
+    return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, codes.ref_terms,
+                         codes.lists_of, codes_arg, t.vectors, vectors, codes.centroids, n_best)
+
+
+@pytest.mark.parametrize("spread", ["data", "one far list", "flat rows"])
+def test_residual_best_from_coarse_levels_are_the_exact_best(spread):
+    """IVF-PQ windows bound their candidates from 8-bit coarse levels and score exactly only
+    those that could be among the best: the best few are the exact scoring's, score for score
+    (its scores of every candidate, asked for all of them), however coarse the levels are
+    (a list centroid far from the rest makes every step wide; equal ones make them zero)."""
+    rng = np.random.default_rng(5)
+    ref = np.cumsum(rng.standard_normal((3000, 16)), axis=0).astype(np.float32) * 0.1
+    query = ref[500:800] + rng.standard_normal((300, 16)).astype(np.float32) * 0.05
+    codes = FaissCodes("IVF32,PQ2", 16, k=4)
+    codes.train(ref)
+    codes.start(len(ref))
+    codes.encode(ref)
+    codes.finish()
+    if spread == "one far list":
+        codes.centroids[7] += 100
+    elif spread == "flat rows":
+        codes.centroids[:] = codes.centroids[0]
+    terms = codes.frame_terms(query)
+    L, centres = 21, np.array([15, 100, 200, 284])  # the first and last windows reach outside the map
+    cand = np.unique(np.concatenate([np.arange(480, 540), np.arange(0, 12), np.arange(2990, 3000),
+                                     rng.integers(0, 3000, 60)]))
+    first, n_r = np.arange(4) * len(cand), np.full(4, len(cand))
+    every = _score(codes, terms, centres, L, np.tile(cand, 4), first, n_r, len(cand))
+    assert np.isfinite(every[1]).all()
+    for n_best in (1, 3, 20):
+        top, scores = _score(codes, terms, centres, L, np.tile(cand, 4), first, n_r, n_best)
+        np.testing.assert_array_equal(top, every[0][:, :n_best])
+        np.testing.assert_array_equal(scores, every[1][:, :n_best])
 
 
 @pytest.mark.slow

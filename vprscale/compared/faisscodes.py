@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
-from vprscale.compared.codescore import score_windows
+from vprscale.compared.codescore import coarse_levels, score_windows
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
 
@@ -40,12 +40,15 @@ _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 
 class FrameTerms(NamedTuple):
     """What the window scores need of each query frame (the forms' unused parts empty):
-    per-byte ``tables`` (frames, bytes, 256), ``coarse`` distances to every inverted list
-    (frames, nlist; residual IVF-PQ codes), the frames' ``vectors`` (decoded-vector form)."""
+    per-byte ``tables`` (frames, bytes, 256), the frames' ``vectors`` (decoded-vector form;
+    residual IVF-PQ codes: the frames as the coarse quantiser sees them), and for residual
+    IVF-PQ codes the 8-bit ``levels`` of their coarse distances to every inverted list and
+    their ``scale`` (:func:`~vprscale.compared.codescore.coarse_levels`)."""
 
     tables: np.ndarray
-    coarse: np.ndarray
     vectors: np.ndarray
+    levels: np.ndarray = np.zeros((0, 0), np.uint8)
+    scale: np.ndarray = np.zeros((0, 3))
 
 
 _NO_TABLES, _NO_ROWS = np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32)
@@ -187,7 +190,8 @@ class FaissCodes:
         elif self.form == "hamming":
             tables = 256.0 * width
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
-        coarse *= 2 if self.form == "residual" else 1  # the window scores' coarse row, beside the search's
+        # the window scores' coarse row, beside the search's, and its 8-bit levels (range, scale, round)
+        coarse = 2 * coarse + 5.0 * self.ivf.nlist if self.form == "residual" else coarse
         return transform + tables + coarse + width * self.scan_per_frame()
 
     def pair_ops(self) -> float:
@@ -329,30 +333,30 @@ class FaissCodes:
         """What the window scores need of each query frame (:class:`FrameTerms`)."""
         if self.form == "residual":  # in blocks, FAISS's BLAS on one thread each: the same bits for any threads
             parts = self._blocks(self._residual_terms, np.asarray(rows, np.float32))
-            return FrameTerms(np.concatenate([t for t, _ in parts]), np.concatenate([c for _, c in parts]), _NO_ROWS)
+            return FrameTerms(*(np.concatenate(part) for part in zip(*parts, strict=True)))
         y = self._transform(np.asarray(rows, np.float32))
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
-            return FrameTerms(_POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], _NO_ROWS,
-                              _NO_ROWS)
+            return FrameTerms(_POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], _NO_ROWS)
         if self.form == "pq":
             ys, cents = self._sub_products(y)
             tables = (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
             tables = np.maximum(tables, 0).astype(np.float32)
-            return FrameTerms(_byte_tables(tables) if self.nibbles else tables, _NO_ROWS, _NO_ROWS)
-        return FrameTerms(_NO_TABLES, _NO_ROWS, y)
+            return FrameTerms(_byte_tables(tables) if self.nibbles else tables, _NO_ROWS)
+        return FrameTerms(_NO_TABLES, y)
 
     def _sub_products(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The frames split by sub-quantiser, and the sub-quantisers' centroids."""
         pq = self.inner.pq
         return y.reshape(len(y), pq.M, pq.dsub), faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
 
-    def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A block's ``−2⟨y[m], ρ_mv⟩`` tables and its coarse distances to every list."""
+    def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+        """A block's ``−2⟨y[m], ρ_mv⟩`` tables, its frames, and the levels of their coarse
+        distances to every list (the distances themselves are not kept: 16 KB a frame)."""
         y = self._transform(rows)
         ys, cents = self._sub_products(y)
         tables = (-2 * np.einsum("nmd,mkd->nmk", ys, cents)).astype(np.float32)
-        return tables, faiss.pairwise_distances(y, self.centroids)
+        return tables, y, *coarse_levels(faiss.pairwise_distances(y, self.centroids), y, self.centroids)
 
     def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, terms: FrameTerms,
               n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -371,5 +375,5 @@ class FaissCodes:
               terms: FrameTerms, n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """:func:`score_windows` of given candidates over this method's codes, in its form."""
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
-        return score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.coarse,
-                             self.ref_terms, self.lists_of, codes, terms.vectors, self.vectors, n_best)
+        return score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.levels, terms.scale,
+                             self.ref_terms, self.lists_of, codes, terms.vectors, self.vectors, self.centroids, n_best)
