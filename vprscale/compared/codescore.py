@@ -143,31 +143,34 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     width = codes.shape[1]
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
-    margin = np.zeros(m, np.float64)
-    outside = np.zeros(m, np.int64)
     frame_max = np.full(L, -np.inf)
-    row = np.empty(levels.shape[1], np.uint8)
-    for i in range(L):  # the bounds
+    for i in range(L):  # the bounds: sums of terms whose coarse distances are read as levels
         p = t + i - half
-        row[:] = levels[p]
-        base, step, err = scale[p, 0], scale[p, 1], scale[p, 2]
+        base, step = scale[p, 0], scale[p, 1]
+        top = -np.inf
         for j in range(m):
             r = cand[j] + i - half
-            if r < 0 or r >= n_ref:
-                outside[j] += 1
-                continue
-            dist = _table_dist(tables, p, codes, r, width) + (base + step * row[lists_of[r]] + np.float64(ref_terms[r]))
-            sums[j] += dist
-            margin[j] += err
-            frame_max[i] = max(frame_max[i], dist)
-    largest = max(0.0, frame_max.max())
+            if 0 <= r < n_ref:
+                dist = _table_dist(tables, p, codes, r, width) + (base + step * levels[p, lists_of[r]]
+                                                                   + np.float64(ref_terms[r]))
+                sums[j] += dist
+                top = max(top, dist)
+        frame_max[i] = top
+    errs = np.zeros(L + 1)  # the frames' errors, summed from the window's first frame
     err_max = 0.0
     for i in range(L):
+        errs[i + 1] = errs[i] + scale[t + i - half, 2]
         if frame_max[i] > -np.inf:
             err_max = max(err_max, scale[t + i - half, 2])
+    largest = max(0.0, frame_max.max())
+    outside = np.empty(m, np.int64)
+    margin = np.empty(m, np.float64)
     high = np.empty(m, np.float64)
-    for j in range(m):
-        margin[j] += outside[j] * err_max + SLACK * (abs(sums[j]) + outside[j] * abs(largest))
+    for j in range(m):  # a candidate's references lie in the map for window frames first … last − 1
+        first = min(L, max(0, half - cand[j]))
+        last = max(first, min(L, n_ref - cand[j] + half))
+        outside[j] = L - (last - first)
+        margin[j] = errs[last] - errs[first] + outside[j] * err_max + SLACK * (abs(sums[j]) + outside[j] * abs(largest))
         sums[j] += outside[j] * largest
         high[j] = sums[j] + margin[j]
     bar = np.sort(high)[min(m, best_s.shape[0]) - 1] if m > 0 else 0.0
