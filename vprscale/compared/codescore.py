@@ -128,16 +128,16 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     """The ``len(best_s)`` best candidates of the window centred at ``t`` by their exact
     residual scores, into ``(best_s, best_c)``, in two passes.
 
-    A frame's coarse distances to every list (16 KB of float32 at 4,096 lists, one row of
-    thousands held) come from memory, and a window reads one row per frame: streamed, they
-    cost more than the rest of the window's terms together (21 against 7.5 ns a term at
-    100M), and held for every frame of an evaluation they took 16 GB at 1M. So the first
-    pass reads each frame's 8-bit levels (:func:`coarse_levels`, a quarter of the bytes)
-    and bounds every candidate's exact score from them; the second scores exactly only the
-    candidates whose bounds do not rule them out of the best (their coarse distances from
-    the frame and the centroid, in float64), and finds the exact largest term (the cost of
-    reference frames outside the map) among the frames that could hold it. The answer is
-    what exact scores of every candidate give, score for score: only the work differs.
+    A frame's coarse distances to every list are 16 KB of float32 at 4,096 lists; held for
+    every frame of an evaluation they took 6 GB at 10M and more than 24 GB at 1M. So the
+    first pass reads each frame's 8-bit levels (:func:`coarse_levels`, a quarter of the
+    bytes) and bounds every candidate's exact score from them; the second scores exactly
+    only the candidates whose bounds do not rule them out of the best (about one at n_best
+    = 1; their coarse distances from the frame and the centroid, in float64), and finds the
+    exact largest term (the cost of reference frames outside the map) among the frames that
+    could hold it. The answer is what exact scores of every candidate give, score for
+    score; a term costs what it did with float32 rows (a frame's row comes from memory
+    either way, docs/protocol.md).
     """
     half = L // 2
     width = codes.shape[1]
