@@ -144,15 +144,19 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
     frame_max = np.full(L, -np.inf)
+    copy_row = 32 * m >= levels.shape[1]  # many candidates for the row's length: copied, it is read in order
+    row = np.empty(levels.shape[1] if copy_row else 0, np.uint8)
     for i in range(L):  # the bounds: sums of terms whose coarse distances are read as levels
         p = t + i - half
+        if copy_row:
+            row[:] = levels[p]
         base, step = scale[p, 0], scale[p, 1]
         top = -np.inf
         for j in range(m):
             r = cand[j] + i - half
             if 0 <= r < n_ref:
-                dist = _table_dist(tables, p, codes, r, width) + (base + step * levels[p, lists_of[r]]
-                                                                   + np.float64(ref_terms[r]))
+                level = row[lists_of[r]] if copy_row else levels[p, lists_of[r]]
+                dist = _table_dist(tables, p, codes, r, width) + (base + step * level + np.float64(ref_terms[r]))
                 sums[j] += dist
                 top = max(top, dist)
         frame_max[i] = top
@@ -173,7 +177,7 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
         margin[j] = errs[last] - errs[first] + outside[j] * err_max + SLACK * (abs(sums[j]) + outside[j] * abs(largest))
         sums[j] += outside[j] * largest
         high[j] = sums[j] + margin[j]
-    bar = np.sort(high)[min(m, best_s.shape[0]) - 1] if m > 0 else 0.0
+    bar = np.partition(high, min(m, best_s.shape[0]) - 1)[min(m, best_s.shape[0]) - 1] if m > 0 else 0.0
     chosen = np.flatnonzero(sums - margin <= bar)
     exact = np.zeros(chosen.shape[0], np.float64)
     need_largest = False
