@@ -228,11 +228,14 @@ class FaissCodes:
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray, rows: int = BLOCK_ROWS) -> list[Any]:
         """``fn`` of each block of ``rows`` rows of ``x``, on ``threads`` threads, in order."""
         x = np.ascontiguousarray(x, np.float32)
-        blocks = [x[i : i + rows] for i in range(0, len(x), rows)] or [x]
+        return self._each(fn, [x[i : i + rows] for i in range(0, len(x), rows)] or [x])
+
+    def _each(self, fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
+        """``fn`` of each item, on ``threads`` threads (FAISS on one thread each), in order."""
         if self.threads == 1:  # on the calling thread, where its CPU time is measured
-            return [_one_thread(fn, b) for b in blocks]
+            return [_one_thread(fn, item) for item in items]
         with ThreadPoolExecutor(self.threads) as pool:
-            return list(pool.map(partial(_one_thread, fn), blocks))
+            return list(pool.map(partial(_one_thread, fn), items))
 
     def encode(self, x: np.ndarray) -> None:
         """Encode and add the next block of references."""
@@ -331,9 +334,8 @@ class FaissCodes:
 
     def frame_terms(self, rows: np.ndarray) -> FrameTerms:
         """What the window scores need of each query frame (:class:`FrameTerms`)."""
-        if self.form == "residual":  # in blocks, FAISS's BLAS on one thread each: the same bits for any threads
-            parts = self._blocks(self._residual_terms, np.asarray(rows, np.float32))
-            return FrameTerms(*(np.concatenate(part) for part in zip(*parts, strict=True)))
+        if self.form == "residual":
+            return self._residual_frames(np.ascontiguousarray(rows, np.float32))
         y = self._transform(np.asarray(rows, np.float32))
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
@@ -349,6 +351,21 @@ class FaissCodes:
         """The frames split by sub-quantiser, and the sub-quantisers' centroids."""
         pq = self.inner.pq
         return y.reshape(len(y), pq.M, pq.dsub), faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
+
+    def _residual_frames(self, rows: np.ndarray) -> FrameTerms:
+        """:class:`FrameTerms` of residual IVF-PQ codes, block by block (FAISS's BLAS on one
+        thread each: the same bits for any threads), each block written into place (7.5 KB a
+        frame at 4,096 lists: a million frames' blocks and their concatenation took 15 GB)."""
+        pq = self.inner.pq
+        terms = FrameTerms(np.empty((len(rows), pq.M, pq.ksub), np.float32), np.empty((len(rows), self.inner.d),
+                           np.float32), np.empty((len(rows), self.ivf.nlist), np.uint8), np.empty((len(rows), 3)))
+
+        def fill(lo: int) -> None:
+            for whole, part in zip(terms, self._residual_terms(rows[lo : lo + BLOCK_ROWS]), strict=True):
+                whole[lo : lo + len(part)] = part
+
+        self._each(fill, list(range(0, len(rows), BLOCK_ROWS)))
+        return terms
 
     def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, ...]:
         """A block's ``−2⟨y[m], ρ_mv⟩`` tables, its frames, and the levels of their coarse
