@@ -113,12 +113,35 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _coarse_dist(q: np.ndarray, p: np.int64, centroids: np.ndarray, lst: np.int64) -> np.float64:
+    """``‖q[p] − centroids[lst]‖²`` in float64 over four running sums: one sum waits for its
+    last addition at every term; four, in a fixed order, overlap and give the same bits
+    everywhere."""
+    s0 = s1 = s2 = s3 = np.float64(0.0)
+    d = centroids.shape[1]
+    whole = d - d % 4
+    for j in range(0, whole, 4):
+        a0 = np.float64(q[p, j]) - np.float64(centroids[lst, j])
+        a1 = np.float64(q[p, j + 1]) - np.float64(centroids[lst, j + 1])
+        a2 = np.float64(q[p, j + 2]) - np.float64(centroids[lst, j + 2])
+        a3 = np.float64(q[p, j + 3]) - np.float64(centroids[lst, j + 3])
+        s0 += a0 * a0
+        s1 += a1 * a1
+        s2 += a2 * a2
+        s3 += a3 * a3
+    for j in range(whole, d):
+        a0 = np.float64(q[p, j]) - np.float64(centroids[lst, j])
+        s0 += a0 * a0
+    return (s0 + s1) + (s2 + s3)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _residual_dist(tables: np.ndarray, q_vectors: np.ndarray, centroids: np.ndarray, ref_terms: np.ndarray,
                    lists_of: np.ndarray, codes: np.ndarray, p: np.int64, r: np.int64, width: int) -> np.float64:
     """The exact residual term of query frame ``p`` and reference ``r`` (its coarse distance
     from the frame and the list's centroid)."""
     dist = _table_dist(tables, p, codes, r, width)
-    return dist + (_vector_dist(q_vectors, p, centroids, np.int64(lists_of[r])) + np.float64(ref_terms[r]))
+    return dist + (_coarse_dist(q_vectors, p, centroids, np.int64(lists_of[r])) + np.float64(ref_terms[r]))
 
 
 @numba.njit(cache=True, nogil=True)
