@@ -40,9 +40,10 @@ SLACK = 1e-6
 COARSE_ROUNDING = 1e-5
 
 
-def coarse_levels(coarse: np.ndarray, y: np.ndarray, centroids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(levels, scale)`` of frames ``y``'s coarse distances to the ``centroids`` (frames,
-    lists; float32, as FAISS computes them): each frame's distances as one of 256 even steps
+def coarse_levels(coarse: np.ndarray, y: np.ndarray, centroid_norm: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(levels, scale)`` of frames ``y``'s coarse distances to the centroids (frames, lists;
+    float32, as FAISS computes them; ``centroid_norm`` the largest squared norm of a centroid):
+    each frame's distances as one of 256 even steps
     between its smallest and largest, and per frame ``(base, step, err)`` with ``base + step ·
     level`` within ``err`` of the exact distance (half a step, plus the coarse distances' own
     rounding), the bounds :func:`score_windows` rules candidates out with."""
@@ -52,7 +53,7 @@ def coarse_levels(coarse: np.ndarray, y: np.ndarray, centroids: np.ndarray) -> t
     low, high = rows.min(axis=1), rows.max(axis=1)
     step = (high - low) / 256
     levels = np.minimum(np.floor((rows - low[:, None]) / np.where(step > 0, step, 1)[:, None]), 255).astype(np.uint8)
-    norms = (np.asarray(y, np.float64) ** 2).sum(axis=1) + (np.asarray(centroids, np.float64) ** 2).sum(axis=1).max()
+    norms = (np.asarray(y, np.float64) ** 2).sum(axis=1) + centroid_norm
     err = 0.5 * step + COARSE_ROUNDING * norms + SLACK * np.maximum(np.abs(low), np.abs(high))
     return levels, np.stack([low + 0.5 * step, step, err], axis=1)
 
@@ -192,20 +193,17 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     largest = max(0.0, frame_max.max())
     outside = np.empty(m, np.int64)
     margin = np.empty(m, np.float64)
-    high = np.empty(m, np.float64)
     for j in range(m):  # a candidate's references lie in the map for window frames first … last − 1
         first = min(L, max(0, half - cand[j]))
         last = max(first, min(L, n_ref - cand[j] + half))
         outside[j] = L - (last - first)
         margin[j] = errs[last] - errs[first] + outside[j] * err_max + SLACK * (abs(sums[j]) + outside[j] * abs(largest))
         sums[j] += outside[j] * largest
-        high[j] = sums[j] + margin[j]
-    bar = np.partition(high, min(m, best_s.shape[0]) - 1)[min(m, best_s.shape[0]) - 1] if m > 0 else 0.0
+    n = min(m, best_s.shape[0])
+    bar = np.partition(sums + margin, n - 1)[n - 1] if m > 0 else 0.0  # the n-th best upper bound
     chosen = np.flatnonzero(sums - margin <= bar)
     exact = np.zeros(chosen.shape[0], np.float64)
-    need_largest = False
-    for c in range(chosen.shape[0]):
-        need_largest = need_largest or outside[chosen[c]] > 0
+    need_largest = (outside[chosen] > 0).any()
     exact_largest = 0.0
     for i in range(L):  # the chosen candidates' exact sums; the exact largest where it could lie
         p = t + i - half

@@ -127,6 +127,7 @@ class FaissCodes:
         self.per_list = _NO_TABLES  # residual form: ‖ρ‖² + 2⟨c_l, ρ⟩ per list, sub-quantiser and code
         self.ref_terms = np.zeros(0, np.float32)  # residual form: each reference's ‖ρ‖² + 2⟨c_l, ρ⟩
         self.centroids = _NO_ROWS  # residual form: the coarse centroids
+        self.centroid_norm = 0.0  # residual form: their largest squared norm
 
     def bind(self, index: Any) -> None:
         """Work on ``index`` (a fresh one from the factory, or a trained one read from disk)."""
@@ -310,10 +311,11 @@ class FaissCodes:
         return faiss.downcast_index(self.searched.index) if self.chain else self.searched
 
     def _residual_tables(self) -> None:
-        """The coarse centroids and, per list ``l``, sub-quantiser ``m`` and code ``v``,
+        """The coarse centroids, their largest squared norm and, per list ``l``, sub-quantiser ``m`` and code ``v``,
         ``‖ρ_mv‖² + 2⟨c_l[m], ρ_mv⟩`` (the query-independent part of a residual distance)."""
         pq = self.inner.pq
         self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
+        self.centroid_norm = float((self.centroids.astype(np.float64) ** 2).sum(axis=1).max())  # for coarse_levels
         cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
         sub = self.centroids.reshape(self.ivf.nlist, pq.M, pq.dsub)
         self.per_list = ((cents**2).sum(-1)[None, :, :] + 2 * np.einsum("lmd,mkd->lmk", sub, cents)).astype(np.float32)
@@ -373,7 +375,7 @@ class FaissCodes:
         y = self._transform(rows)
         ys, cents = self._sub_products(y)
         tables = (-2 * np.einsum("nmd,mkd->nmk", ys, cents)).astype(np.float32)
-        return tables, y, *coarse_levels(faiss.pairwise_distances(y, self.centroids), y, self.centroids)
+        return tables, y, *coarse_levels(faiss.pairwise_distances(y, self.centroids), y, self.centroid_norm)
 
     def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, terms: FrameTerms,
               n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
