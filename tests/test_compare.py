@@ -20,8 +20,9 @@ import zarr
 from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
+from vprscale.compared import faisscodes
 from vprscale.compared.codescore import score_windows
-from vprscale.compared.faisscodes import ID_BYTES, REF_TERM_BYTES, FaissCodes, FrameTerms, training_rows
+from vprscale.compared.faisscodes import ID_BYTES, REF_LEVEL_BYTES, FaissCodes, FrameTerms, training_rows
 
 FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4"]
 L_SEQ = 9
@@ -125,8 +126,8 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
     assert all(len(v) == 1 and v[0] > 0 for v in per_method)
     assert per_method["faiss:PQ4"][0] == 4 and per_method["faiss:ITQ16,LSH"][0] == 2
     assert per_method["faiss:OPQ4,PQ4x6"][0] == 3 and per_method["faiss:PQ6x4fs"][0] == 3  # 24 bits
-    # list entry; the code in id order with its list number and its distance term
-    assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5 + REF_TERM_BYTES
+    # list entry; the code in id order with its list number and its distance term's level
+    assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5 + REF_LEVEL_BYTES
     assert per_method["baseline"][0] == 4
     engine = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("codes", "ids", "occupied", "starts"))
     assert per_method["coarsehash"][0] == pytest.approx(engine / 52_500)  # codes, packed ids and directory
@@ -226,16 +227,20 @@ def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_bes
     """:func:`score_windows` of ``codes`` with frame terms ``t`` (its own codes unless others are given)."""
     codes_arg = codes.codes if codes_arg is None else codes_arg
     vectors = np.zeros((0, 0), np.float32) if vectors is None else vectors
-    return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, codes.ref_terms,
-                         codes.lists_of, codes_arg, t.vectors, vectors, codes.centroids, n_best)
+    return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, t.near, t.ranks,
+                         codes.per_list, codes_arg, t.vectors, vectors, codes.centroids, n_best)
 
 
+@pytest.mark.parametrize("near", [256, 16])
 @pytest.mark.parametrize("spread", ["data", "one far list", "flat rows"])
-def test_residual_best_from_coarse_levels_are_the_exact_best(spread):
-    """IVF-PQ windows bound their candidates from 8-bit coarse levels and score exactly only
-    those that could be among the best: the best few are the exact scoring's, score for score
-    (its scores of every candidate, asked for all of them), however coarse the levels are
-    (a list centroid far from the rest makes every step wide; equal ones make them zero)."""
+def test_residual_best_from_coarse_levels_are_the_exact_best(spread, near, monkeypatch):
+    """IVF-PQ windows bound their candidates from 8-bit levels of each frame's nearest lists
+    (all 256 of them, or 16: most places then lie in lists bounded only by the nearest not
+    kept and the farthest) and of each place's term, and score exactly only those that could
+    be among the best: the best few are the exact scoring's, score for score (its scores of
+    every candidate, asked for all of them), however coarse the levels are (a list centroid
+    far from the rest makes every step wide; equal ones make them zero)."""
+    monkeypatch.setattr(faisscodes, "NEAR_LISTS", near)
     rng = np.random.default_rng(5)
     ref = np.cumsum(rng.standard_normal((3000, 16)), axis=0).astype(np.float32) * 0.1
     query = ref[500:800] + rng.standard_normal((300, 16)).astype(np.float32) * 0.05

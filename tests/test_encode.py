@@ -35,7 +35,7 @@ def _codes(store: Path) -> dict[str, bytes]:
 def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path, monkeypatch, capfd):
     """An evaluation reading the stored encodings gives the answers, scores included, of one
     that encodes in its own process (IVF-PQ's searched on on-disk inverted lists merged from
-    several shards, its window arrays memory-mapped); and it says which it did. FAISS's
+    several shards, its window records memory-mapped); and it says which it did. FAISS's
     bookkeeping of its on-disk lists stays out of the commands' output."""
     import ctypes
 
@@ -50,7 +50,7 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
         meta = json.loads((encoding_dir(store, f) / "encoding.json").read_text())
         assert meta["factory"] == f and meta["n_ref"] == 52_500 and "commit" in json.dumps(meta["provenance"])
     ivf = {p.name for p in encoding_dir(store, "IVF32,PQ4").iterdir()}
-    assert {SEARCHED, LISTS, *WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
+    assert {SEARCHED, LISTS, WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
     assert SEARCHED not in {p.name for p in encoding_dir(store, "PQ4").iterdir()}  # flat codes load in memory
     assert main([*argv, "--out", str(tmp_path / "stored")]) == 0
     ctypes.CDLL(None).fflush(None)  # whatever C's stdio still buffers, into the captured output
@@ -142,7 +142,7 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
     monkeypatch.setattr(stored_format, "SHARD_ROWS", 20_000)
     assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--workers", "1"]) == 0
     out = encoding_dir(store, "IVF32,PQ4")
-    whole = {name: (out / name).read_bytes() for name in (LISTS, *WINDOW)}
+    whole = {name: (out / name).read_bytes() for name in (LISTS, WINDOW)}
     written: list[str] = []
     real_write = faiss.write_index
 
@@ -166,7 +166,7 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
     monkeypatch.setattr(enc._EncodeChunk, "__call__", counting)
     assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"]) == 0
     assert encoded["n"] == 0 and len(written) == 2 + 2  # the first shard kept; the second and third written
-    assert {name: (out / name).read_bytes() for name in (LISTS, *WINDOW)} == whole
+    assert {name: (out / name).read_bytes() for name in (LISTS, WINDOW)} == whole
 
 
 @pytest.mark.parametrize("field, value, message", [

@@ -13,9 +13,9 @@ only, not on a CoarseHash index:
   searches and scores at 100M and 1B without holding them in memory: ``searched.faiss``,
   the index populated with every code, whose inverted lists (code and 64-bit id per place:
   11 GB at 1B for ``IVF4096,PQ3``) are FAISS's own on-disk lists in ``lists.ivfdata``
-  (``OnDiskInvertedLists``, memory-mapped when read), and the window scores' arrays
-  ``window_lists.npy`` (each place's list), ``window_codes.npy`` (its sub-quantiser
-  indices) and ``window_terms.npy`` (its query-independent distance term, float32), also
+  (``OnDiskInvertedLists``, memory-mapped when read), and the window scores' records
+  ``window_places.npy`` (per place its sub-quantiser indices, its list number and the 8-bit
+  level of its query-independent distance term: 6 bytes for ``IVF4096,PQ3``), also
   memory-mapped;
 - ``encoding.json``: the factory, the store's identity, the number of references and the
   training rows, with the provenance of the run.
@@ -43,11 +43,12 @@ from faiss.contrib.ondisk import merge_ondisk
 from vprscale.compared.faisscodes import FaissCodes
 from vprscale.core.errors import InputError
 
-ENCODING_FORMAT = 2  # 2: residual IVF-PQ encodings hold their on-disk inverted lists and window arrays
-LOAD_ROWS = 1 << 20  # codes added to the FAISS index (or turned into window arrays) at a time
+# 2: residual IVF-PQ encodings hold their on-disk inverted lists and window arrays; 3: one window record per place
+ENCODING_FORMAT = 3
+LOAD_ROWS = 1 << 20  # codes added to the FAISS index (or turned into window records) at a time
 SHARD_ROWS = 1 << 26  # places in one in-memory shard of the inverted lists before the on-disk merge (0.7 GB)
 SEARCHED, LISTS = "searched.faiss", "lists.ivfdata"
-WINDOW = ("window_lists.npy", "window_codes.npy", "window_terms.npy")
+WINDOW = "window_places.npy"
 
 
 @contextmanager
@@ -115,7 +116,7 @@ def stored_encoding(store: Path, factory: str, identity: str) -> Path | None:
 
 def write_searched(out: Path, factory: str, dim: int, done: Callable[[str], bool],
                    mark: Callable[[str], None]) -> None:
-    """A residual IVF-PQ encoding's searched index on on-disk lists and its window arrays, from
+    """A residual IVF-PQ encoding's searched index on on-disk lists and its window records, from
     ``codes.npy`` in ``out`` (a work copy), each step marked ``done`` once whole (resumable).
 
     The lists are built as FAISS builds billion-scale indexes: shards of ``SHARD_ROWS`` places
@@ -143,29 +144,24 @@ def write_searched(out: Path, factory: str, dim: int, done: Callable[[str], bool
         shard.unlink(missing_ok=True)
     if not done("window"):
         codes = read_trained(out, factory, dim)
-        codes.start(0)  # its per-list tables only
-        dtypes = (codes.list_dtype, np.uint8, np.float32)
-        shapes = ((n_ref,), (n_ref, codes.inner.pq.M), (n_ref,))
-        arrays = [np.lib.format.open_memmap(out / f".{name}.tmp", mode="w+", dtype=t, shape=shape)
-                  for name, t, shape in zip(WINDOW, dtypes, shapes, strict=True)]
+        codes.start(0)  # its per-list tables and an empty record array, whose width this takes
+        records = np.lib.format.open_memmap(out / f".{WINDOW}.tmp", mode="w+", dtype=np.uint8,
+                                            shape=(n_ref, codes.codes.shape[1]))
         for i in range(0, n_ref, LOAD_ROWS):
-            for array, part in zip(arrays, codes.window_parts(np.ascontiguousarray(stored[i : i + LOAD_ROWS])),
-                                   strict=True):
-                array[i : i + LOAD_ROWS] = part
-        for array, name in zip(arrays, WINDOW, strict=True):
-            array.flush()
-            (out / f".{name}.tmp").replace(out / name)
+            records[i : i + LOAD_ROWS] = codes.window_records(np.ascontiguousarray(stored[i : i + LOAD_ROWS]))
+        records.flush()
+        (out / f".{WINDOW}.tmp").replace(out / WINDOW)
         mark("window")
 
 
 def load_encoding(out: Path, codes: FaissCodes) -> None:
     """Give ``codes`` (a method not yet trained) the stored index and every reference's code:
     a residual IVF-PQ method its searched index on on-disk lists and its memory-mapped window
-    arrays (nothing read until searched), any other its trained index and codes in memory."""
+    records (nothing read until searched), any other its trained index and codes in memory."""
     if (out / SEARCHED).is_file():
         with _faiss_quiet():  # publishing renamed the directory FAISS wrote the lists' path into
             index = faiss.read_index(str(out / SEARCHED), faiss.IO_FLAG_ONDISK_SAME_DIR)
-        codes.attach(index, *(np.load(out / name, mmap_mode="r") for name in WINDOW))
+        codes.attach(index, np.load(out / WINDOW, mmap_mode="r"))
         return
     codes.bind(faiss.read_index(str(out / "trained.faiss")))
     stored = np.load(out / "codes.npy", mmap_mode="r")

@@ -22,10 +22,13 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
-from vprscale.compared.codescore import coarse_levels, score_windows
+from vprscale.compared.codescore import near_levels, ref_scale, score_windows
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
 
+# Inverted lists whose levels a frame keeps (its nearest; the rest are bounded by the nearest of
+# them): 256 B where all 4,096 took 4 KB, which a window read from memory frame by frame.
+NEAR_LISTS = 256
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
 DECODE_ROWS = 1 << 16  # codes decoded at a time
@@ -34,7 +37,7 @@ BLOCK_ROWS = 256  # rows one thread searches at a time (fixed: the bytes must no
 # product, 2.6x cheaper per row on 4096 rows than on 256 (11 against 28 us a row at 4096 lists, 96-d).
 ENCODE_ROWS = 4096
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
-REF_TERM_BYTES = 4  # residual IVF-PQ: each place's ‖ρ‖² + 2⟨c_l, ρ⟩, float32
+REF_LEVEL_BYTES = 1  # residual IVF-PQ: each place's ‖ρ‖² + 2⟨c_l, ρ⟩ as an 8-bit level beside its code
 _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 
 
@@ -42,13 +45,16 @@ class FrameTerms(NamedTuple):
     """What the window scores need of each query frame (the forms' unused parts empty):
     per-byte ``tables`` (frames, bytes, 256), the frames' ``vectors`` (decoded-vector form;
     residual IVF-PQ codes: the frames as the coarse quantiser sees them), and for residual
-    IVF-PQ codes the 8-bit ``levels`` of their coarse distances to every inverted list and
-    their ``scale`` (:func:`~vprscale.compared.codescore.coarse_levels`)."""
+    IVF-PQ codes each frame's nearest inverted lists (``near``: a bit per list, and per 64-bit
+    word the near lists before it), their 8-bit ``levels`` and the frame's ``scale``
+    (:func:`~vprscale.compared.codescore.near_levels`)."""
 
     tables: np.ndarray
     vectors: np.ndarray
     levels: np.ndarray = np.zeros((0, 0), np.uint8)
-    scale: np.ndarray = np.zeros((0, 3))
+    scale: np.ndarray = np.zeros((0, 6))
+    near: np.ndarray = np.zeros((0, 0), np.uint64)
+    ranks: np.ndarray = np.zeros((0, 0), np.uint16)
 
 
 _NO_TABLES, _NO_ROWS = np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32)
@@ -123,9 +129,9 @@ class FaissCodes:
         self.codes = np.zeros((0, self.inner.sa_code_size()), np.uint8)
         self._filled = 0
         self.vectors = _NO_ROWS
-        self.lists_of = np.zeros(0, np.uint32)  # residual form: each reference's inverted list
         self.per_list = _NO_TABLES  # residual form: ‖ρ‖² + 2⟨c_l, ρ⟩ per list, sub-quantiser and code
-        self.ref_terms = np.zeros(0, np.float32)  # residual form: each reference's ‖ρ‖² + 2⟨c_l, ρ⟩
+        self.ref_base = np.zeros(0)  # residual form: per list, the smallest ‖ρ‖² + 2⟨c_l, ρ⟩ its codes can give
+        self.ref_step, self.ref_err = 0.0, 0.0  # residual form: a place's term level's step and error
         self.centroids = _NO_ROWS  # residual form: the coarse centroids
         self.centroid_norm = 0.0  # residual form: their largest squared norm
 
@@ -167,11 +173,11 @@ class FaissCodes:
         A flat index: its code (whose position is the id). An IVF index: its list entry
         (code and 64-bit id), and for sequences each place's code again in id order, where
         the window scores find it (with its list number); residual IVF-PQ codes also keep
-        each place's query-independent distance term (a float32) there.
+        the level of each place's query-independent distance term there (one byte).
         """
         if self.ivf is None:
             return float(self.inner.sa_code_size())
-        extra = REF_TERM_BYTES if self.form == "residual" else 0
+        extra = REF_LEVEL_BYTES if self.form == "residual" else 0
         return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size() + extra)
 
     def scan_per_frame(self) -> float:
@@ -191,15 +197,22 @@ class FaissCodes:
         elif self.form == "hamming":
             tables = 256.0 * width
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
-        # the window scores' coarse row, beside the search's, and its 8-bit levels (range, scale, round)
-        coarse = 2 * coarse + 5.0 * self.ivf.nlist if self.form == "residual" else coarse
+        # the window scores' coarse row, beside the search's, its nearest lists (a selection and
+        # a sort of them) and their levels (range, scale, round, bit)
+        coarse = 2 * coarse + 8.0 * self.ivf.nlist if self.form == "residual" else coarse
         return transform + tables + coarse + width * self.scan_per_frame()
 
     def pair_ops(self) -> float:
         """Operations of one (candidate, frame) term of a window score."""
         if self.form == "residual":
-            return 2.0 * self.codes.shape[1] + 1
+            return 2.0 * self.code_width + 4  # the look-ups, the list's bit and rank, its level and the place's
         return float(self.codes.shape[1]) if self.form != "vectors" else 3.0 * self.vectors.shape[1]
+
+    @property
+    def code_width(self) -> int:
+        """Bytes of a place's code that the window scores look up in a frame's tables (a
+        residual place's record also holds its list number and its term's level)."""
+        return self.inner.pq.M if self.form == "residual" else self.codes.shape[1]
 
     def _transform(self, x: np.ndarray) -> np.ndarray:
         for t in self.chain:
@@ -213,18 +226,12 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.inner.pq.M if self.form in ("pq", "residual") and not self.nibbles else self.inner.sa_code_size()
+        width = self.inner.pq.M if self.form == "pq" and not self.nibbles else self.inner.sa_code_size()
+        if self.form == "residual":  # a record: the sub-quantiser indices, the list number, the term's level
+            width = self.inner.pq.M + self.ivf.coarse_code_size() + REF_LEVEL_BYTES
+            self._residual_tables()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
-        if self.form == "residual":
-            self.lists_of = np.empty(n_ref, self.list_dtype)
-            self.ref_terms = np.empty(n_ref, np.float32)
-            self._residual_tables()
-
-    @property
-    def list_dtype(self) -> type:
-        """The type of a residual place's list number."""
-        return np.uint16 if self.ivf.nlist <= 1 << 16 else np.uint32
 
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray, rows: int = BLOCK_ROWS) -> list[Any]:
         """``fn`` of each block of ``rows`` rows of ``x``, on ``threads`` threads, in order."""
@@ -255,24 +262,31 @@ class FaissCodes:
             self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
         if self.form == "residual":
-            lists, codes, terms = self.window_parts(codes)
-            self.lists_of[lo : self._filled], self.ref_terms[lo : self._filled] = lists, terms
-        self.codes[lo : self._filled] = self._pq_indices(codes) if self.form == "pq" and not self.nibbles else codes
+            codes = self.window_records(codes)
+        elif self.form == "pq" and not self.nibbles:
+            codes = self._pq_indices(codes)
+        self.codes[lo : self._filled] = codes
 
-    def window_parts(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What the window scores read of residual IVF-PQ places, from their standalone codes:
-        each one's list number, sub-quantiser indices and ``‖ρ‖² + 2⟨c_l, ρ⟩`` (after :meth:`start`)."""
+    def window_records(self, codes: np.ndarray) -> np.ndarray:
+        """What the window scores read of residual IVF-PQ places, from their standalone codes
+        (after :meth:`start`): one record per place, its sub-quantiser indices, its list number
+        (little-endian, as FAISS's standalone code holds it) and the 8-bit level of its
+        ``‖ρ‖² + 2⟨c_l, ρ⟩`` above its list's smallest (:func:`~vprscale.compared.codescore.ref_scale`).
+        One record, not three arrays: a window reads a place's bytes from wherever it lies,
+        and one line per place costs less than three."""
         coarse = self.ivf.coarse_code_size()  # a standalone IVF code: the list number (little-endian), the PQ code
-        lists = (codes[:, :coarse].astype(np.uint32) << (8 * np.arange(coarse, dtype=np.uint32))).sum(axis=1)
+        lists = (codes[:, :coarse].astype(np.int64) << (8 * np.arange(coarse, dtype=np.int64))).sum(axis=1)
         sub = self._pq_indices(codes[:, coarse:])
-        terms = sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1]))
-        return lists.astype(self.lists_of.dtype), sub, np.asarray(terms, np.float32)
+        terms = np.asarray(sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1])), np.float32)
+        rise = (terms - self.ref_base[lists]) / (self.ref_step or 1.0)
+        level = np.clip(np.floor(rise), 0, 255).astype(np.uint8)
+        return np.concatenate([sub, codes[:, :coarse], level[:, None]], axis=1)
 
-    def attach(self, index: Any, lists_of: np.ndarray, codes: np.ndarray, ref_terms: np.ndarray) -> None:
-        """Work on a populated IVF ``index`` (inverted lists on disk, say) and the window scores'
-        arrays of its places (:meth:`window_parts`; memory-mapped, say), instead of adding codes."""
+    def attach(self, index: Any, records: np.ndarray) -> None:
+        """Work on a populated IVF ``index`` (inverted lists on disk, say) and its places'
+        window records (:meth:`window_records`; memory-mapped, say), instead of adding codes."""
         self.bind(index)
-        self.codes, self.lists_of, self.ref_terms, self._filled = codes, lists_of, ref_terms, len(codes)
+        self.codes, self._filled = records, len(records)
         if self.form == "residual":
             self._residual_tables()
 
@@ -312,13 +326,15 @@ class FaissCodes:
 
     def _residual_tables(self) -> None:
         """The coarse centroids, their largest squared norm and, per list ``l``, sub-quantiser ``m`` and code ``v``,
-        ``‖ρ_mv‖² + 2⟨c_l[m], ρ_mv⟩`` (the query-independent part of a residual distance)."""
+        ``‖ρ_mv‖² + 2⟨c_l[m], ρ_mv⟩`` (the query-independent part of a residual distance), and the scale of
+        its levels (:func:`~vprscale.compared.codescore.ref_scale`)."""
         pq = self.inner.pq
         self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
-        self.centroid_norm = float((self.centroids.astype(np.float64) ** 2).sum(axis=1).max())  # for coarse_levels
+        self.centroid_norm = float((self.centroids.astype(np.float64) ** 2).sum(axis=1).max())  # for near_levels
         cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
         sub = self.centroids.reshape(self.ivf.nlist, pq.M, pq.dsub)
         self.per_list = ((cents**2).sum(-1)[None, :, :] + 2 * np.einsum("lmd,mkd->lmk", sub, cents)).astype(np.float32)
+        self.ref_base, self.ref_step, self.ref_err = ref_scale(self.per_list)
 
     def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
         """A product quantiser's packed codes as one centroid index per sub-quantiser (FAISS
@@ -358,9 +374,11 @@ class FaissCodes:
         """:class:`FrameTerms` of residual IVF-PQ codes, block by block (FAISS's BLAS on one
         thread each: the same bits for any threads), each block written into place (7.5 KB a
         frame at 4,096 lists: a million frames' blocks and their concatenation took 15 GB)."""
-        pq = self.inner.pq
-        terms = FrameTerms(np.empty((len(rows), pq.M, pq.ksub), np.float32), np.empty((len(rows), self.inner.d),
-                           np.float32), np.empty((len(rows), self.ivf.nlist), np.uint8), np.empty((len(rows), 3)))
+        pq, n, near = self.inner.pq, len(rows), min(NEAR_LISTS, self.ivf.nlist)
+        words = -(-self.ivf.nlist // 64)
+        terms = FrameTerms(np.empty((n, pq.M, pq.ksub), np.float32), np.empty((n, self.inner.d), np.float32),
+                           np.empty((n, near), np.uint8), np.empty((n, 6)), np.empty((n, words), np.uint64),
+                           np.empty((n, words), np.uint16))
 
         def fill(lo: int) -> None:
             for whole, part in zip(terms, self._residual_terms(rows[lo : lo + BLOCK_ROWS]), strict=True):
@@ -370,12 +388,16 @@ class FaissCodes:
         return terms
 
     def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, ...]:
-        """A block's ``−2⟨y[m], ρ_mv⟩`` tables, its frames, and the levels of their coarse
-        distances to every list (the distances themselves are not kept: 16 KB a frame)."""
+        """A block's ``−2⟨y[m], ρ_mv⟩`` tables, its frames, and their nearest lists' levels and
+        scale (:func:`~vprscale.compared.codescore.near_levels`; the distances to every list
+        are not kept: 16 KB a frame)."""
         y = self._transform(rows)
         ys, cents = self._sub_products(y)
         tables = (-2 * np.einsum("nmd,mkd->nmk", ys, cents)).astype(np.float32)
-        return tables, y, *coarse_levels(faiss.pairwise_distances(y, self.centroids), y, self.centroid_norm)
+        levels, scale, near, ranks = near_levels(faiss.pairwise_distances(y, self.centroids), self.ref_base, y,
+                                                 self.centroid_norm, min(NEAR_LISTS, self.ivf.nlist),
+                                                 self.ref_step, self.ref_err)
+        return tables, y, levels, scale, near, ranks
 
     def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, terms: FrameTerms,
               n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -395,4 +417,5 @@ class FaissCodes:
         """:func:`score_windows` of given candidates over this method's codes, in its form."""
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
         return score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.levels, terms.scale,
-                             self.ref_terms, self.lists_of, codes, terms.vectors, self.vectors, self.centroids, n_best)
+                             terms.near, terms.ranks, self.per_list, codes, terms.vectors, self.vectors,
+                             self.centroids, n_best)

@@ -138,7 +138,7 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
         ours_random = _ours(codes, terms, 1, rng, repeats, WINDOWS * CANDIDATES // PROPOSED, PROPOSED)
         computer = _faiss_distance_computer(codes, query, repeats)
         theirs = _faiss_scan(codes, query, repeats)
-        width = codes.codes.shape[1]
+        width = codes.code_width
         if codes.form == "pq":
             flat_pq.setdefault(width, ours[0])
         vs_pq = f"{ours[0] / flat_pq[width]:8.2f}" if codes.form == "residual" and width in flat_pq else f"{'-':>8}"

@@ -144,7 +144,7 @@ def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, re
         reduce_pass(work, f"encode {factory}", bounds, _EncodeChunk(read, str(partial_out.path), factory, dim),
                     lambda s, _: s, None, group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
     if method.form == "residual":
-        with timings.stage(f"{factory}: inverted lists on disk and window arrays"):
+        with timings.stage(f"{factory}: inverted lists on disk and window records"):
             write_searched(partial_out.path, factory, dim, partial_out.done, partial_out.mark)
     record = provenance(inputs={"store_identity": identity, "factory": factory}, workers=workers)
     (partial_out.path / "encoding.json").write_text(json.dumps(describe(factory, identity, n_ref, len(rows), record),
