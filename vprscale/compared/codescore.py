@@ -209,14 +209,15 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
 
     A frame's distances to all 4,096 lists, read at random by a window's candidates, came
     from memory frame after frame (16 KB of float32, or 4 KB of 8-bit levels: 9 ns a term
-    either way, docs/protocol.md). So the first pass reads a frame's 896 bytes: which lists
-    are among its nearest (a bit per list, and the rank of the list's level among them), their
-    levels (:func:`near_levels`), and per place one record (code, list, term level); it
-    bounds every candidate's exact score from them (a far list's from the nearest not kept
-    and the farthest). The second scores exactly only the candidates whose bounds do not
-    rule them out of the best (about one at n_best = 1), and finds the exact largest term
-    (the cost of reference frames outside the map) among the frames that could hold it. The
-    answer is what exact scores of every candidate give, score for score.
+    either way, docs/protocol.md). So the first pass reads less of a frame: which lists are
+    among its nearest (a bit per list, and per word the rank of its first near list), their
+    levels (:func:`near_levels`; 1.7 KB a frame at 1,024 of 4,096 lists), and per place one
+    record (code, list, term level); it bounds every candidate's exact score from them (a
+    far list's from the nearest not kept and the farthest). The second scores exactly only
+    the candidates whose bounds do not rule them out of the best (about two at n_best = 1),
+    and finds the exact largest term (the cost of reference frames outside the map) among
+    the frames that could hold it. The answer is what exact scores of every candidate give,
+    score for score.
     """
     half = L // 2
     width = tables.shape[1]

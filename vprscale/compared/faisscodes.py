@@ -26,9 +26,12 @@ from vprscale.compared.codescore import near_levels, ref_scale, score_windows
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
 
-# Inverted lists whose levels a frame keeps (its nearest; the rest are bounded by the nearest of
-# them): 256 B where all 4,096 took 4 KB, which a window read from memory frame by frame.
-NEAR_LISTS = 256
+# Inverted lists whose levels a frame keeps (its nearest; the rest are bounded by the nearest not
+# kept and the farthest): with its bit per list 1.7 KB a frame where all 4,096 levels took 4 KB,
+# which a window read from memory frame by frame. Fewer leave more candidates to score exactly
+# (at 10M QM1, L = 100, per window of 178: 68 with 256 near lists, 6.3 with 512, 2.2 with 1,024,
+# 1.9 with all; docs/protocol.md).
+NEAR_LISTS = 1024
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
 DECODE_ROWS = 1 << 16  # codes decoded at a time
