@@ -20,7 +20,6 @@ import zarr
 from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
-from vprscale.compared import faisscodes
 from vprscale.compared.codescore import score_windows
 from vprscale.compared.faisscodes import ID_BYTES, REF_LEVEL_BYTES, FaissCodes, FrameTerms, training_rows
 
@@ -227,20 +226,17 @@ def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_bes
     """:func:`score_windows` of ``codes`` with frame terms ``t`` (its own codes unless others are given)."""
     codes_arg = codes.codes if codes_arg is None else codes_arg
     vectors = np.zeros((0, 0), np.float32) if vectors is None else vectors
-    return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, t.near, t.ranks,
-                         codes.per_list, codes_arg, t.vectors, vectors, codes.centroids, n_best)
+    return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, codes.per_list,
+                         codes_arg, t.vectors, vectors, codes.centroids, n_best)
 
 
-@pytest.mark.parametrize("near", [256, 16])
 @pytest.mark.parametrize("spread", ["data", "one far list", "flat rows"])
-def test_residual_best_from_coarse_levels_are_the_exact_best(spread, near, monkeypatch):
-    """IVF-PQ windows bound their candidates from 8-bit levels of each frame's nearest lists
-    (all 256 of them, or 16: most places then lie in lists bounded only by the nearest not
-    kept and the farthest) and of each place's term, and score exactly only those that could
-    be among the best: the best few are the exact scoring's, score for score (its scores of
-    every candidate, asked for all of them), however coarse the levels are (a list centroid
-    far from the rest makes every step wide; equal ones make them zero)."""
-    monkeypatch.setattr(faisscodes, "NEAR_LISTS", near)
+def test_residual_best_from_coarse_levels_are_the_exact_best(spread):
+    """IVF-PQ windows bound their candidates from 8-bit levels of each frame's distances to
+    the lists and of each place's term, and score exactly only those that could be among the
+    best: the best few are the exact scoring's, score for score (its scores of every
+    candidate, asked for all of them), however coarse the levels are (a list centroid far
+    from the rest makes every step wide; equal ones make them zero)."""
     rng = np.random.default_rng(5)
     ref = np.cumsum(rng.standard_normal((3000, 16)), axis=0).astype(np.float32) * 0.1
     query = ref[500:800] + rng.standard_normal((300, 16)).astype(np.float32) * 0.05

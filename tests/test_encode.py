@@ -170,7 +170,7 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("format", 1, "not an encoding of PQ4 in this version's format; re-run vprscale encode with --force"),
+    ("format", 2, "not an encoding of PQ4 in this version's format; re-run vprscale encode with --force"),
     ("store_identity", "0123456789abcdef", "encodes another store than"),
 ])
 def test_a_stale_encoding_is_refused_in_one_line(store, tiny_index, tmp_path, capsys, field, value, message):

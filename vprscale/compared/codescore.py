@@ -15,8 +15,8 @@ compute it:
   query-independent term (a sum of FAISS's per-list tables) and one look-up per code byte in
   the frame's table: the three terms FAISS's IVF-PQ scan adds with its precomputed tables
   (``use_precomputed_table``), here for any list rather than the probed ones. A window
-  bounds every candidate from 8-bit levels of the first two terms (the frame's nearest
-  lists', :func:`near_levels`; the place's, :func:`ref_scale`) and computes the terms
+  bounds every candidate from 8-bit levels of the first two terms (the frame's,
+  :func:`coarse_levels`; the place's, :func:`ref_scale`) and computes the terms
   exactly for the few the bounds leave (:func:`_residual_best`).
 - *vectors*: the references' codes decoded once (``vectors[r]``) against the query frames.
 
@@ -30,7 +30,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from vprscale.method.intrinsics import popcount
 from vprscale.method.kernels import NO_CANDIDATE, finish_best, keep_best
 
 # Relative rounding allowed between a window's sum of bounded terms and its exact sum (float64
@@ -54,47 +53,27 @@ def ref_scale(per_list: np.ndarray) -> tuple[np.ndarray, float, float]:
     return base, step, err
 
 
-def near_levels(coarse: np.ndarray, ref_base: np.ndarray, y: np.ndarray, centroid_norm: float, near: int,
-                ref_step: float, ref_err: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """What the window scores keep of frames ``y``'s coarse distances to the centroids
-    (frames, lists; float32, as FAISS computes them; ``centroid_norm`` the largest squared norm
-    of a centroid), for the bounds :func:`score_windows` rules candidates out with.
+def coarse_levels(coarse: np.ndarray, ref_base: np.ndarray, y: np.ndarray, centroid_norm: float, ref_step: float,
+                  ref_err: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(levels, scale)``: what the window scores keep of frames ``y``'s coarse distances to the
+    centroids (frames, lists; float32, as FAISS computes them; ``centroid_norm`` the largest
+    squared norm of a centroid), for the bounds :func:`score_windows` rules candidates out with.
 
     Each list's distance plus its places' smallest term (``ref_base``, :func:`ref_scale`) is
-    ``g``; a frame keeps its ``near`` lists of smallest ``g`` (a bit per list, ``bits``, and
-    per 64-bit word the count of near lists before it, ``ranks``) and their ``g`` as 256 even
-    steps between the smallest and largest (``levels``, in list order); a list not kept is
-    bounded below by the smallest ``g`` not kept and above by the largest. Returns
-    ``(levels, scale, bits, ranks)``, ``scale`` per frame ``(base, step, err, far, gap,
-    ref_step)``: a near list's ``g`` plus a place's term is ``base + step · level + ref_step ·
-    place_level`` within ``err``; a far one's is at least ``far + ref_step · place_level − err``
-    and at most that plus ``gap + 2 · err``.
+    ``g``; a frame keeps its ``g`` as one of 256 even steps between its smallest and largest
+    (4 KB at 4,096 lists, a quarter of the float32 row), and per frame ``(base, step, err,
+    ref_step)``: a list's ``g`` plus a place's term is ``base + step · level + ref_step ·
+    place_level`` within ``err`` (half of each step, plus the coarse distances' own rounding).
     """
     g = np.asarray(coarse, np.float64) + ref_base[None, :]
-    n, lists = g.shape
-    if near < lists:
-        order = np.argpartition(g, near, axis=1)
-        kept = np.sort(order[:, :near], axis=1)
-        far = np.take_along_axis(g, order[:, near : near + 1], axis=1)[:, 0]
-    else:
-        kept, far = np.broadcast_to(np.arange(lists), (n, lists)), np.full(n, np.inf)
-    rows = np.take_along_axis(g, kept, axis=1)
-    low, high = rows.min(axis=1, initial=np.inf), rows.max(axis=1, initial=-np.inf)
-    step = np.where(high > low, (high - low) / 256, 0.0)
-    levels = np.minimum(np.floor((rows - low[:, None]) / np.where(step > 0, step, 1)[:, None]), 255).astype(np.uint8)
-    words = -(-lists // 64)
-    marks = np.zeros((n, words * 64), bool)
-    np.put_along_axis(marks, kept, True, axis=1)
-    bits = np.packbits(marks.reshape(n, words, 64), axis=2, bitorder="little").view(np.uint64).reshape(n, words)
-    counts = marks.reshape(n, words, 64).sum(axis=2)
-    ranks = (np.cumsum(counts, axis=1) - counts).astype(np.uint16)
+    if g.shape[1] == 0:
+        return np.zeros(g.shape, np.uint8), np.zeros((len(g), 4))
+    low, high = g.min(axis=1), g.max(axis=1)
+    step = (high - low) / 256
+    levels = np.minimum(np.floor((g - low[:, None]) / np.where(step > 0, step, 1)[:, None]), 255).astype(np.uint8)
     norms = (np.asarray(y, np.float64) ** 2).sum(axis=1) + centroid_norm
-    top = np.abs(g).max(axis=1, initial=0.0)
-    err = 0.5 * step + COARSE_ROUNDING * norms + SLACK * top + ref_err
-    half = 0.5 * ref_step
-    gap = np.where(np.isfinite(far), g.max(axis=1, initial=0.0) - np.where(np.isfinite(far), far, 0.0), 0.0)
-    scale = np.stack([low + 0.5 * step + half, step, err, far + half, gap, np.full(n, ref_step)], axis=1)
-    return levels, scale, bits, ranks
+    err = 0.5 * step + COARSE_ROUNDING * norms + SLACK * np.maximum(np.abs(low), np.abs(high)) + ref_err
+    return levels, np.stack([low + 0.5 * step + 0.5 * ref_step, step, err, np.full(len(g), ref_step)], axis=1)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -201,62 +180,52 @@ def _residual_dist(tables: np.ndarray, q_vectors: np.ndarray, centroids: np.ndar
 
 @numba.njit(cache=True, nogil=True)
 def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.ndarray, levels: np.ndarray,
-                   scale: np.ndarray, bits: np.ndarray, ranks: np.ndarray, q_vectors: np.ndarray,
-                   centroids: np.ndarray, per_list: np.ndarray, records: np.ndarray, best_s: np.ndarray,
-                   best_c: np.ndarray) -> None:
+                   scale: np.ndarray, q_vectors: np.ndarray, centroids: np.ndarray, per_list: np.ndarray,
+                   records: np.ndarray, best_s: np.ndarray, best_c: np.ndarray) -> None:
     """The ``len(best_s)`` best candidates of the window centred at ``t`` by their exact
     residual scores, into ``(best_s, best_c)``, in two passes.
 
-    A frame's distances to all 4,096 lists, read at random by a window's candidates, came
-    from memory frame after frame (16 KB of float32, or 4 KB of 8-bit levels: 9 ns a term
-    either way, docs/protocol.md). So the first pass reads less of a frame: which lists are
-    among its nearest (a bit per list, and per word the rank of its first near list), their
-    levels (:func:`near_levels`; 1.7 KB a frame at 1,024 of 4,096 lists), and per place one
-    record (code, list, term level); it bounds every candidate's exact score from them (a
-    far list's from the nearest not kept and the farthest). The second scores exactly only
-    the candidates whose bounds do not rule them out of the best (about two at n_best = 1),
-    and finds the exact largest term (the cost of reference frames outside the map) among
-    the frames that could hold it. The answer is what exact scores of every candidate give,
-    score for score.
+    A frame's coarse distances to every list are 16 KB of float32 at 4,096 lists; held for
+    every frame of an evaluation they took 6 GB at 10M and more than 24 GB at 1M. So the first
+    pass reads each frame's 8-bit levels (:func:`coarse_levels`, a quarter of the bytes) and
+    each place's record (code, list number and the level of its term: one line where three
+    arrays took three), and bounds every candidate's exact score from them; the second scores
+    exactly only the candidates whose bounds do not rule them out of the best (one or two at
+    n_best = 1), and finds the exact largest term (the cost of reference frames outside the
+    map) among the frames that could hold it. The answer is what exact scores of every
+    candidate give, score for score.
     """
     half = L // 2
     width = tables.shape[1]
     level_at = records.shape[1] - 1
     m = cand.shape[0]
-    sums = np.zeros(m, np.float64)  # estimates of the in-map terms
-    gaps = np.zeros(m, np.float64)  # what far lists add to the upper bounds
-    frame_lo = np.full(L, -np.inf)  # per frame, the largest estimate, and the largest upper estimate
-    frame_hi = np.full(L, -np.inf)
-    one = np.uint64(1)
-    for i in range(L):  # the bounds
+    sums = np.zeros(m, np.float64)
+    frame_max = np.full(L, -np.inf)
+    copy_row = 32 * m >= levels.shape[1]  # many candidates for the row's length: copied, it is read in order
+    row = np.empty(levels.shape[1] if copy_row else 0, np.uint8)
+    for i in range(L):  # the bounds: sums of terms whose coarse distances and place terms are read as levels
         p = t + i - half
-        base, step, far, gap, ref_step = scale[p, 0], scale[p, 1], scale[p, 3], scale[p, 4], scale[p, 5]
-        lo_top, hi_top = -np.inf, -np.inf
+        if copy_row:
+            row[:] = levels[p]
+        base, step, ref_step = scale[p, 0], scale[p, 1], scale[p, 3]
+        top = -np.inf
         for j in range(m):
             r = cand[j] + i - half
             if 0 <= r < n_ref:
                 lst = _record_list(records, r, width)
-                word = bits[p, lst >> 6]
-                shift = np.uint64(lst & 63)
-                if (word >> shift) & one:
-                    rank = np.int64(ranks[p, lst >> 6]) + popcount(word & ((one << shift) - one))
-                    g, extra = base + step * levels[p, rank], 0.0
-                else:
-                    g, extra = far, gap
-                dist = _table_dist(tables, p, records, r, width) + (g + ref_step * records[r, level_at])
+                level = row[lst] if copy_row else levels[p, lst]
+                dist = _table_dist(tables, p, records, r, width) + (base + step * level
+                                                                     + ref_step * records[r, level_at])
                 sums[j] += dist
-                gaps[j] += extra
-                lo_top = max(lo_top, dist)
-                hi_top = max(hi_top, dist + extra)
-        frame_lo[i], frame_hi[i] = lo_top, hi_top
+                top = max(top, dist)
+        frame_max[i] = top
     errs = np.zeros(L + 1)  # the frames' errors, summed from the window's first frame
-    largest_lo, largest_hi = 0.0, 0.0  # bounds of the largest term
+    err_max = 0.0
     for i in range(L):
-        e = scale[t + i - half, 2]
-        errs[i + 1] = errs[i] + e
-        if frame_hi[i] > -np.inf:
-            largest_lo = max(largest_lo, frame_lo[i] - e)
-            largest_hi = max(largest_hi, frame_hi[i] + e)
+        errs[i + 1] = errs[i] + scale[t + i - half, 2]
+        if frame_max[i] > -np.inf:
+            err_max = max(err_max, scale[t + i - half, 2])
+    largest = max(0.0, frame_max.max())
     outside = np.empty(m, np.int64)
     low = np.empty(m, np.float64)
     high = np.empty(m, np.float64)
@@ -264,43 +233,66 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
         first = min(L, max(0, half - cand[j]))
         last = max(first, min(L, n_ref - cand[j] + half))
         outside[j] = L - (last - first)
-        slack = SLACK * (abs(sums[j]) + gaps[j] + outside[j] * largest_hi)
-        err = errs[last] - errs[first] + slack
-        low[j] = sums[j] - err + outside[j] * largest_lo
-        high[j] = sums[j] + gaps[j] + err + outside[j] * largest_hi
-    n = min(m, best_s.shape[0])
-    bar = np.partition(high, n - 1)[n - 1] if m > 0 else 0.0  # the n-th best upper bound
-    chosen = np.flatnonzero(low <= bar)
-    exact = np.zeros(chosen.shape[0], np.float64)
-    need_largest = (outside[chosen] > 0).any()
+        margin = errs[last] - errs[first] + outside[j] * err_max + SLACK * (abs(sums[j]) + outside[j] * abs(largest))
+        low[j] = sums[j] + outside[j] * largest - margin
+        high[j] = sums[j] + outside[j] * largest + margin
     exact_largest = 0.0
-    for i in range(L):  # the chosen candidates' exact sums; the exact largest where it could lie
-        p = t + i - half
-        for c in range(chosen.shape[0]):
-            r = cand[chosen[c]] + i - half
-            if 0 <= r < n_ref:
-                exact[c] += _residual_dist(tables, q_vectors, centroids, per_list, records, p, r, width)
-        if need_largest and frame_hi[i] + scale[p, 2] >= largest_lo - SLACK * largest_hi:
-            for j in range(m):
-                r = cand[j] + i - half
-                if 0 <= r < n_ref:
-                    exact_largest = max(exact_largest, _residual_dist(tables, q_vectors, centroids, per_list,
-                                                                      records, p, r, width))
-    for c in range(chosen.shape[0]):
-        j = chosen[c]
-        keep_best(best_s, best_c, exact[c] + outside[j] * exact_largest, cand[j])
+    if (outside > 0).any():  # the exact largest term, from the frames that could hold it
+        for i in range(L):
+            p = t + i - half
+            if frame_max[i] + scale[p, 2] >= largest - err_max - SLACK * abs(largest):
+                for j in range(m):
+                    r = cand[j] + i - half
+                    if 0 <= r < n_ref:
+                        exact_largest = max(exact_largest, _residual_dist(tables, q_vectors, centroids, per_list,
+                                                                          records, p, r, width))
+    if m == 0:
+        return
+    # The bar: the n-th best upper bound, or the worst exact score of the n candidates of best
+    # lower bounds if that is lower (exact scores are their own bounds; where candidates score
+    # alike, noisy queries say, it rules more out). Every candidate of a lower bound above it
+    # is out of the best.
+    n = min(m, best_s.shape[0])
+    bar = np.partition(high, n - 1)[n - 1]
+    scored = np.zeros(m, np.bool_)
+    for j in np.argpartition(low, n - 1)[:n]:
+        s = _residual_score(t, L, cand[j], n_ref, tables, q_vectors, centroids, per_list, records,
+                            outside[j] * exact_largest)
+        scored[j] = True
+        keep_best(best_s, best_c, s, cand[j])
+    bar = min(bar, best_s[n - 1])
+    for j in range(m):
+        if not scored[j] and low[j] <= bar:
+            keep_best(best_s, best_c, _residual_score(t, L, cand[j], n_ref, tables, q_vectors, centroids,
+                                                      per_list, records, outside[j] * exact_largest), cand[j])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _residual_score(t: np.int64, L: int, c: np.int64, n_ref: int, tables: np.ndarray, q_vectors: np.ndarray,
+                    centroids: np.ndarray, per_list: np.ndarray, records: np.ndarray, outside_cost: float
+                    ) -> np.float64:
+    """The exact residual score of candidate centre ``c`` in the window centred at ``t``,
+    its references outside the map costing ``outside_cost`` together."""
+    half = L // 2
+    width = tables.shape[1]
+    s = np.float64(0.0)
+    for i in range(L):
+        r = c + i - half
+        if 0 <= r < n_ref:
+            s += _residual_dist(tables, q_vectors, centroids, per_list, records, t + i - half, r, width)
+    return s + outside_cost
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def score_windows(centres_t: np.ndarray, L: int, cand: np.ndarray, first: np.ndarray, n_r: np.ndarray,
-                  n_ref: int, tables: np.ndarray, levels: np.ndarray, scale: np.ndarray, bits: np.ndarray,
-                  ranks: np.ndarray, per_list: np.ndarray, codes: np.ndarray, q_vectors: np.ndarray,
-                  vectors: np.ndarray, centroids: np.ndarray, n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                  n_ref: int, tables: np.ndarray, levels: np.ndarray, scale: np.ndarray, per_list: np.ndarray,
+                  codes: np.ndarray, q_vectors: np.ndarray, vectors: np.ndarray, centroids: np.ndarray,
+                  n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """``(top, scores)``: the ``n_best`` best candidates of every query, best first (−1 where
     fewer), and their scores. Query ``qi``'s candidates are ``cand[first[qi]:first[qi] +
     n_r[qi]]``, for the window centred at query-frame position ``centres_t[qi]``. The form
-    follows what is given: residual tables when ``levels`` has frames (the frames' near
-    lists, :func:`near_levels`; ``q_vectors`` the frames and ``centroids`` the lists'
+    follows what is given: residual tables when ``levels`` has frames (:func:`coarse_levels`;
+    ``q_vectors`` the frames and ``centroids`` the lists'
     centroids, in the space the codes are in; ``codes`` the places' records and
     ``per_list`` their lists' tables), tables when ``tables`` has, decoded vectors otherwise.
     """
@@ -309,8 +301,8 @@ def score_windows(centres_t: np.ndarray, L: int, cand: np.ndarray, first: np.nda
     for qi in numba.prange(centres_t.shape[0]):
         mine = cand[first[qi] : first[qi] + n_r[qi]]
         if levels.shape[0] > 0:
-            _residual_best(centres_t[qi], L, mine, n_ref, tables, levels, scale, bits, ranks, q_vectors, centroids,
-                           per_list, codes, scores[qi], top[qi])
+            _residual_best(centres_t[qi], L, mine, n_ref, tables, levels, scale, q_vectors, centroids, per_list,
+                           codes, scores[qi], top[qi])
             continue
         sums, outside, largest = _window_sums(centres_t[qi], L, mine, n_ref, tables, codes, q_vectors, vectors)
         for j in range(mine.shape[0]):

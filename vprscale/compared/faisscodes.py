@@ -22,16 +22,10 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
-from vprscale.compared.codescore import near_levels, ref_scale, score_windows
+from vprscale.compared.codescore import coarse_levels, ref_scale, score_windows
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
 
-# Inverted lists whose levels a frame keeps (its nearest; the rest are bounded by the nearest not
-# kept and the farthest): with its bit per list 1.7 KB a frame where all 4,096 levels took 4 KB,
-# which a window read from memory frame by frame. Fewer leave more candidates to score exactly
-# (at 10M QM1, L = 100, per window of 178: 68 with 256 near lists, 6.3 with 512, 2.2 with 1,024,
-# 1.9 with all; docs/protocol.md).
-NEAR_LISTS = 1024
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
 DECODE_ROWS = 1 << 16  # codes decoded at a time
@@ -48,16 +42,13 @@ class FrameTerms(NamedTuple):
     """What the window scores need of each query frame (the forms' unused parts empty):
     per-byte ``tables`` (frames, bytes, 256), the frames' ``vectors`` (decoded-vector form;
     residual IVF-PQ codes: the frames as the coarse quantiser sees them), and for residual
-    IVF-PQ codes each frame's nearest inverted lists (``near``: a bit per list, and per 64-bit
-    word the near lists before it), their 8-bit ``levels`` and the frame's ``scale``
-    (:func:`~vprscale.compared.codescore.near_levels`)."""
+    IVF-PQ codes the 8-bit ``levels`` of their distances to every inverted list and their
+    ``scale`` (:func:`~vprscale.compared.codescore.coarse_levels`)."""
 
     tables: np.ndarray
     vectors: np.ndarray
     levels: np.ndarray = np.zeros((0, 0), np.uint8)
-    scale: np.ndarray = np.zeros((0, 6))
-    near: np.ndarray = np.zeros((0, 0), np.uint64)
-    ranks: np.ndarray = np.zeros((0, 0), np.uint16)
+    scale: np.ndarray = np.zeros((0, 4))
 
 
 _NO_TABLES, _NO_ROWS = np.zeros((0, 1, 1), np.float32), np.zeros((0, 0), np.float32)
@@ -200,15 +191,14 @@ class FaissCodes:
         elif self.form == "hamming":
             tables = 256.0 * width
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
-        # the window scores' coarse row, beside the search's, its nearest lists (a selection and
-        # a sort of them) and their levels (range, scale, round, bit)
-        coarse = 2 * coarse + 8.0 * self.ivf.nlist if self.form == "residual" else coarse
+        # the window scores' coarse row, beside the search's, and its 8-bit levels (add, range, scale, round)
+        coarse = 2 * coarse + 6.0 * self.ivf.nlist if self.form == "residual" else coarse
         return transform + tables + coarse + width * self.scan_per_frame()
 
     def pair_ops(self) -> float:
         """Operations of one (candidate, frame) term of a window score."""
         if self.form == "residual":
-            return 2.0 * self.code_width + 4  # the look-ups, the list's bit and rank, its level and the place's
+            return 2.0 * self.code_width + 3  # the look-ups, the list's level and the place's
         return float(self.codes.shape[1]) if self.form != "vectors" else 3.0 * self.vectors.shape[1]
 
     @property
@@ -333,7 +323,7 @@ class FaissCodes:
         its levels (:func:`~vprscale.compared.codescore.ref_scale`)."""
         pq = self.inner.pq
         self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
-        self.centroid_norm = float((self.centroids.astype(np.float64) ** 2).sum(axis=1).max())  # for near_levels
+        self.centroid_norm = float((self.centroids.astype(np.float64) ** 2).sum(axis=1).max())  # for coarse_levels
         cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
         sub = self.centroids.reshape(self.ivf.nlist, pq.M, pq.dsub)
         self.per_list = ((cents**2).sum(-1)[None, :, :] + 2 * np.einsum("lmd,mkd->lmk", sub, cents)).astype(np.float32)
@@ -377,11 +367,9 @@ class FaissCodes:
         """:class:`FrameTerms` of residual IVF-PQ codes, block by block (FAISS's BLAS on one
         thread each: the same bits for any threads), each block written into place (7.5 KB a
         frame at 4,096 lists: a million frames' blocks and their concatenation took 15 GB)."""
-        pq, n, near = self.inner.pq, len(rows), min(NEAR_LISTS, self.ivf.nlist)
-        words = -(-self.ivf.nlist // 64)
+        pq, n = self.inner.pq, len(rows)
         terms = FrameTerms(np.empty((n, pq.M, pq.ksub), np.float32), np.empty((n, self.inner.d), np.float32),
-                           np.empty((n, near), np.uint8), np.empty((n, 6)), np.empty((n, words), np.uint64),
-                           np.empty((n, words), np.uint16))
+                           np.empty((n, self.ivf.nlist), np.uint8), np.empty((n, 4)))
 
         def fill(lo: int) -> None:
             for whole, part in zip(terms, self._residual_terms(rows[lo : lo + BLOCK_ROWS]), strict=True):
@@ -391,16 +379,15 @@ class FaissCodes:
         return terms
 
     def _residual_terms(self, rows: np.ndarray) -> tuple[np.ndarray, ...]:
-        """A block's ``−2⟨y[m], ρ_mv⟩`` tables, its frames, and their nearest lists' levels and
-        scale (:func:`~vprscale.compared.codescore.near_levels`; the distances to every list
+        """A block's ``−2⟨y[m], ρ_mv⟩`` tables, its frames, and the levels of their distances to
+        every list (:func:`~vprscale.compared.codescore.coarse_levels`; the distances themselves
         are not kept: 16 KB a frame)."""
         y = self._transform(rows)
         ys, cents = self._sub_products(y)
         tables = (-2 * np.einsum("nmd,mkd->nmk", ys, cents)).astype(np.float32)
-        levels, scale, near, ranks = near_levels(faiss.pairwise_distances(y, self.centroids), self.ref_base, y,
-                                                 self.centroid_norm, min(NEAR_LISTS, self.ivf.nlist),
-                                                 self.ref_step, self.ref_err)
-        return tables, y, levels, scale, near, ranks
+        levels, scale = coarse_levels(faiss.pairwise_distances(y, self.centroids), self.ref_base, y,
+                                      self.centroid_norm, self.ref_step, self.ref_err)
+        return tables, y, levels, scale
 
     def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, terms: FrameTerms,
               n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -420,5 +407,4 @@ class FaissCodes:
         """:func:`score_windows` of given candidates over this method's codes, in its form."""
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
         return score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.levels, terms.scale,
-                             terms.near, terms.ranks, self.per_list, codes, terms.vectors, self.vectors,
-                             self.centroids, n_best)
+                             self.per_list, codes, terms.vectors, self.vectors, self.centroids, n_best)
