@@ -20,8 +20,8 @@ import zarr
 from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
-from vprscale.compared.codescore import score_windows
-from vprscale.compared.faisscodes import ID_BYTES, REF_LEVEL_BYTES, FaissCodes, FrameTerms, training_rows
+from vprscale.compared.codescore import REF_LEVEL_BYTES, score_windows
+from vprscale.compared.faisscodes import ID_BYTES, FaissCodes, FrameTerms, training_rows
 
 FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4"]
 L_SEQ = 9

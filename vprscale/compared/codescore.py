@@ -38,6 +38,22 @@ SLACK = 1e-6
 # Relative error allowed in a coarse distance computed as ‖y‖² + ‖c‖² − 2⟨y, c⟩ in float32 (what
 # FAISS's coarse step does), relative to ‖y‖² + ‖c‖²: about 100 roundings of 2^-24 at 96-d, doubled.
 COARSE_ROUNDING = 1e-5
+# A residual place's record (:func:`place_records`) keeps its term's level in one byte.
+REF_LEVEL_BYTES = 1
+
+
+def place_records(sub: np.ndarray, list_bytes: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Residual IVF-PQ places' window records, the one layout :func:`score_windows` reads: per
+    place its sub-quantiser indices (``sub``), its list number's little-endian bytes
+    (``list_bytes``, as FAISS's standalone code holds them) and its term's level (``level``,
+    :func:`ref_scale`). One record, not three arrays: a window reads a place's bytes from
+    wherever it lies, and one line per place costs less than three."""
+    return np.concatenate([sub, list_bytes, level[:, None].astype(np.uint8)], axis=1)
+
+
+def record_width(code_width: int, list_bytes: int) -> int:
+    """Bytes of a :func:`place_records` record."""
+    return code_width + list_bytes + REF_LEVEL_BYTES
 
 
 def ref_scale(per_list: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -156,10 +172,10 @@ def _coarse_dist(q: np.ndarray, p: np.int64, centroids: np.ndarray, lst: np.int6
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _record_list(records: np.ndarray, r: np.int64, width: int) -> np.int64:
-    """The list number of residual place ``r``: the little-endian bytes of its record between
-    its ``width`` code bytes and its term's level."""
+    """The list number of residual place ``r``: the little-endian bytes of its record
+    (:func:`place_records`) between its ``width`` code bytes and its term's level."""
     lst = np.int64(0)
-    for b in range(records.shape[1] - 1 - width):
+    for b in range(records.shape[1] - REF_LEVEL_BYTES - width):
         lst |= np.int64(records[r, width + b]) << (8 * b)
     return lst
 
@@ -197,7 +213,7 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     """
     half = L // 2
     width = tables.shape[1]
-    level_at = records.shape[1] - 1
+    level_at = records.shape[1] - REF_LEVEL_BYTES  # the record's last byte (place_records)
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
     frame_max = np.full(L, -np.inf)

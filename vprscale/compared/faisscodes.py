@@ -22,7 +22,14 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
-from vprscale.compared.codescore import coarse_levels, ref_scale, score_windows
+from vprscale.compared.codescore import (
+    REF_LEVEL_BYTES,
+    coarse_levels,
+    place_records,
+    record_width,
+    ref_scale,
+    score_windows,
+)
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
 
@@ -34,7 +41,6 @@ BLOCK_ROWS = 256  # rows one thread searches at a time (fixed: the bytes must no
 # product, 2.6x cheaper per row on 4096 rows than on 256 (11 against 28 us a row at 4096 lists, 96-d).
 ENCODE_ROWS = 4096
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
-REF_LEVEL_BYTES = 1  # residual IVF-PQ: each place's ‖ρ‖² + 2⟨c_l, ρ⟩ as an 8-bit level beside its code
 _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 
 
@@ -171,7 +177,7 @@ class FaissCodes:
         """
         if self.ivf is None:
             return float(self.inner.sa_code_size())
-        extra = REF_LEVEL_BYTES if self.form == "residual" else 0
+        extra = REF_LEVEL_BYTES if self.form == "residual" else 0  # a place's term level
         return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size() + extra)
 
     def scan_per_frame(self) -> float:
@@ -221,7 +227,7 @@ class FaissCodes:
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
         width = self.inner.pq.M if self.form == "pq" and not self.nibbles else self.inner.sa_code_size()
         if self.form == "residual":  # a record: the sub-quantiser indices, the list number, the term's level
-            width = self.inner.pq.M + self.ivf.coarse_code_size() + REF_LEVEL_BYTES
+            width = record_width(self.inner.pq.M, self.ivf.coarse_code_size())
             self._residual_tables()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
@@ -262,18 +268,16 @@ class FaissCodes:
 
     def window_records(self, codes: np.ndarray) -> np.ndarray:
         """What the window scores read of residual IVF-PQ places, from their standalone codes
-        (after :meth:`start`): one record per place, its sub-quantiser indices, its list number
-        (little-endian, as FAISS's standalone code holds it) and the 8-bit level of its
-        ``‖ρ‖² + 2⟨c_l, ρ⟩`` above its list's smallest (:func:`~vprscale.compared.codescore.ref_scale`).
-        One record, not three arrays: a window reads a place's bytes from wherever it lies,
-        and one line per place costs less than three."""
+        (after :meth:`start`): their records (:func:`~vprscale.compared.codescore.place_records`),
+        with the 8-bit level of each place's ``‖ρ‖² + 2⟨c_l, ρ⟩`` above its list's smallest
+        (:func:`~vprscale.compared.codescore.ref_scale`)."""
         coarse = self.ivf.coarse_code_size()  # a standalone IVF code: the list number (little-endian), the PQ code
         lists = (codes[:, :coarse].astype(np.int64) << (8 * np.arange(coarse, dtype=np.int64))).sum(axis=1)
         sub = self._pq_indices(codes[:, coarse:])
         terms = np.asarray(sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1])), np.float32)
         rise = (terms - self.ref_base[lists]) / (self.ref_step or 1.0)
         level = np.clip(np.floor(rise), 0, 255).astype(np.uint8)
-        return np.concatenate([sub, codes[:, :coarse], level[:, None]], axis=1)
+        return place_records(sub, codes[:, :coarse], level)
 
     def attach(self, index: Any, records: np.ndarray) -> None:
         """Work on a populated IVF ``index`` (inverted lists on disk, say) and its places'
