@@ -190,6 +190,7 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
 
 
 @pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("IVF256,PQ4", "residual"),
+                                           ("IVF300,PQ4", "residual"), ("OPQ3_30,IVF300,PQ3", "residual"),
                                            ("OPQ4,IVF16,PQ4x6", "residual"),
                                            ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq"), ("PQ8x4fs", "pq"),
                                            ("OPQ8,PQ8x4fs", "pq"), ("PQ1x4", "pq")])
@@ -231,16 +232,18 @@ def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_bes
 
 
 @pytest.mark.parametrize("spread", ["data", "one far list", "flat rows"])
-def test_residual_best_from_coarse_levels_are_the_exact_best(spread):
+@pytest.mark.parametrize("factory, dim", [("IVF256,PQ2", 16), ("IVF300,PQ3", 18)])
+def test_residual_best_from_coarse_levels_are_the_exact_best(spread, factory, dim):
     """IVF-PQ windows bound their candidates from 8-bit levels of each frame's distances to
     the lists and of each place's term, and score exactly only those that could be among the
     best: the best few are the exact scoring's, score for score (its scores of every
     candidate, asked for all of them), however coarse the levels are (a list centroid far
-    from the rest makes every step wide; equal ones make them zero)."""
+    from the rest makes every step wide; equal ones make them zero); for records of one
+    list byte and of two with three code bytes (the bounds' loop specialised to them)."""
     rng = np.random.default_rng(5)
-    ref = np.cumsum(rng.standard_normal((3000, 16)), axis=0).astype(np.float32) * 0.1
-    query = ref[500:800] + rng.standard_normal((300, 16)).astype(np.float32) * 0.05
-    codes = FaissCodes("IVF256,PQ2", 16, k=4)
+    ref = np.cumsum(rng.standard_normal((3000, dim)), axis=0).astype(np.float32) * 0.1
+    query = ref[500:800] + rng.standard_normal((300, dim)).astype(np.float32) * 0.05
+    codes = FaissCodes(factory, dim, k=4)
     codes.train(ref)
     codes.start(len(ref))
     codes.encode(ref)
@@ -253,7 +256,7 @@ def test_residual_best_from_coarse_levels_are_the_exact_best(spread):
     L, centres = 21, np.array([15, 100, 200, 284])  # the first and last windows reach outside the map
     cand = np.unique(np.concatenate([np.arange(480, 540), np.arange(0, 12), np.arange(2990, 3000),
                                      rng.integers(0, 3000, 60)]))
-    for some in (cand, cand[::40]):  # many candidates for a row of 256 lists (copied), and few (read in place)
+    for some in (cand, cand[::40]):  # many candidates, and few
         first, n_r = np.arange(4) * len(some), np.full(4, len(some))
         every = _score(codes, terms, centres, L, np.tile(some, 4), first, n_r, len(some) + 20)
         assert np.isfinite(every[1][:, : len(some)]).all()

@@ -181,6 +181,38 @@ def _record_list(records: np.ndarray, r: np.int64, width: int) -> np.int64:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.ndarray, levels: np.ndarray,
+                scale: np.ndarray, records: np.ndarray, width: int, list_bytes: int,
+                sums: np.ndarray, frame_max: np.ndarray) -> None:
+    """The first pass of :func:`_residual_best`: each candidate's sum of its terms read as levels
+    into ``sums``, each frame's largest into ``frame_max``, for records of ``width`` code bytes
+    and ``list_bytes`` bytes of list number.
+
+    Called with the common layouts' widths as constants, the record's offsets are constants
+    too and the inner loop has no loop of its own: 11–13 against 16–19 ns a term on real 10M
+    windows (runs27/h13.py).
+    """
+    half = L // 2
+    level_at = width + list_bytes  # the record's last byte (place_records)
+    m = cand.shape[0]
+    for i in range(L):
+        p = t + i - half
+        base, step, ref_step = scale[p, 0], scale[p, 1], scale[p, 3]
+        top = -np.inf
+        for j in range(m):
+            r = cand[j] + i - half
+            if 0 <= r < n_ref:
+                lst = np.int64(0)
+                for b in range(list_bytes):
+                    lst |= np.int64(records[r, width + b]) << (8 * b)
+                dist = _table_dist(tables, p, records, r, width) + (base + step * levels[p, lst]
+                                                                     + ref_step * records[r, level_at])
+                sums[j] += dist
+                top = max(top, dist)
+        frame_max[i] = top
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _residual_dist(tables: np.ndarray, q_vectors: np.ndarray, centroids: np.ndarray, per_list: np.ndarray,
                    records: np.ndarray, p: np.int64, r: np.int64, width: int) -> np.float64:
     """The exact residual term of query frame ``p`` and reference ``r``: its coarse distance from
@@ -217,23 +249,17 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     """
     half = L // 2
     width = tables.shape[1]
-    level_at = records.shape[1] - REF_LEVEL_BYTES  # the record's last byte (place_records)
+    list_bytes = records.shape[1] - REF_LEVEL_BYTES - width
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
     frame_max = np.full(L, -np.inf)
-    for i in range(L):  # the bounds: sums of terms whose coarse distances and place terms are read as levels
-        p = t + i - half
-        base, step, ref_step = scale[p, 0], scale[p, 1], scale[p, 3]
-        top = -np.inf
-        for j in range(m):
-            r = cand[j] + i - half
-            if 0 <= r < n_ref:
-                lst = _record_list(records, r, width)
-                dist = _table_dist(tables, p, records, r, width) + (base + step * levels[p, lst]
-                                                                     + ref_step * records[r, level_at])
-                sums[j] += dist
-                top = max(top, dist)
-        frame_max[i] = top
+    # the bounds: sums of terms whose coarse distances and place terms are read as levels
+    if width == 3 and list_bytes == 2:  # up to 65,536 lists, 3 sub-quantisers (IVF4096,PQ3)
+        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, 3, 2, sums, frame_max)
+    elif width == 4 and list_bytes == 2:
+        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, 4, 2, sums, frame_max)
+    else:
+        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, width, list_bytes, sums, frame_max)
     errs = np.zeros(L + 1)  # the frames' errors, summed from the window's first frame
     err_max = 0.0
     for i in range(L):
