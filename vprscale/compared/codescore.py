@@ -106,7 +106,7 @@ def _prefetch(typingctx: object, arr: types.Array, i: types.Integer) -> tuple:
     if not (isinstance(arr, types.Array) and arr.ndim == 1 and isinstance(i, types.Integer)):
         return None
 
-    def codegen(context, builder, sig, args):  # noqa: ANN001, ANN202 - numba's lowering callback
+    def codegen(context, builder, sig, args):  # numba lowers a call to this
         array = context.make_array(sig.args[0])(context, builder, args[0])
         index = context.cast(builder, args[1], sig.args[1], types.intp)
         ptr = cgutils.get_item_pointer(context, builder, sig.args[0], array, [index], wraparound=False)
