@@ -216,13 +216,19 @@ def _coarse_dist(q: np.ndarray, p: np.int64, centroids: np.ndarray, lst: np.int6
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _record_list(records: np.ndarray, r: np.int64, width: int) -> np.int64:
-    """The list number of residual place ``r``: the little-endian bytes of its record
-    (:func:`place_records`) between its ``width`` code bytes and its term's level."""
+def _list_at(records: np.ndarray, r: np.int64, width: int, list_bytes: int) -> np.int64:
+    """The list number of residual place ``r``: the ``list_bytes`` little-endian bytes of its
+    record (:func:`place_records`) after its ``width`` code bytes."""
     lst = np.int64(0)
-    for b in range(records.shape[1] - REF_LEVEL_BYTES - width):
+    for b in range(list_bytes):
         lst |= np.int64(records[r, width + b]) << (8 * b)
     return lst
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _record_list(records: np.ndarray, r: np.int64, width: int) -> np.int64:
+    """:func:`_list_at`, its list bytes those between the code and the term's level."""
+    return _list_at(records, r, width, records.shape[1] - REF_LEVEL_BYTES - width)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -250,9 +256,7 @@ def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.nd
         for j in range(m):
             r = cand[j] + i - half
             if 0 <= r < n_ref:
-                lst = np.int64(0)
-                for b in range(list_bytes):
-                    lst |= np.int64(records[r, width + b]) << (8 * b)
+                lst = _list_at(records, r, width, list_bytes)
                 dist = _table_dist(tables, p, records, r, width) + (base + step * levels[p, lst]
                                                                      + ref_step * records[r, level_at])
                 sums[j] += dist
