@@ -136,8 +136,9 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
 @pytest.mark.slow
 def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch):
     """A run whose frames would visit more codes than the budget localises an evenly spaced
-    sample of the centres (the same ones for every flat method), never fewer than the floor;
-    IVF visits a few lists per frame and localises every centre, whatever the budget."""
+    sample of the centres (the same ones for every scanning flat method), never fewer than
+    the floor; IVF visits a few lists per frame and an enumerable flat code (PQ4) finds its
+    top-k without a scan: both localise every centre, whatever the budget."""
     import vprscale.evaluation.algorithms.faisscodes as fc
 
     runs = {}
@@ -146,29 +147,31 @@ def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, t
         monkeypatch.setattr(fc, "SCAN_BUDGET", budget)
         out = tmp_path / f"e{floor}-{budget}"
         assert main(["eval", str(tiny_store), str(tiny_index), "--L", "5", "--z", "97", "--noise", "qm1",
-                     "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare", "IVF32,PQ4",
-                     "--faiss-nprobe", "1", "--repeats", "1", "--out", str(out)]) == 0
+                     "--modes", "paper", "--no-baseline", "--compare", "PQ6x4fs", "--compare", "IVF32,PQ4",
+                     "--compare", "PQ4", "--faiss-nprobe", "1", "--repeats", "1", "--out", str(out)]) == 0
         res = pq.read_table(out / "results.parquet").to_pandas()
         runs[floor, budget] = res[res.part == "all"].groupby("method")["n_queries"].first()
     n = runs[30, 52_500 * 5 * 40]
-    assert n["faiss:PQ4"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40  # the budget's 40 over a floor of 30
-    assert runs[40, 52_500 * 5 * 40]["faiss:PQ4"] == 40
-    assert runs[1000, 52_500 * 5 * 40]["faiss:PQ4"] == n["coarsehash"] < 1000  # the floor: all when there are fewer
-    tight = runs[30, 1]  # beyond any budget: flat codes at the floor, IVF codes still at every centre
-    assert tight["faiss:PQ4"] == 30 and tight["faiss:IVF32,PQ4"] == n["coarsehash"]
+    assert n["faiss:PQ6x4fs"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40  # the budget's 40 over 30
+    assert runs[40, 52_500 * 5 * 40]["faiss:PQ6x4fs"] == 40
+    assert runs[1000, 52_500 * 5 * 40]["faiss:PQ6x4fs"] == n["coarsehash"] < 1000  # the floor: all when fewer
+    tight = runs[30, 1]  # beyond any budget: scanning flat codes at the floor, the others still at every centre
+    assert tight["faiss:PQ6x4fs"] == 30 and tight["faiss:IVF32,PQ4"] == n["coarsehash"]
+    assert all(run["faiss:PQ4"] == n["coarsehash"] for run in runs.values())
 
 
 def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tmp_path):
-    """``--flat-noise qm1``: flat codes (an exhaustive scan per frame) run on QM1 alone, IVF
-    codes and CoarseHash on every noise level; the evaluation records what was run."""
+    """``--flat-noise qm1``: flat codes whose evaluation scans every code per frame (fast-scan
+    PQ) run on QM1 alone; IVF codes, enumerable flat codes (PQ4: no scan) and CoarseHash on
+    every noise level; the evaluation records what was run."""
     out = tmp_path / "e"
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1,qm2",
-                 "--flat-noise", "qm1", "--modes", "paper", "--no-baseline", "--compare", "PQ4", "--compare",
-                 "IVF32,PQ4", "--repeats", "1", "--out", str(out)]) == 0
+                 "--flat-noise", "qm1", "--modes", "paper", "--no-baseline", "--compare", "PQ6x4fs", "--compare",
+                 "IVF32,PQ4", "--compare", "PQ4", "--repeats", "1", "--out", str(out)]) == 0
     res = pq.read_table(out / "results.parquet").to_pandas()
     ran = res.groupby("method")["noise"].agg(lambda n: sorted(set(n)))
-    assert ran["faiss:PQ4"] == ["qm1"]
-    assert ran["faiss:IVF32,PQ4"] == ran["coarsehash"] == ["qm1", "qm2"]
+    assert ran["faiss:PQ6x4fs"] == ["qm1"]
+    assert ran["faiss:IVF32,PQ4"] == ran["faiss:PQ4"] == ran["coarsehash"] == ["qm1", "qm2"]
     assert json.loads((out / "eval.json").read_text())["flat_noise"] == ["qm1"]
 
 

@@ -188,3 +188,37 @@ def test_many_evaluations_read_as_one_table(tiny_store, tiny_index, tmp_path, ca
     assert main(["sql", str(folders[0]), "SELECT count(*) AS n FROM results", "--csv"]) == 0
     assert capsys.readouterr().out.splitlines()[1] == "63"
     assert main(["results", str(tmp_path / "nothing")]) == 2
+
+
+def test_runner_times_the_deployed_frames_of_a_method_answered_apart():
+    """A method whose answers' frame state comes by another route (``answers_apart``) is timed
+    on its :meth:`frames` alone, and its per-frame wall is that timed work's over the workers."""
+    from vprscale.evaluation.algorithms.base import Algorithm
+    from vprscale.evaluation.runner import Runner
+
+    class Apart(Algorithm):
+        name, bytes_per_place, answers_apart = "apart", 1.0, True
+
+        def __init__(self) -> None:
+            self.calls: list[tuple[str, int]] = []
+
+        def columns(self) -> dict:
+            return {}
+
+        def frames(self, rows: np.ndarray) -> str:
+            self.calls.append(("frames", len(rows)))
+            return "deployed"
+
+        def answer_frames(self, rows: np.ndarray) -> str:
+            self.calls.append(("answer", len(rows)))
+            return "answered"
+
+        def localise(self, state, pos, L, mode, n_best=1):
+            raise AssertionError("not called")
+
+    alg, rows = Apart(), np.zeros((1000, 4), np.float32)
+    state, cost = Runner(workers=2, repeats=3).frames(alg, rows)
+    assert state == "answered"
+    assert [c for c in alg.calls if c[0] == "answer"] == [("answer", 1000)]
+    assert [c for c in alg.calls if c[0] == "frames"] == [("frames", 1)] + [("frames", 256)] * 3
+    assert cost.wall_us == pytest.approx(float(np.median(cost.cpu_us)) / 2)

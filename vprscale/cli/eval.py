@@ -44,13 +44,14 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                    help="references each query frame retrieves from a --method, e.g. 4,16,64: one operating point "
                         "each (default: CoarseHash's mean list size on INDEX)")
     p.add_argument("--compare-queries", type=positive_int, default=None,
-                   help="centres per compared (FAISS or --method) run (default: flat FAISS codes: all while the "
-                        "run's frames visit at most 2^35 codes, beyond, an evenly spaced sample that fits, at least "
-                        "1,000; IVF codes and --method: all)")
+                   help="centres per compared (FAISS or --method) run (default: flat FAISS codes that scan, such as "
+                        "fast-scan PQ: all while the run's frames visit at most 2^35 codes, beyond, an evenly spaced "
+                        "sample that fits, at least 1,000; every other code and --method: all)")
     p.add_argument("--flat-noise", type=csv_of(str), default=None,
-                   help="noise levels flat (exhaustive-scan) FAISS codes run on, e.g. qm1 (default: every --noise): "
-                        "at least 1,000 centres of L frames each scan every code, about 20 minutes per flat code and "
-                        "noise level at 10M on 2 cores")
+                   help="noise levels the scanning flat FAISS codes (fast-scan PQ, decoded-vector codes) run on, e.g. "
+                        "qm1 (default: every --noise): at least 1,000 centres of L frames each scan every code, about "
+                        "5 minutes per code and noise level at 10M on 2 cores for PQ6x4fs; PQ, OPQ and binary codes "
+                        "find their exact top-k without a scan and run on every level (docs/protocol.md)")
     p.add_argument("--deep1b", metavar="PATH", help="a compact store built from files: its Deep1B file (--compare "
                    "and --method recompute the references from the sources; not needed for synthetic stores)")
     p.add_argument("--fas", metavar="PATH", help="a compact store built from files: its FAS file (as --deep1b)")

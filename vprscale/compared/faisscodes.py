@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
+from vprscale.compared import codesearch
 from vprscale.compared.codescore import (
     REF_LEVEL_BYTES,
     coarse_levels,
@@ -41,6 +42,9 @@ BLOCK_ROWS = 256  # rows one thread searches at a time (fixed: the bytes must no
 # product, 2.6x cheaper per row on 4096 rows than on 256 (11 against 28 us a row at 4096 lists, 96-d).
 ENCODE_ROWS = 4096
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
+# How far FAISS's float32 distances of product-quantiser codes may stray from exact ones, relative
+# to the sum of a frame's largest table entries (a few roundings of each term; generous)
+EXACT_ROUNDING = 1e-5
 _POPCOUNT = np.array([bin(v).count("1") for v in range(256)], np.float32)
 
 
@@ -134,6 +138,7 @@ class FaissCodes:
         self.ref_step, self.ref_err = 0.0, 0.0  # residual form: a place's term level's step and error
         self.centroids = _NO_ROWS  # residual form: the coarse centroids
         self.centroid_norm = 0.0  # residual form: their largest squared norm
+        self._values: tuple[np.ndarray, ...] | None = None  # enumerable codes: their distinct values' lists
 
     def bind(self, index: Any) -> None:
         """Work on ``index`` (a fresh one from the factory, or a trained one read from disk)."""
@@ -231,6 +236,7 @@ class FaissCodes:
             self._residual_tables()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled = 0
+        self._values = None
 
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray, rows: int = BLOCK_ROWS) -> list[Any]:
         """``fn`` of each block of ``rows`` rows of ``x``, on ``threads`` threads, in order."""
@@ -284,6 +290,7 @@ class FaissCodes:
         window records (:meth:`window_records`; memory-mapped, say), instead of adding codes."""
         self.bind(index)
         self.codes, self._filled = records, len(records)
+        self._values = None
         if self.form == "residual":
             self._residual_tables()
 
@@ -346,6 +353,74 @@ class FaissCodes:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
         found = self._blocks(lambda b: self.searched.search(b, self.k), rows)
         return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
+
+    @property
+    def enumerable(self) -> bool:
+        """Whether a frame's exact top-k can be found by visiting code values in order of
+        distance rather than every place (:mod:`vprscale.compared.codesearch`): flat product
+        quantisers searched with float tables (not fast-scan ones, whose 8-bit look-up
+        tables rank places approximately) and binary codes, of at most 62 bits."""
+        if self.form == "pq" and isinstance(self.inner, faiss.IndexPQ):
+            return self.inner.pq.M * self.inner.pq.nbits <= codesearch.MAX_KEY_BITS
+        return self.form == "hamming" and self.inner.nbits <= codesearch.MAX_KEY_BITS
+
+    def _value_lists(self) -> tuple[np.ndarray, ...]:
+        """The distinct code values and their places (:func:`~vprscale.compared.codesearch.code_lists`), built once."""
+        if self._values is None:
+            self._values = codesearch.code_lists(self._keys(self.codes))
+        return self._values
+
+    def _keys(self, codes: np.ndarray) -> np.ndarray:
+        """Codes as they are held (:meth:`add_codes`), one int64 key each
+        (:func:`~vprscale.compared.codesearch.code_keys`)."""
+        unpacked = self.form == "pq" and self.inner.pq.nbits not in (4, 8)  # one index per byte
+        return codesearch.code_keys(codes, self.inner.pq.nbits if unpacked else None)
+
+    def exact_search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What :meth:`search` finds, without scanning every place (:attr:`enumerable` codes):
+        ``(distances, ids)`` of each row's k nearest places by (distance, id), in blocks of
+        ``BLOCK_ROWS`` on ``threads`` threads (the same bytes for any threads)."""
+        values, starts, ids = self._value_lists()
+        limit = codesearch.budget(len(values))
+
+        def block(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            y = self._transform(b)
+            if self.form == "hamming":
+                keys = codesearch.code_keys(self.inner.sa_encode(y))
+                return codesearch.hamming_topk(keys, self.inner.nbits, values, starts, ids, self.k, limit)
+            return codesearch.pq_topk(self._exact_tables(y), self.inner.pq.nbits, values, starts, ids, self.k, limit)
+
+        found = self._blocks(block, rows)
+        return (np.concatenate([d for d, _ in found]).astype(np.float32),
+                np.concatenate([i for _, i in found]))
+
+    def _exact_tables(self, y: np.ndarray) -> np.ndarray:
+        """Float64 tables of squared distances from each frame's sub-vectors to each centroid (frames, M, ksub)."""
+        ys, cents = self._sub_products(y)
+        ys, cents = ys.astype(np.float64), cents.astype(np.float64)
+        return (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
+
+    def check_exact(self, rows: np.ndarray) -> None:
+        """Raise if :meth:`exact_search` and FAISS's :meth:`search` disagree on ``rows`` beyond
+        places tied to float32 rounding (FAISS sums float32 tables; binary codes must agree
+        exactly): the evaluation's answers then come from the first, its times from the second."""
+        theirs, ours = self.search(rows), self.exact_search(rows)
+        y = self._transform(np.asarray(rows, np.float32))
+        keys = self._keys(self.codes[np.maximum(ours[1], 0).ravel()]).reshape(ours[1].shape)
+        if self.form == "hamming":
+            scale, rounding = np.zeros(len(rows)), 0.0
+            true = codesearch.hamming_distances(codesearch.code_keys(self.inner.sa_encode(y)), keys)
+        else:
+            tables = self._exact_tables(y)
+            scale, rounding = tables.max(axis=2).sum(axis=1), EXACT_ROUNDING
+            true = codesearch.pq_distances(tables, self.inner.pq.nbits, keys)
+        # each place found at its own code's distance, and the lists FAISS's up to rounding
+        fine = ((ours[1] < 0) | (np.abs(true - ours[0]) <= rounding * scale[:, None])).all(axis=1)
+        fine &= codesearch.agree(*theirs, *ours, scale, rounding)
+        if not fine.all():
+            p = int(np.flatnonzero(~fine)[0])
+            raise RuntimeError(f"{self.name}: the exact top-k of query row {p} ({ours[1][p].tolist()}) is not FAISS's "
+                               f"({theirs[1][p].tolist()}); {int((~fine).sum())} of {len(rows)} rows differ")
 
     def frame_terms(self, rows: np.ndarray) -> FrameTerms:
         """What the window scores need of each query frame (:class:`FrameTerms`)."""

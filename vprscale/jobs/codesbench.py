@@ -19,7 +19,11 @@ benchmark prints, per FAISS method and in one process, on the same codes, CPU ns
 - **FAISS, scan**: FAISS's search over every code in order (the flat index's scan; IVF-PQ's
   list scan with precomputed tables over every list, ``nprobe = nlist``; the SIMD block scan
   of 4-bit fast-scan codes), FAISS's fastest loop, which no random access matches;
-- for residual IVF-PQ codes, ours / ours on the first flat PQ of the same code size.
+- for residual IVF-PQ codes, ours / ours on the first flat PQ of the same code size;
+- for enumerable flat codes, a frame's top-k (``FRAME_K``): FAISS's search, which scans every
+  code and is what an evaluation times, against the exact enumeration of code values that
+  gives the evaluation the same answers (:mod:`vprscale.compared.codesearch`), µs per frame,
+  and on how many of the frames the two agree exactly.
 
 Times are CPU seconds of the calling thread (numba and FAISS on one thread), medians of
 ``repeats`` with min and max; nothing here is asserted in a test.
@@ -44,6 +48,8 @@ DEFAULT_FACTORIES = ("PQ3", "OPQ3,PQ3", "IVF1024,PQ3")
 WINDOWS = 256  # windows whose candidates are scored per repeat
 CANDIDATES = 256  # random candidate centres per window
 PROPOSED = 4096  # random ids FAISS's distance computer scores per query row
+FRAME_K = 16  # places a frame retrieves in the frame-search comparison (an evaluation's default k is smaller)
+SEARCHED_FRAMES = 256  # query frames of the frame-search comparison
 
 
 def _cpu_ns(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float, float]:
@@ -106,6 +112,18 @@ def _faiss_scan(codes: FaissCodes, query: np.ndarray, repeats: int) -> tuple[flo
             codes.ivf.nprobe = codes.nprobe
 
 
+def _frame_search(codes: FaissCodes, query: np.ndarray, repeats: int) -> str:
+    """One line: FAISS's search and the exact enumeration of an enumerable flat code, µs per frame."""
+    y = np.ascontiguousarray(query[:SEARCHED_FRAMES], np.float32)
+    codes.k, codes.threads = FRAME_K, 1
+    faiss.omp_set_num_threads(1)
+    theirs = _cpu_ns(lambda: codes.search(y), len(y), repeats)
+    ours = _cpu_ns(lambda: codes.exact_search(y), len(y), repeats)
+    same = int((codes.search(y)[1] == codes.exact_search(y)[1]).all(axis=1).sum())
+    return (f"{codes.factory:<18} {_fmt(tuple(t / 1e3 for t in theirs)):>24} {_fmt(tuple(t / 1e3 for t in ours)):>24} "
+            f"{theirs[0] / ours[0]:9.0f}× {same:>5}/{len(y)}")
+
+
 def bench_codes(store: str, factories: list[str], places: int | None, L: int, repeats: int = 5) -> str:
     """Print the per-term cost of our window scores and FAISS's scans (module docstring)."""
     path = Path(store)
@@ -125,6 +143,7 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
              f"{'method':<18} {'form':<9} {'B/code':>6} {'ours: window':>22} {'ours: random ids':>22} "
              f"{'FAISS: distance comp.':>22} {'FAISS: scan':>22} {'ours/dist.':>10} {'ours/scan':>9} {'ours/PQ':>8}"]
     flat_pq: dict[int, float] = {}
+    searches: list[str] = []
     for factory in factories:
         codes = FaissCodes(factory, ref.shape[1], k=1)
         codes.train(ref[training_rows(n)])
@@ -145,4 +164,12 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
         lines.append(f"{factory:<18} {codes.form:<9} {width:>6} {_fmt(ours):>22} {_fmt(ours_random):>22} "
                      f"{_fmt(computer):>22} {_fmt(theirs):>22} {ours_random[0] / computer[0]:10.2f} "
                      f"{ours[0] / theirs[0]:9.2f} {vs_pq}")
+        if codes.enumerable:
+            searches.append(_frame_search(codes, query, repeats))
+    if searches:
+        lines += ["", f"a frame's top-{FRAME_K}, CPU µs per frame, one thread, median (min–max) of {repeats}, "
+                      f"{SEARCHED_FRAMES} query frames: FAISS's search (every code; what an evaluation times) "
+                      "against the exact enumeration of code values (what it answers from); frames with the same ids",
+                  f"{'method':<18} {'FAISS: search':>24} {'ours: enumeration':>24} {'faster':>10} {'same':>9}",
+                  *searches]
     return "\n".join(lines)

@@ -61,6 +61,7 @@ class Algorithm(ABC):
     query_limit: int | None = None
     noises: list[str] | None = None
     threads: int = 1
+    answers_apart: bool = False  # the answers' frame state comes from answer_frames, not frames
 
     def runs_on(self, noise: str) -> bool:
         """Whether this method runs on query set ``noise`` (``noises``)."""
@@ -86,6 +87,16 @@ class Algorithm(ABC):
     def frames(self, rows: np.ndarray) -> Any:
         """The per-frame work on query descriptor ``rows`` (consecutive held frames, in order);
         returns the frame state that :meth:`localise` reads."""
+
+    def answer_frames(self, rows: np.ndarray) -> Any:
+        """The frame state the evaluation's answers are read from: :meth:`frames`'s.
+
+        A method whose deployed per-frame work is costlier than needed to know its result
+        (a flat code scans every place for what its code values' order gives exactly,
+        :mod:`vprscale.compared.codesearch`) may compute the same state here by the cheaper
+        route and set ``answers_apart``: the runner then times :meth:`frames` alone, as
+        deployed, and the method checks in :meth:`prepare` that both routes agree."""
+        return self.frames(rows)
 
     @abstractmethod
     def localise(self, state: Any, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:

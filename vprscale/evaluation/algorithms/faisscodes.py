@@ -13,11 +13,13 @@ from threadpoolctl import threadpool_limits
 from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
+from vprscale.evaluation.runner import spread
 from vprscale.method.kernels import N_BEST, ranked_lists
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
 MIN_CENTRES = 1000  # centres a run localises at least, whatever the budget (recall's 95 % interval within ±3 points)
 MISSING = np.iinfo(np.int64).max  # in-list distance of a frame that retrieved nothing
+CHECKED_FRAMES = 64  # frames on which an enumerable code's exact top-k is checked against FAISS's search
 
 
 def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> None:
@@ -55,12 +57,15 @@ class FaissMethod(Algorithm):
     """One FAISS index: L = 1 is its top-1, L > 1 scores the window's candidates over the codes.
 
     The frame state is each frame's top-k (FAISS's own search) and its terms of the window
-    scores. Flat codes are searched exhaustively (every frame visits every place), so beyond
-    a scan budget (``SCAN_BUDGET`` codes per run) a run localises an evenly spaced sample,
-    never fewer than ``MIN_CENTRES`` centres: a recall from 34 centres (what the budget
-    alone left at 10M) has a 95 % interval ±16 points wide, one from 1,000 about ±3. That
-    floor makes a flat scan cost (1,000 centres × L frames × n_ref codes) what no budget
-    absorbs at 10M and beyond, so ``flat_noise`` may run flat codes on fewer noise levels.
+    scores. FAISS searches flat codes exhaustively (every frame visits every place). Most
+    (product quantisers with float tables, binary codes) are *enumerable*: the evaluation
+    finds the same top-k by visiting code values in order of distance
+    (:mod:`vprscale.compared.codesearch`), times FAISS's own search as deployed, and checks
+    that the two agree (:meth:`prepare`); they localise every centre. The others (fast-scan
+    PQ, decoded-vector codes) scan, so beyond a scan budget (``SCAN_BUDGET`` codes per run) a
+    run localises an evenly spaced sample, never fewer than ``MIN_CENTRES`` centres: a recall
+    from 34 centres (what the budget alone left at 10M) has a 95 % interval ±16 points wide,
+    one from 1,000 about ±3; and ``flat_noise`` may run them on fewer noise levels.
     """
 
     def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None,
@@ -70,11 +75,13 @@ class FaissMethod(Algorithm):
         self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
         self.bytes_per_place = codes.bytes_per_place
         self._apply()
-        if query_limit is None and codes.ivf is None:  # an IVF frame visits a few lists: every centre
+        self.scans = codes.ivf is None and not codes.enumerable  # its evaluation visits every code per frame
+        self.answers_apart = codes.enumerable
+        if query_limit is None and self.scans:  # an IVF frame visits a few lists: every centre
             scan = codes.scan_per_frame() * max_L
             query_limit = None if n_centres * scan <= SCAN_BUDGET else max(MIN_CENTRES, int(SCAN_BUDGET // scan))
         self.query_limit = query_limit
-        self.noises = flat_noise if codes.ivf is None else None
+        self.noises = flat_noise if self.scans else None
 
     @property
     def threads(self) -> int:  # FAISS's searches run on the codes' threads
@@ -103,6 +110,22 @@ class FaissMethod(Algorithm):
         self._apply()
         dist, ids = self.codes.search(rows)
         return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows)
+
+    def answer_frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`frames`'s state; for an enumerable flat code, its top-k found without a scan
+        (:meth:`~vprscale.compared.faisscodes.FaissCodes.exact_search`)."""
+        if not self.answers_apart:
+            return self.frames(rows)
+        self._apply()
+        dist, ids = self.codes.exact_search(rows)
+        return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows)
+
+    def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray, centres: dict[int, np.ndarray]) -> None:
+        """For an enumerable flat code: check on ``CHECKED_FRAMES`` frames that its exact top-k
+        is FAISS's search's (the answers come from the one, the times from the other)."""
+        if self.answers_apart:
+            self._apply()
+            self.codes.check_exact(rows[spread(len(rows), CHECKED_FRAMES)])
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         self._apply()  # its counted operations depend on this point's nprobe
