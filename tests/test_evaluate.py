@@ -220,5 +220,39 @@ def test_runner_times_the_deployed_frames_of_a_method_answered_apart():
     state, cost = Runner(workers=2, repeats=3).frames(alg, rows)
     assert state == "answered"
     assert [c for c in alg.calls if c[0] == "answer"] == [("answer", 1000)]
-    assert [c for c in alg.calls if c[0] == "frames"] == [("frames", 1)] + [("frames", 256)] * 3
-    assert cost.wall_us == pytest.approx(float(np.median(cost.cpu_us)) / 2)
+    assert [c for c in alg.calls if c[0] == "frames"] == [("frames", 1), ("frames", 8)] + [("frames", 256)] * 3
+    assert cost.wall_us == pytest.approx(float(np.median(cost.cpu_us)) / 2) and cost.frames == 256
+
+
+def test_runner_times_fewer_frames_when_each_costs_much(monkeypatch):
+    """Frames of 2 ms of CPU each, a budget of 0.1 s a repeat: about 50 frames timed, not 256;
+    a frame of 50 ms still gets the floor of 16."""
+    import time
+
+    from vprscale.evaluation import runner
+    from vprscale.evaluation.algorithms.base import Algorithm
+
+    class Costly(Algorithm):
+        name, bytes_per_place = "costly", 1.0
+
+        def __init__(self, ms: float) -> None:
+            self.ms, self.sizes = ms, []
+
+        def columns(self) -> dict:
+            return {}
+
+        def frames(self, rows: np.ndarray) -> None:
+            self.sizes.append(len(rows))
+            end = time.thread_time() + self.ms * 1e-3 * len(rows)
+            while time.thread_time() < end:
+                pass
+
+        def localise(self, state, pos, L, mode, n_best=1):
+            raise AssertionError("not called")
+
+    monkeypatch.setattr(runner, "FRAME_SECONDS", 0.1)
+    for ms, low, high in ((2.0, 25, 100), (50.0, 16, 16)):
+        alg = Costly(ms)
+        _, cost = runner.Runner(workers=1, repeats=2).frames(alg, np.zeros((1000, 4), np.float32))
+        assert low <= cost.frames <= high and alg.sizes[-2:] == [cost.frames] * 2
+        assert all(c >= ms * 1e3 * 0.9 for c in cost.cpu_us)

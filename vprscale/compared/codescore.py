@@ -226,12 +226,6 @@ def _list_at(records: np.ndarray, r: np.int64, width: int, list_bytes: int) -> n
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _record_list(records: np.ndarray, r: np.int64, width: int) -> np.int64:
-    """:func:`_list_at`, its list bytes those between the code and the term's level."""
-    return _list_at(records, r, width, records.shape[1] - REF_LEVEL_BYTES - width)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
 def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.ndarray, levels: np.ndarray,
                 scale: np.ndarray, records: np.ndarray, width: int, list_bytes: int,
                 sums: np.ndarray, frame_max: np.ndarray) -> None:
@@ -266,11 +260,11 @@ def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.nd
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _residual_dist(tables: np.ndarray, q_vectors: np.ndarray, centroids: np.ndarray, per_list: np.ndarray,
-                   records: np.ndarray, p: np.int64, r: np.int64, width: int) -> np.float64:
+                   records: np.ndarray, p: np.int64, r: np.int64, width: int, list_bytes: int) -> np.float64:
     """The exact residual term of query frame ``p`` and reference ``r``: its coarse distance from
     the frame and the list's centroid, the place's term summed in float32 from the list's
     tables as FAISS sums it (and its level was taken from), and its code's look-ups."""
-    lst = _record_list(records, r, width)
+    lst = _list_at(records, r, width, list_bytes)
     term = np.float32(0.0)
     for m in range(width):
         term += per_list[lst, m, records[r, m]]
@@ -338,7 +332,7 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
                     r = cand[j] + i - half
                     if 0 <= r < n_ref:
                         exact_largest = max(exact_largest, _residual_dist(tables, q_vectors, centroids, per_list,
-                                                                          records, p, r, width))
+                                                                          records, p, r, width, list_bytes))
     if m == 0:
         return
     # The bar: the n-th best upper bound, or the worst exact score of the n candidates of best
@@ -349,7 +343,7 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     bar = np.partition(high, n - 1)[n - 1]
     scored = np.zeros(m, np.bool_)
     for j in np.argpartition(low, n - 1)[:n]:
-        s = _residual_score(t, L, cand[j], n_ref, tables, q_vectors, centroids, per_list, records,
+        s = _residual_score(t, L, cand[j], n_ref, tables, q_vectors, centroids, per_list, records, list_bytes,
                             outside[j] * exact_largest)
         scored[j] = True
         keep_best(best_s, best_c, s, cand[j])
@@ -357,22 +351,24 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     for j in range(m):
         if not scored[j] and low[j] <= bar:
             keep_best(best_s, best_c, _residual_score(t, L, cand[j], n_ref, tables, q_vectors, centroids,
-                                                      per_list, records, outside[j] * exact_largest), cand[j])
+                                                      per_list, records, list_bytes, outside[j] * exact_largest),
+                      cand[j])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _residual_score(t: np.int64, L: int, c: np.int64, n_ref: int, tables: np.ndarray, q_vectors: np.ndarray,
-                    centroids: np.ndarray, per_list: np.ndarray, records: np.ndarray, outside_cost: float
-                    ) -> np.float64:
-    """The exact residual score of candidate centre ``c`` in the window centred at ``t``,
-    its references outside the map costing ``outside_cost`` together."""
+                    centroids: np.ndarray, per_list: np.ndarray, records: np.ndarray, list_bytes: int,
+                    outside_cost: float) -> np.float64:
+    """The exact residual score of candidate centre ``c`` in the window centred at ``t``
+    (records of ``list_bytes`` bytes of list number), its references outside the map costing
+    ``outside_cost`` together."""
     half = L // 2
     width = tables.shape[1]
     s = np.float64(0.0)
     for i in range(L):
         r = c + i - half
         if 0 <= r < n_ref:
-            s += _residual_dist(tables, q_vectors, centroids, per_list, records, t + i - half, r, width)
+            s += _residual_dist(tables, q_vectors, centroids, per_list, records, t + i - half, r, width, list_bytes)
     return s + outside_cost
 
 

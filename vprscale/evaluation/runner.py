@@ -7,8 +7,10 @@ Two figures come out of each call (docs/accounting.md, "How times are measured")
   one new frame and its match in a sliding deployment). CPU time of one thread does not
   move with ``--workers`` or with other load on the machine, as wall time does. It is
   measured ``repeats`` times on an evenly spaced sample of at most ``TIMED_QUERIES`` centres
-  (``TIMED_FRAMES`` frames for the per-frame work) and reported as the median with the
-  smallest and largest (``us_per_query_lo``, ``us_per_query_hi``). The timed calls ask for
+  (for the per-frame work at most ``TIMED_FRAMES`` frames, and when a frame costs much —
+  a flat scan — as many as fit in ``FRAME_SECONDS`` of CPU, at least ``MIN_TIMED_FRAMES``;
+  ``timed_frames`` says how many) and reported as the median with the smallest and largest
+  (``us_per_query_lo``, ``us_per_query_hi``). The timed calls ask for
   the match and its score only (``n_best = 1``), what a deployed localiser answers; the
   20 best candidates the evaluation also records (for Recall@N) come from the answering
   call, untimed (keeping them costs CoarseHash 1.3–1.7× at 10M, which would be charged to
@@ -37,11 +39,17 @@ from vprscale.evaluation.algorithms.base import Algorithm, Answer
 from vprscale.method.kernels import N_BEST
 
 TIMED_QUERIES = 1024  # centres a timing repeat localises (evenly spaced; all when there are fewer)
-TIMED_FRAMES = 256  # frames a timing repeat works on
+TIMED_FRAMES = 256  # frames a timing repeat works on, at most
+# Fewer frames when each costs much (FAISS's flat scans: 30-60 ms a frame at 10M, 10x that at 100M):
+# as many as fit in FRAME_SECONDS of CPU a repeat, at least MIN_TIMED_FRAMES, judged from PROBE_FRAMES
+FRAME_SECONDS = 1.0
+MIN_TIMED_FRAMES = 16
+PROBE_FRAMES = 8
 DEFAULT_REPEATS = 3
 # The results columns that measure the machine rather than the method's answers: everything
 # else in an evaluation's tables is the same bytes for the same inputs, whatever the workers.
-TIMING_COLUMNS = ("us_per_query", "us_per_query_lo", "us_per_query_hi", "us_per_frame", "queries_per_s")
+TIMING_COLUMNS = ("us_per_query", "us_per_query_lo", "us_per_query_hi", "us_per_frame", "queries_per_s",
+                  "timed_frames")
 
 
 def spread(n: int, limit: int | None) -> np.ndarray:
@@ -57,6 +65,7 @@ class FrameCost:
 
     cpu_us: list[float]
     wall_us: float
+    frames: int  # frames each repeat timed
 
 
 @dataclass
@@ -70,6 +79,7 @@ class Timing:
     queries_per_s: float
     repeats: int
     timed_queries: int
+    timed_frames: int
 
     def columns(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -109,12 +119,14 @@ class Runner:
             t0 = time.perf_counter()
             state = alg.answer_frames(rows)
             wall = (time.perf_counter() - t0) / max(1, len(rows)) * 1e6
-        sample = rows[spread(len(rows), TIMED_FRAMES)]
         with self._threads(alg, 1):
+            probe = _cpu_us(lambda: alg.frames(rows[spread(len(rows), PROBE_FRAMES)]), min(len(rows), PROBE_FRAMES))
+            fit = int(FRAME_SECONDS * 1e6 / max(probe, 1e-3))
+            sample = rows[spread(len(rows), min(TIMED_FRAMES, max(MIN_TIMED_FRAMES, fit)))]
             cpu = [_cpu_us(lambda: alg.frames(sample), len(sample)) for _ in range(self.repeats)]
         if alg.answers_apart:  # the state came by another route: the deployed work's wall, on all workers
             wall = float(np.median(cpu)) / self.workers
-        return state, FrameCost(cpu, wall)
+        return state, FrameCost(cpu, wall, len(sample))
 
     def localise(self, alg: Algorithm, state: Any, pos: np.ndarray, L: int, mode: str | None,
                  frame: FrameCost) -> tuple[Answer, Timing]:
@@ -133,5 +145,5 @@ class Runner:
         seconds = wall + n * frame.wall_us * 1e-6
         timing = Timing(float(np.median(per_query)), float(min(per_query)), float(max(per_query)),
                         float(np.median(frame.cpu_us)), n / seconds if n and seconds > 0 else float("nan"),
-                        self.repeats, len(sample))
+                        self.repeats, len(sample), frame.frames)
         return answer, timing
