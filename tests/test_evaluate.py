@@ -33,6 +33,9 @@ def test_results_grid_and_columns(evaluated):
     assert (method["us_per_frame"] > 0).all() and (method["us_per_frame"] < method["us_per_query"]).all()
     # the baseline's per-frame work is its projection of the frame, inside its time per query
     assert (baseline["us_per_frame"] > 0).all() and (baseline["us_per_frame"] < baseline["us_per_query"]).all()
+    # the match alone: positive, and below the slowest repeat of the match with its frame's work
+    for m in (method, baseline):
+        assert (m["us_per_match"] > 0).all() and (m["us_per_match"] <= m["us_per_query_hi"]).all()
 
 
 def test_recall_is_monotone_and_parts_add_up(evaluated, tiny_store):

@@ -52,7 +52,7 @@ def code_lists(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ids = np.argsort(keys, kind="stable")
     ordered = keys[ids]
     first = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(ordered) else np.zeros(0, np.int64)
-    return ordered[first], np.append(first, len(ordered)).astype(np.int64), ids.astype(np.int64)
+    return ordered[first], np.append(first, len(ordered)).astype(np.int64), ids.astype(np.int64, copy=False)
 
 
 def budget(n_values: int) -> int:
