@@ -405,7 +405,7 @@ class FaissCodes:
         places tied to float32 rounding (FAISS sums float32 tables; binary codes must agree
         exactly): the evaluation's answers then come from the first, its times from the second."""
         theirs, ours = self.search(rows), self.exact_search(rows)
-        y = self._transform(np.asarray(rows, np.float32))
+        y = np.concatenate(self._blocks(self._transform, rows))  # as exact_search transforms: the same bits
         keys = self._keys(self.codes[np.maximum(ours[1], 0).ravel()]).reshape(ours[1].shape)
         if self.form == "hamming":
             scale, rounding = np.zeros(len(rows)), 0.0
