@@ -167,16 +167,7 @@ def _hamming_frame(q: np.int64, bits: int, values: np.ndarray, starts: np.ndarra
         while True:
             visits += 1
             if visits > limit:
-                best_d[:], best_i[:] = np.inf, NO_PLACE
-                n = 0
-                for j in range(values.shape[0]):
-                    d = 0
-                    x = values[j] ^ q
-                    while x:
-                        x &= x - 1
-                        d += 1
-                    n = _keep_value(values, starts, ids, values[j], float(d), best_d, best_i, n)
-                return n
+                return _hamming_pass(q, values, starts, ids, best_d, best_i)
             mask = np.int64(0)
             for f in flips:
                 mask |= np.int64(1) << f
@@ -191,6 +182,22 @@ def _hamming_frame(q: np.int64, bits: int, values: np.ndarray, starts: np.ndarra
                 flips[j] = flips[j - 1] + 1
         if n == best_d.shape[0]:
             return n  # every place within radius r is in; the rest are farther
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _hamming_pass(q: np.int64, values: np.ndarray, starts: np.ndarray, ids: np.ndarray,
+                  best_d: np.ndarray, best_i: np.ndarray) -> int:
+    """A frame's k nearest places of a binary code by a pass over every distinct value."""
+    best_d[:], best_i[:] = np.inf, NO_PLACE
+    n = 0
+    for j in range(values.shape[0]):
+        d = 0
+        x = values[j] ^ q
+        while x:
+            x &= x - 1
+            d += 1
+        n = _keep_value(values, starts, ids, values[j], float(d), best_d, best_i, n)
     return n
 
 

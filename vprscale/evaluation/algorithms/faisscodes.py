@@ -108,7 +108,10 @@ class FaissMethod(Algorithm):
     def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
         self._apply()
-        dist, ids = self.codes.search(rows)
+        return self._state(rows, *self.codes.search(rows))
+
+    def _state(self, rows: np.ndarray, dist: np.ndarray, ids: np.ndarray) -> tuple:
+        """The frame state of ``rows`` whose top-k are ``(dist, ids)``."""
         return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows)
 
     def answer_frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -117,8 +120,7 @@ class FaissMethod(Algorithm):
         if not self.answers_apart:
             return self.frames(rows)
         self._apply()
-        dist, ids = self.codes.exact_search(rows)
-        return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows)
+        return self._state(rows, *self.codes.exact_search(rows))
 
     def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray, centres: dict[int, np.ndarray]) -> None:
         """For an enumerable flat code: check on ``CHECKED_FRAMES`` frames that its exact top-k
