@@ -242,7 +242,8 @@ def test_residual_best_from_coarse_levels_are_the_exact_best(spread, factory, di
     best: the best few are the exact scoring's, score for score (its scores of every
     candidate, asked for all of them), however coarse the levels are (a list centroid far
     from the rest makes every step wide; equal ones make them zero); for records of one
-    list byte and of two with three code bytes (the bounds' loop specialised to them)."""
+    list byte and of two with three code bytes (the bounds' loop specialised to them), in
+    windows that reach outside the map and windows that do not (a loop of their own)."""
     rng = np.random.default_rng(5)
     ref = np.cumsum(rng.standard_normal((3000, dim)), axis=0).astype(np.float32) * 0.1
     query = ref[500:800] + rng.standard_normal((300, dim)).astype(np.float32) * 0.05
@@ -259,7 +260,8 @@ def test_residual_best_from_coarse_levels_are_the_exact_best(spread, factory, di
     L, centres = 21, np.array([15, 100, 200, 284])  # the first and last windows reach outside the map
     cand = np.unique(np.concatenate([np.arange(480, 540), np.arange(0, 12), np.arange(2990, 3000),
                                      rng.integers(0, 3000, 60)]))
-    for some in (cand, cand[::40]):  # many candidates, and few
+    inside = cand[(cand >= L) & (cand < len(ref) - L)]  # windows of no reference outside the map
+    for some in (cand, cand[::40], inside):  # many candidates, few, and none at the map's ends
         first, n_r = np.arange(4) * len(some), np.full(4, len(some))
         every = _score(codes, terms, centres, L, np.tile(some, 4), first, n_r, len(some) + 20)
         assert np.isfinite(every[1][:, : len(some)]).all()

@@ -227,35 +227,67 @@ def _list_at(records: np.ndarray, r: np.int64, width: int, list_bytes: int) -> n
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.ndarray, levels: np.ndarray,
-                scale: np.ndarray, records: np.ndarray, width: int, list_bytes: int,
-                sums: np.ndarray, frame_max: np.ndarray) -> None:
-    """The first pass of :func:`_residual_best`: each candidate's sum of its terms read as levels
-    into ``sums``, each frame's largest into ``frame_max``, for records of ``width`` code bytes
-    and ``list_bytes`` bytes of list number.
+                scale: np.ndarray, records: np.ndarray, width: int, list_bytes: int, edge: bool,
+                sums: np.ndarray, ref_levels: np.ndarray, frame_max: np.ndarray) -> None:
+    """The first pass of :func:`_residual_best`, for records of ``width`` code bytes and
+    ``list_bytes`` bytes of list number: into ``sums`` each candidate's sum of its terms' code
+    look-ups and coarse levels (times their frames' steps), into ``ref_levels`` the sum of its
+    places' term levels; the terms' bases are the caller's to add, per frame and not per term.
 
     Called with the common layouts' widths as constants, the record's offsets are constants
     too and the inner loop has no loop of its own: 11–13 against 16–19 ns a term on real 10M
-    windows (runs27/h13.py).
+    windows (runs27/h13.py). A window whose candidates all lie inside the map (``edge``
+    false, nearly every one) checks no reference's position and keeps no frame's largest
+    term (``frame_max``, only the cost of references outside the map needs it).
     """
     half = L // 2
     level_at = width + list_bytes  # the record's last byte (place_records)
     m = cand.shape[0]
     for i in range(L):
         p = t + i - half
-        base, step, ref_step = scale[p, 0], scale[p, 1], scale[p, 3]
+        step = scale[p, 1]
         if i + 1 < L:  # the next frame's levels and tables, while this one is scored
             _prefetch_row(levels, p + 1)
             _prefetch_row(tables, p + 1)
-        top = -np.inf
-        for j in range(m):
-            r = cand[j] + i - half
-            if 0 <= r < n_ref:
+        if edge:
+            base, ref_step = scale[p, 0], scale[p, 3]
+            top = -np.inf
+            for j in range(m):
+                r = cand[j] + i - half
+                if 0 <= r < n_ref:
+                    lst = _list_at(records, r, width, list_bytes)
+                    dist = _table_dist(tables, p, records, r, width) + step * levels[p, lst]
+                    sums[j] += dist
+                    ref_levels[j] += records[r, level_at]
+                    top = max(top, dist + (base + ref_step * records[r, level_at]))
+            frame_max[i] = top
+        else:
+            for j in range(m):
+                r = cand[j] + i - half
                 lst = _list_at(records, r, width, list_bytes)
-                dist = _table_dist(tables, p, records, r, width) + (base + step * levels[p, lst]
-                                                                     + ref_step * records[r, level_at])
-                sums[j] += dist
-                top = max(top, dist)
-        frame_max[i] = top
+                sums[j] += _table_dist(tables, p, records, r, width) + step * levels[p, lst]
+                ref_levels[j] += records[r, level_at]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _smallest(values: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the ``n`` smallest ``values``, smallest first (ties to the smaller index): one
+    pass with an ``n``-place insertion list. A window keeps one or a few; numba's
+    ``partition`` and ``argpartition`` copy and sort, about 1 ns a term of the window."""
+    keep_v = np.full(n, np.inf)
+    keep_i = np.full(n, -1, np.int64)
+    for j in range(values.shape[0]):
+        v = values[j]
+        k = n - 1
+        if not v < keep_v[k]:
+            continue
+        while k > 0 and v < keep_v[k - 1]:
+            keep_v[k] = keep_v[k - 1]
+            keep_i[k] = keep_i[k - 1]
+            k -= 1
+        keep_v[k] = v
+        keep_i[k] = j
+    return keep_i
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -298,29 +330,40 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     list_bytes = records.shape[1] - REF_LEVEL_BYTES - width
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
+    ref_levels = np.zeros(m, np.int64)
     frame_max = np.full(L, -np.inf)
+    outside = np.empty(m, np.int64)
+    firsts = np.empty(m, np.int64)
+    lasts = np.empty(m, np.int64)
+    for j in range(m):  # a candidate's references lie in the map for window frames first … last − 1
+        firsts[j] = min(L, max(0, half - cand[j]))
+        lasts[j] = max(firsts[j], min(L, n_ref - cand[j] + half))
+        outside[j] = L - (lasts[j] - firsts[j])
+    edge = (outside > 0).any()
     # the bounds: sums of terms whose coarse distances and place terms are read as levels
-    if width == 3 and list_bytes == 2:  # up to 65,536 lists, 3 sub-quantisers (IVF4096,PQ3)
-        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, 3, 2, sums, frame_max)
-    elif width == 4 and list_bytes == 2:
-        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, 4, 2, sums, frame_max)
+    if width == 3 and list_bytes == 2 and not edge:  # up to 65,536 lists, 3 sub-quantisers (IVF4096,PQ3)
+        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, 3, 2, False, sums, ref_levels, frame_max)
+    elif width == 4 and list_bytes == 2 and not edge:
+        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, 4, 2, False, sums, ref_levels, frame_max)
     else:
-        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, width, list_bytes, sums, frame_max)
-    errs = np.zeros(L + 1)  # the frames' errors, summed from the window's first frame
+        _bound_sums(t, L, cand, n_ref, tables, levels, scale, records, width, list_bytes, edge, sums, ref_levels,
+                    frame_max)
+    errs = np.zeros(L + 1)  # the frames' errors and bases, summed from the window's first frame
+    bases = np.zeros(L + 1)
     err_max = 0.0
     for i in range(L):
         errs[i + 1] = errs[i] + scale[t + i - half, 2]
+        bases[i + 1] = bases[i] + scale[t + i - half, 0]
         if frame_max[i] > -np.inf:
             err_max = max(err_max, scale[t + i - half, 2])
-    largest = max(0.0, frame_max.max())
-    outside = np.empty(m, np.int64)
+    largest = max(0.0, frame_max.max()) if L > 0 else 0.0
+    ref_step = scale[t, 3] if L > 0 else 0.0  # one step for every frame (coarse_levels)
     low = np.empty(m, np.float64)
     high = np.empty(m, np.float64)
-    for j in range(m):  # a candidate's references lie in the map for window frames first … last − 1
-        first = min(L, max(0, half - cand[j]))
-        last = max(first, min(L, n_ref - cand[j] + half))
-        outside[j] = L - (last - first)
-        margin = errs[last] - errs[first] + outside[j] * err_max + SLACK * (abs(sums[j]) + outside[j] * abs(largest))
+    for j in range(m):
+        sums[j] += ref_step * ref_levels[j] + (bases[lasts[j]] - bases[firsts[j]])
+        margin = (errs[lasts[j]] - errs[firsts[j]] + outside[j] * err_max
+                  + SLACK * (abs(sums[j]) + outside[j] * abs(largest)))
         low[j] = sums[j] + outside[j] * largest - margin
         high[j] = sums[j] + outside[j] * largest + margin
     exact_largest = 0.0
@@ -340,9 +383,9 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
     # alike, noisy queries say, it rules more out). Every candidate of a lower bound above it
     # is out of the best.
     n = min(m, best_s.shape[0])
-    bar = np.partition(high, n - 1)[n - 1]
+    bar = high[_smallest(high, n)[n - 1]]
     scored = np.zeros(m, np.bool_)
-    for j in np.argpartition(low, n - 1)[:n]:
+    for j in _smallest(low, n):
         s = _residual_score(t, L, cand[j], n_ref, tables, q_vectors, centroids, per_list, records, list_bytes,
                             outside[j] * exact_largest)
         scored[j] = True
@@ -361,9 +404,21 @@ def _residual_score(t: np.int64, L: int, c: np.int64, n_ref: int, tables: np.nda
                     outside_cost: float) -> np.float64:
     """The exact residual score of candidate centre ``c`` in the window centred at ``t``
     (records of ``list_bytes`` bytes of list number), its references outside the map costing
-    ``outside_cost`` together."""
+    ``outside_cost`` together.
+
+    Its places' terms (12 MB of per-list tables at 4,096 lists) and centroids are read where
+    its records point, one miss after another unless asked for first: a window's one or two
+    exact scores cost as much as a third of its bound pass without (runs29/h19_run.py)."""
     half = L // 2
     width = tables.shape[1]
+    terms = per_list.reshape(-1)
+    for i in range(L):  # the lines of its places' terms and lists' centroids, asked for together
+        r = c + i - half
+        if 0 <= r < n_ref:
+            lst = _list_at(records, r, width, list_bytes)
+            for m in range(width):
+                _prefetch(terms, (lst * width + m) * per_list.shape[2] + records[r, m])
+            _prefetch_row(centroids, lst)
     s = np.float64(0.0)
     for i in range(L):
         r = c + i - half
