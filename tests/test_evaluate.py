@@ -142,7 +142,10 @@ def test_eval_never_overwrites_an_evaluation_without_force(tiny_store, tiny_inde
 @pytest.mark.slow
 def test_cost_per_query_holds_under_load_and_workers(tiny_store, tiny_index, tmp_path):
     """Per-query cost is CPU time of one thread: with two busy loops on the machine, one
-    worker or two give the same figure within 35 % (wall time × threads moved 6-18× here)."""
+    worker or two give the same figure within 35 % (wall time × threads moved 6-18× here).
+    The fastest repeats are compared: load beside the test (another job on the machine)
+    only adds to a repeat's CPU time, through the caches it shares, and a median of 5 moved
+    38 % once when the suite ran beside other work."""
     import subprocess
     import sys
 
@@ -157,7 +160,7 @@ def test_cost_per_query_holds_under_load_and_workers(tiny_store, tiny_index, tmp
                          "--no-baseline", "--repeats", "5", "--workers", str(workers), "--out", str(out)]) == 0
             res = pq.read_table(out / "results.parquet").to_pandas()
             row = res[(res.method == "coarsehash") & (res.part == "all") & (res.radius == 0)].iloc[0]
-            costs[workers] = row.us_per_query
+            costs[workers] = row.us_per_query_lo
             tables[workers] = res.drop(columns=list(TIMING_COLUMNS))
     finally:
         for p in busy:
