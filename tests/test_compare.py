@@ -17,10 +17,12 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 import zarr
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
-from vprscale.compared.codescore import REF_LEVEL_BYTES, score_windows
+from vprscale.compared.codescore import REF_LEVEL_BYTES, _smallest, score_windows
 from vprscale.compared.faisscodes import ID_BYTES, FaissCodes, FrameTerms, training_rows
 
 FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4"]
@@ -232,6 +234,16 @@ def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_bes
     vectors = np.zeros((0, 0), np.float32) if vectors is None else vectors
     return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, codes.per_list,
                          codes_arg, t.vectors, vectors, codes.centroids, n_best)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.sampled_from([0.0, 1.0, 1.5, 2.0, -3.0, np.inf]), min_size=1, max_size=30), st.data())
+def test_smallest_is_a_stable_sort_prefix(values, data):
+    """A window's bar and best lower bounds: the n smallest values, ties (and infinities) to
+    the smaller index, as a stable sort's first n."""
+    values = np.array(values)
+    n = data.draw(st.integers(1, len(values)))
+    np.testing.assert_array_equal(_smallest(values, n), np.argsort(values, kind="stable")[:n])
 
 
 @pytest.mark.parametrize("spread", ["data", "one far list", "flat rows"])

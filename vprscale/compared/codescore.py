@@ -271,17 +271,18 @@ def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.nd
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _smallest(values: np.ndarray, n: int) -> np.ndarray:
-    """Indices of the ``n`` smallest ``values``, smallest first (ties to the smaller index): one
-    pass with an ``n``-place insertion list. A window keeps one or a few; numba's
+    """Indices of the ``n`` smallest of ``values`` (``n`` at most their number), smallest first,
+    ties to the smaller index: one pass with an ``n``-place insertion list (an empty place
+    takes any value, an infinite one too). A window keeps one or a few; numba's
     ``partition`` and ``argpartition`` copy and sort, about 1 ns a term of the window."""
     keep_v = np.full(n, np.inf)
     keep_i = np.full(n, -1, np.int64)
     for j in range(values.shape[0]):
         v = values[j]
         k = n - 1
-        if not v < keep_v[k]:
+        if keep_i[k] >= 0 and not v < keep_v[k]:
             continue
-        while k > 0 and v < keep_v[k - 1]:
+        while k > 0 and (keep_i[k - 1] < 0 or v < keep_v[k - 1]):
             keep_v[k] = keep_v[k - 1]
             keep_i[k] = keep_i[k - 1]
             k -= 1
