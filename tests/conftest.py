@@ -37,6 +37,17 @@ SMALL_FAS = FasParams(dim=128, n_ref=3000, n_query=2000, segment_frames=(150, 50
 DEEP_ROWS = 70_000
 
 
+# FAISS methods in tests that are about answers, not training, train on this many evenly spaced
+# references of the tiny store's 52,500 (the sampling rule's path, as at scale; a 256-centroid
+# product quantiser wants 9,984 rows): OPQ's training on all of them was most of those tests' time
+SMALL_TRAINING = 12_288
+
+
+@pytest.fixture
+def small_training(monkeypatch):
+    monkeypatch.setattr("vprscale.compared.faisscodes.TRAIN_ROWS", SMALL_TRAINING)
+
+
 @pytest.fixture(scope="session")
 def sources(tmp_path_factory) -> dict[str, Path]:
     """Synthetic Deep1B as fvecs chunks and fbin, and a small FAS npz (seed 3)."""

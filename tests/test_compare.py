@@ -25,6 +25,8 @@ from vprscale.cli import main
 from vprscale.compared.codescore import REF_LEVEL_BYTES, _smallest, score_windows
 from vprscale.compared.faisscodes import ID_BYTES, FaissCodes, FrameTerms, training_rows
 
+from .conftest import SMALL_TRAINING
+
 FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4"]
 L_SEQ = 9
 
@@ -38,6 +40,7 @@ def compared(tiny_store, tiny_index, tmp_path_factory):
         argv += ["--compare", factory]
     with pytest.MonkeyPatch.context() as mp:  # several blocks of decoded codes, as at scale
         mp.setattr("vprscale.compared.faisscodes.DECODE_ROWS", 10_000)
+        mp.setattr("vprscale.compared.faisscodes.TRAIN_ROWS", SMALL_TRAINING)
         assert main(argv) == 0
     return {"results": pq.read_table(out / "results.parquet").to_pandas(),
             "queries": pq.read_table(out / "queries.parquet").to_pandas(),
@@ -53,7 +56,8 @@ def direct(tiny_store, compared):
     indexes = {}
     for factory in FACTORIES:
         index = faiss.index_factory(ref.shape[1], factory)
-        with threadpool_limits(limits=1, user_api="blas"):
+        with threadpool_limits(limits=1, user_api="blas"), pytest.MonkeyPatch.context() as mp:
+            mp.setattr("vprscale.compared.faisscodes.TRAIN_ROWS", SMALL_TRAINING)  # as `compared` trained
             index.train(ref[training_rows(len(ref))])
         index.add(ref)
         if "IVF" in factory:
@@ -284,7 +288,7 @@ def test_residual_best_from_coarse_levels_are_the_exact_best(spread, factory, di
 
 
 @pytest.mark.slow
-def test_same_matches_whatever_the_workers(tiny_store, tiny_index, compared, tmp_path):
+def test_same_matches_whatever_the_workers(tiny_store, tiny_index, compared, tmp_path, small_training):
     """FAISS trains on one thread and encodes and searches fixed blocks each on one thread, so
     one worker gives the lists and matches two gave (FAISS's own threading changes its OPQ and
     ITQ rotations and IVF distances in the last bit with the thread count, flipping near-ties)."""
@@ -370,7 +374,7 @@ def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():
     assert list(front.index) == [0, 2, 4]  # 1 is beaten by 0; 3 by 2 (as good, slower); 5 by 4
 
 
-def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tmp_path):
+def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tmp_path, small_training):
     """--faiss-k and --faiss-nprobe take lists: each (k, nprobe) of an IVF code, and each k of a
     flat one, is its own method row with its params, answered as FAISS answers at that point."""
     out = tmp_path / "points"
