@@ -272,22 +272,14 @@ def _bound_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.nd
 @numba.njit(cache=True, nogil=True, inline="always")
 def _smallest(values: np.ndarray, n: int) -> np.ndarray:
     """Indices of the ``n`` smallest of ``values`` (``n`` at most their number), smallest first,
-    ties to the smaller index: one pass with an ``n``-place insertion list (an empty place
-    takes any value, an infinite one too). A window keeps one or a few; numba's
-    ``partition`` and ``argpartition`` copy and sort, about 1 ns a term of the window."""
+    ties to the smaller index: :func:`~vprscale.method.kernels.keep_best` over them, its empty
+    places holding an index past every one (so any value, an infinite one too, takes them). A
+    window keeps one or a few; numba's ``partition`` and ``argpartition`` copy and sort, about
+    1 ns a term of the window."""
     keep_v = np.full(n, np.inf)
-    keep_i = np.full(n, -1, np.int64)
+    keep_i = np.full(n, values.shape[0], np.int64)
     for j in range(values.shape[0]):
-        v = values[j]
-        k = n - 1
-        if keep_i[k] >= 0 and not v < keep_v[k]:
-            continue
-        while k > 0 and (keep_i[k - 1] < 0 or v < keep_v[k - 1]):
-            keep_v[k] = keep_v[k - 1]
-            keep_i[k] = keep_i[k - 1]
-            k -= 1
-        keep_v[k] = v
-        keep_i[k] = j
+        keep_best(keep_v, keep_i, values[j], j)
     return keep_i
 
 
@@ -357,8 +349,8 @@ def _residual_best(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np
         bases[i + 1] = bases[i] + scale[t + i - half, 0]
         if frame_max[i] > -np.inf:
             err_max = max(err_max, scale[t + i - half, 2])
-    largest = max(0.0, frame_max.max()) if L > 0 else 0.0
-    ref_step = scale[t, 3] if L > 0 else 0.0  # one step for every frame (coarse_levels)
+    largest = max(0.0, frame_max.max())
+    ref_step = scale[t, 3]  # one step for every frame (coarse_levels)
     low = np.empty(m, np.float64)
     high = np.empty(m, np.float64)
     for j in range(m):
