@@ -7,7 +7,7 @@ The public Python API::
 (imported on first use, so that ``import vprscale`` and the command line start fast).
 """
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _PUBLIC = {"CoarseHasher": "vprscale.method.coarsehash", "ExactPCA": "vprscale.method.pca",
            "RandomizedPCA": "vprscale.method.pca", "Index": "vprscale.method.index",
@@ -21,3 +21,14 @@ def __getattr__(name: str):
 
         return getattr(importlib.import_module(_PUBLIC[name]), name)
     raise AttributeError(f"module 'vprscale' has no attribute {name!r}")
+
+
+def _silent_library() -> None:
+    """vprscale logs under the ``vprscale`` logger and prints nothing unless the application asks
+    (``logging.basicConfig(level=logging.INFO)`` shows a job's progress); the command line does."""
+    import logging
+
+    logging.getLogger("vprscale").addHandler(logging.NullHandler())
+
+
+_silent_library()

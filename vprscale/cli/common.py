@@ -68,6 +68,20 @@ def write_summary(args: argparse.Namespace, data: dict) -> None:
         tmp.replace(path)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Every option's default in its help (unless the help already says it), and the examples of the
+    epilog kept as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if (not action.option_strings or "default" in text.lower() or default in (None, False, [], argparse.SUPPRESS)
+                or isinstance(action, argparse._VersionAction)):
+            return action.help
+        shown = ",".join(map(str, default)) if isinstance(default, list | tuple) else str(default)
+        return f"{text} (default: {shown.replace('%', '%%')})".lstrip()
+
+
 def shared_flags() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     """The flags several commands share, declared once: (cluster, summary)."""
     cluster = argparse.ArgumentParser(add_help=False)

@@ -17,16 +17,14 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
     p.add_argument("--L", type=positive_int, default=100, help="sequence length (default 100)")
     p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
-    p.add_argument("--out", help="Parquet file of (frame, centre, match, n_r), one row per frame")
+    p.add_argument("--out", help="a .parquet or .csv file of (frame, centre, match, n_r), one row per frame "
+                                 "(default: CSV on standard output)")
     p.set_defaults(func=run, input_flags=INPUTS)
 
 
 def run(args: argparse.Namespace) -> int:
     from vprscale.jobs.localise import localise
 
-    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out)
-    if args.out is None:
-        print(f"{summary['frames']:,} frames localised ({summary['us_per_frame']:.1f} µs per frame); "
-              "give --out FILE to keep the matches")
+    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out or "-")
     write_summary(args, summary)
     return 0

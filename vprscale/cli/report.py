@@ -17,13 +17,15 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("results", nargs="+", help="eval output directories (or results.parquet files)")
     p.add_argument("--out", required=True, help="report directory, e.g. reports/<name>")
     p.add_argument("--index", action="append", default=[], help="an extra index (e.g. the no-rescale ablation)")
+    p.add_argument("--force", action="store_true",
+                   help="replace a report already in --out; the old one is kept beside, as <out>.previous")
     p.set_defaults(func=run, input_flags=INPUTS, out_is_dir=True)
 
 
 def run(args: argparse.Namespace) -> int:
     from vprscale.evaluation.report import write_report
 
-    rep = write_report(args.results, Path(args.out), extra_indexes=args.index)
+    rep = write_report(args.results, Path(args.out), extra_indexes=args.index, force=args.force)
     print(f"wrote {rep['report']} and {len(rep['figures'])} figure files")
     write_summary(args, rep)
     return 0

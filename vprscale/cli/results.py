@@ -13,6 +13,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("paths", nargs="+", help="evaluation folders (INDEX/eval, eval --out) or indexes")
     p.add_argument("--where", help="an SQL condition on the columns, e.g. \"method = 'coarsehash' AND radius = 20\"")
     p.add_argument("--queries", action="store_true", help="the per-query rows instead of the recall table")
+    p.add_argument("--all-columns", action="store_true",
+                   help="every column in the table (--csv and --json always have every column)")
     fmt = p.add_mutually_exclusive_group()
     fmt.add_argument("--csv", dest="format", action="store_const", const="csv", default="table")
     fmt.add_argument("--json", dest="format", action="store_const", const="json")
@@ -21,17 +23,53 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.set_defaults(func=run)
 
 
+# What a reader asks of a recall row first: which method, configured how, at which point, how well.
+TABLE_COLUMNS = ("run", "scale", "noise", "method", "params", "mode", "L", "part", "radius", "recall", "recall_lo",
+                 "recall_hi", "recall_at_20", "n_queries", "nr_mean", "bytes_per_place", "us_per_query")
+QUERY_COLUMNS = ("run", "noise", "method", "params", "mode", "L", "centre", "gt", "match", "score", "n_r")
+
+
+def _shown(table, all_columns: bool, queries: bool):
+    """The table's columns for the eye: the chosen few (``run`` only when several runs are shown,
+    as a path relative to here), or every one."""
+    import os
+
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    if "run" in table.column_names:
+        runs = table.column("run").to_pylist()
+        if len(set(runs)) > 1 or all_columns:
+            table = table.set_column(table.column_names.index("run"), "run",
+                                     pa.array([os.path.relpath(r) for r in runs], pa.string()))
+        else:
+            table = table.drop_columns(["run"])
+    if all_columns:
+        return table
+    keep = [c for c in (QUERY_COLUMNS if queries else TABLE_COLUMNS) if c in table.column_names]
+    table = table.select(keep)
+    for name in ("recall", "recall_lo", "recall_hi", "recall_at_20", "nr_mean", "bytes_per_place", "us_per_query"):
+        if name in table.column_names:  # three decimals (one for µs) read at a glance
+            table = table.set_column(table.column_names.index(name), name,
+                                     pc.round(table.column(name), 1 if name == "us_per_query" else 3))
+    return table
+
+
 def run(args: argparse.Namespace) -> int:
-    from vprscale.evaluation.results import eval_folder, load_results
+    import shutil
+    import sys
+
+    from vprscale.evaluation.results import eval_folder
     from vprscale.evaluation.sql import format_table, sandbox
 
-    if args.where is None and args.format == "table":
-        frame = load_results(*args.paths, queries=args.queries)
-        print(frame.to_string(max_rows=60, max_cols=12))
-        return 0
     folders = [eval_folder(p) for p in args.paths]
     query = f"SELECT * FROM {'queries' if args.queries else 'results'}" + (
         f" WHERE {args.where}" if args.where else "")  # the user's own predicate, in the sandbox
     with sandbox(folders, args.memory_limit, 2) as box:
-        print(format_table(box.query(query, args.timeout), args.format), end="")
+        table = box.query(query, args.timeout)
+    if args.format == "table":
+        width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None
+        print(format_table(_shown(table, args.all_columns, args.queries), "table", max_width=width), end="")
+    else:
+        print(format_table(table, args.format), end="")
     return 0

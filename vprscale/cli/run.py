@@ -8,7 +8,7 @@ import argparse
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
         summary: argparse.ArgumentParser) -> None:
     p = sub.add_parser("run", help="run a pipeline (pipelines/*.toml), skipping stages that are up to date")
-    p.add_argument("pipeline", help="a pipeline TOML file")
+    p.add_argument("pipeline", help="a pipeline TOML file, or the name of a shipped one (quickstart, paper)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="address of a Dask distributed scheduler")
     p.add_argument("--force", action="store_true", help="re-run every stage, even those up to date")
     p.add_argument("--dry-run", action="store_true",

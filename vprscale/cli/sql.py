@@ -28,14 +28,24 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.set_defaults(func=run, format="table")
 
 
-def run(args: argparse.Namespace) -> int:
-    from vprscale.evaluation.sql import run_sql, shell
+def _is_path(text: str) -> bool:
+    """Whether a word names something on disk; a statement longer than a file name may be is not."""
+    try:
+        return Path(text).exists()
+    except (OSError, ValueError):  # ENAMETOOLONG, a NUL byte
+        return False
 
+
+def run(args: argparse.Namespace) -> int:
     paths, query = args.paths, None
-    if len(paths) > 1 and not Path(paths[-1]).exists():  # the last word is the statement, not a folder
+    if len(paths) > 1 and not _is_path(paths[-1]):  # the last word is the statement, not a folder
         paths, query = paths[:-1], paths[-1]
     if query is None:
+        from vprscale.cli.sqlshell import shell
+
         return shell(paths, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads)
+    from vprscale.evaluation.sql import run_sql
+
     print(run_sql(paths, query, fmt=args.format, timeout=args.timeout, memory_limit=args.memory_limit,
                   threads=args.threads), end="")
     return 0

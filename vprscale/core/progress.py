@@ -1,7 +1,10 @@
-"""Progress bars and stage timings for long jobs."""
+"""Progress bars and stage timings for long jobs, through the ``vprscale`` logger: silent in a
+library unless the application enables INFO for it; the command line does (``--quiet`` turns it
+off). A bar is drawn only on a terminal; a log gets lines."""
 
 from __future__ import annotations
 
+import logging
 import sys
 import time
 from collections.abc import Sequence
@@ -12,6 +15,13 @@ import dask
 from dask.callbacks import Callback
 from tqdm import tqdm
 from tqdm.dask import TqdmCallback
+
+log = logging.getLogger("vprscale")
+
+
+def _bars() -> bool:
+    """Whether progress is wanted and stderr is a terminal (a bar); else lines, if wanted."""
+    return log.isEnabledFor(logging.INFO) and sys.stderr.isatty()
 
 
 def _client() -> Any:
@@ -51,7 +61,7 @@ def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
     """
     client = _client()
     if client is None:
-        if sys.stderr.isatty():
+        if _bars():
             with TqdmCallback(desc=desc, unit="task", file=sys.stderr, leave=False):
                 return dask.compute(*collections)
         with _LoggedTasks(desc):
@@ -59,7 +69,7 @@ def compute(*collections: Any, desc: str = "compute") -> tuple[Any, ...]:
     from distributed.diagnostics.progressbar import TextProgressBar
 
     futures = client.compute(list(collections))
-    if sys.stderr.isatty():
+    if _bars():
         TextProgressBar(futures, complete=True, start=False)
     return tuple(client.gather(futures))
 
@@ -77,7 +87,7 @@ def run_tasks(tasks: Sequence[Any], desc: str) -> list[Any]:
     index = {f.key: i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(futures)
     with tqdm(total=len(futures), desc=desc, unit="task", file=sys.stderr, leave=False,
-              disable=None) as bar:
+              disable=not _bars()) as bar:
         for fut in as_completed(futures):
             results[index[fut.key]] = fut.result()
             bar.update()
@@ -95,11 +105,11 @@ class Timings:
     def stage(self, name: str):
         t0 = time.perf_counter()
         if not self.quiet:
-            print(f"… {name}", file=sys.stderr, flush=True)
+            log.info("… %s", name)
         yield
         self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
         if not self.quiet:
-            print(f"✓ {name} ({self.stages[name]:.1f} s)", file=sys.stderr, flush=True)
+            log.info("✓ %s (%.1f s)", name, self.stages[name])
 
 
 LINE_SECONDS = 2.0  # in a log, a progress line at most this often (and the last one always)
@@ -117,7 +127,7 @@ class ChunkProgress:
         self.desc, self.total, self.done, self.unit = desc, total, done, unit
         self.t0, self.start = time.perf_counter(), done
         self.bar = (tqdm(total=total, initial=done, desc=desc, unit=unit, file=sys.stderr, leave=False)
-                    if sys.stderr.isatty() else None)
+                    if _bars() else None)
         self._next = done + max(1, total // 20)
         self._last = self.t0
 
@@ -133,8 +143,8 @@ class ChunkProgress:
             self._last = now
             rate = (self.done - self.start) / max(1e-9, time.perf_counter() - self.t0)
             left = (self.total - self.done) / rate if rate > 0 else float("nan")
-            print(f"  {self.desc}: {self.done:,}/{self.total:,} {self.unit}, {left:,.0f} s left", file=sys.stderr,
-                  flush=True)
+            log.info("  %s: %s/%s %s, %s s left", self.desc, f"{self.done:,}", f"{self.total:,}", self.unit,
+                     f"{left:,.0f}")
             self._next = self.done + max(1, self.total // 20)
 
 
@@ -145,7 +155,7 @@ class StepProgress:
         self.desc, self.total, self.quiet, self.done = desc, total, quiet, 0
         self.t0 = time.perf_counter()
         self.bar = (tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=False)
-                    if sys.stderr.isatty() and not quiet else None)
+                    if _bars() and not quiet else None)
 
     def step(self, name: str) -> None:
         """Step ``name`` starts (the previous one, if any, is done)."""
@@ -153,8 +163,8 @@ class StepProgress:
             self.bar.update(1 if self.done else 0)
             self.bar.set_postfix_str(name)
         elif not self.quiet:
-            print(f"  {self.desc} [{self.done + 1}/{self.total}, {time.perf_counter() - self.t0:,.0f} s] {name}",
-                  file=sys.stderr, flush=True)
+            log.info("  %s [%d/%d, %s s] %s", self.desc, self.done + 1, self.total,
+                     f"{time.perf_counter() - self.t0:,.0f}", name)
         self.done += 1
 
     def close(self) -> None:

@@ -11,6 +11,7 @@ task, so tasks never race and a resumed build simply rewrites unfinished chunks.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import shutil
@@ -47,6 +48,8 @@ from vprscale.method.coarsehash import hash_descriptors
 from vprscale.method.lists import address_dtype
 from vprscale.method.pca import block_moments
 from vprscale.protocol import EVAL_LENGTHS, MIN_FAS
+
+log = logging.getLogger(__name__)
 
 MAX_MAGNITUDE = 1e18  # homogenised values beyond this overflow float32 once squared or projected
 WRITE_BYTES_PER_S = 400e6  # the page cache's write-back on this kind of machine, measured
@@ -211,7 +214,7 @@ def build(req: BuildRequest) -> dict[str, Any]:
     check_writable(out)
     with exclusive(final):
         if PartialOutput(final, {}).recover() and not req.quiet:
-            print(f"{final}: finished publishing the build a killed run had completed", file=sys.stderr)
+            log.info(f"{final}: finished publishing the build a killed run had completed")
         if final.exists() and not (final / "zarr.json").is_file():
             raise InputError(f"--out {out}: {final} exists and is not a dataset store; not replaced")
         if (final / "zarr.json").exists() and not req.force:
@@ -222,7 +225,7 @@ def build(req: BuildRequest) -> dict[str, Any]:
                 if differ:
                     raise InputError(f"--out {out}: {final} is a complete store of other {' and '.join(differ)}; "
                                      "--force replaces it (or give another --out)")
-                print(f"{final} is complete; use --force to rebuild it", file=sys.stderr)
+                log.info(f"{final} is complete; use --force to rebuild it")
                 return {"skipped": True, "store": str(final)}
         return _build(recipe, deep, traverse, final, req)
 
@@ -275,7 +278,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     partial = PartialOutput(final, provenance_key)
     resumed = partial.open()
     if resumed and not req.quiet:
-        print(f"resuming the unfinished build in {partial.path}", file=sys.stderr)
+        log.info(f"resuming the unfinished build in {partial.path}")
     store = str(partial.path)
     work = partial.path / ".work"
     work.mkdir(exist_ok=True)

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import re
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +37,8 @@ from vprscale.dataset.layout import codecs
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.rows import open_rows, read_labels
 from vprscale.dataset.store import ATTR
+
+log = logging.getLogger(__name__)
 
 CHUNK_ROWS = 16 * BLOCK  # rows per Zarr chunk and per task
 NAME = re.compile(r"[a-z][a-z0-9_]{0,30}")
@@ -159,7 +161,7 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
                                                             indent=1, default=str))
         partial.publish()
     if resumed and not req.quiet:
-        print(f"resumed the unfinished build of {final}", file=sys.stderr)
+        log.info(f"resumed the unfinished build of {final}")
     summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
     return summary
 

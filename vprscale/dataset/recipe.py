@@ -1,4 +1,5 @@
-"""Dataset recipes (paper Table I), one TOML file per scale under ``datasets/``."""
+"""Dataset recipes (paper Table I), one TOML file per scale under ``datasets/`` (installed as the
+package data ``vprscale.recipes``)."""
 
 from __future__ import annotations
 
@@ -22,9 +23,18 @@ _OPTIONAL: dict[str, tuple[str, ...]] = {"layout": ("full", "compact")}
 
 
 def recipe_dir() -> Path:
-    """``$VPRSCALE_DATASETS``, else the ``datasets/`` folder of the source checkout."""
+    """``$VPRSCALE_DATASETS``, else the recipes installed with vprscale (the checkout's ``datasets/``
+    in an editable install, a folder of the package in a wheel)."""
     env = os.environ.get("VPRSCALE_DATASETS")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "datasets"
+    return Path(env) if env else shipped("vprscale.recipes")
+
+
+def shipped(package: str) -> Path:
+    """The folder of TOML files that ships as ``package`` (recipes, pipelines): installs unpack
+    package data onto disk, so it is a plain directory."""
+    from importlib.resources import files
+
+    return Path(str(files(package)))
 
 
 @dataclass(frozen=True)

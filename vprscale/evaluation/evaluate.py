@@ -9,8 +9,8 @@ measured µs and counted operations per query) and ``queries.parquet`` (one row 
 from __future__ import annotations
 
 import json
+import logging
 import shutil
-import sys
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -48,6 +48,8 @@ from vprscale.protocol import (
     window_frames,
     window_positions,
 )
+
+log = logging.getLogger(__name__)
 
 DEFAULT_NOISES = ("qm1", "qm2")  # the query sets of a recipe-built store (own stores list theirs in the layout)
 _HOLDS = ("{out}: already holds an evaluation; --force replaces it and keeps it beside, in {out.name}.previous/ "
@@ -227,7 +229,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 locks.enter_context(shared(path))
             locks.enter_context(exclusive(out))
             if partial.recover():  # a killed run had sealed this evaluation: its publishing is finished, not redone
-                print(f"{out}: finished publishing the evaluation a killed run had completed", file=sys.stderr)
+                log.info(f"{out}: finished publishing the evaluation a killed run had completed")
                 return {"out": str(out), "rows": 0, "queries": 0, "z": z, "table": "", "recovered": True}
             if (out / "eval.json").is_file() and not req.force:
                 raise InputError(_HOLDS.format(out=out))
@@ -297,7 +299,7 @@ def _fit_methods(plugged: list[tuple[str, Any]], ref: Any, quiet: bool) -> dict[
     took = {}
     for label, method in plugged:
         if not quiet:
-            print(f"… fit {label} on {ref.shape[0]:,} references", file=sys.stderr)
+            log.info(f"… fit {label} on {ref.shape[0]:,} references")
         t0 = time.perf_counter()
         method.fit(ref)
         took[label] = time.perf_counter() - t0

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
-from vprscale.method.index import read_index
+from vprscale.method.indexfile import read_lists
 
 CHUNK = 1 << 24  # lists whose sizes are decoded together
 
@@ -19,12 +19,12 @@ def occupancy(index: str | Path, top: int = 10) -> dict[str, Any]:
     The list sizes come from the index's directory (no Parquet decode), a chunk at a time,
     so a billion places' half-billion lists take bounded memory.
     """
-    idx = read_index(index)
-    meta, n = idx.meta, idx.occupied
-    counts = np.zeros(idx.lists.longest + 1, np.int64)
+    _, lists, meta = read_lists(index)
+    n, n_ref = lists.n_lists, int(meta["n_ref"])
+    counts = np.zeros(lists.longest + 1, np.int64)
     best_slots, best_sizes = np.zeros(0, np.int64), np.zeros(0, np.int64)
     for a in range(0, n, CHUNK):
-        sizes = idx.lists.sizes(a, a + CHUNK)
+        sizes = lists.sizes(a, a + CHUNK)
         counts += np.bincount(sizes, minlength=len(counts))
         keep = min(top, len(sizes))
         cut = np.argpartition(-sizes, keep - 1)[:keep] if keep else np.empty(0, np.int64)
@@ -32,11 +32,11 @@ def occupancy(index: str | Path, top: int = 10) -> dict[str, Any]:
         order = np.lexsort((best_slots, -best_sizes))[:top]  # largest first, ties by address order
         best_slots, best_sizes = best_slots[order], best_sizes[order]
     values = np.flatnonzero(counts)
-    hashes = idx.lists.addresses(best_slots)
+    hashes = lists.addresses(best_slots)
     model = pq.read_table(Path(index) / "components.parquet").to_pylist()
     return {"d": meta["d"], "k": meta["k"], "n_ref": meta["n_ref"], "occupied": n,
             "address_space": meta["k"] ** meta["d"], "occupied_share": n / meta["k"] ** meta["d"],
-            "mean_size": idx.n_ref / max(1, n), "max_size": int(idx.lists.longest),
+            "mean_size": n_ref / max(1, n), "max_size": int(lists.longest),
             "size_histogram": [(int(v), int(counts[v])) for v in values],
             "largest": [(int(h), int(c)) for h, c in zip(hashes, best_sizes, strict=True)], "components": model}
 

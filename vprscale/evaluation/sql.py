@@ -26,7 +26,6 @@ import multiprocessing
 import os
 import re
 import shutil
-import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -36,9 +35,9 @@ from typing import Any
 
 import pyarrow.csv as pacsv
 
-from vprscale.core.errors import InputError
+from vprscale.core.errors import InputError, QueryError
 from vprscale.core.manifest import check_manifest
-from vprscale.evaluation.sqlchild import serve, views
+from vprscale.evaluation.sqlchild import serve
 from vprscale.method.indexfile import load_index_meta
 
 
@@ -54,19 +53,52 @@ def _flat(table):
     return pa.table(dict(columns)) if columns else table
 
 
-def format_table(table, fmt: str) -> str:
+MAX_CELL = 40  # characters of a cell shown in a width-limited table (DuckDB's shell cuts long values too)
+
+
+def format_table(table, fmt: str, max_rows: int | None = None, max_width: int | None = None) -> str:
+    """A pyarrow table as CSV, JSON lines or an aligned text table.
+
+    The text table can be limited as DuckDB's shell limits it: past ``max_rows`` rows the first
+    and last halves are shown around a ``…`` row; past ``max_width`` characters long cells are cut
+    and the middle columns give way to a ``…`` column. The footer says how many rows (and columns)
+    there are and how many are shown.
+    """
     if fmt == "csv":
         buf = io.BytesIO()
         pacsv.write_csv(_flat(table), buf)
         return buf.getvalue().decode()
     if fmt == "json":
         return "".join(json.dumps(row, default=str) + "\n" for row in table.to_pylist())
-    cols = table.column_names
-    rows = [[str(v) for v in row.values()] for row in table.to_pylist()]
+    n_rows, cols = table.num_rows, list(table.column_names)
+    keep = list(range(n_rows))
+    if max_rows is not None and n_rows > max_rows:
+        head = (max_rows + 1) // 2
+        keep = keep[:head] + [-1] + keep[n_rows - (max_rows - head):]
+    shown = [table.slice(i, 1).to_pylist()[0] if i >= 0 else None for i in keep]
+    rows = [["…"] * len(cols) if r is None else ["NULL" if v is None else str(v) for v in r.values()] for r in shown]
+    if max_width is not None:
+        rows = [[v if len(v) <= MAX_CELL else v[: MAX_CELL - 1] + "…" for v in r] for r in rows]
     widths = [max([len(c)] + [len(r[i]) for r in rows]) for i, c in enumerate(cols)]
-    line = "  ".join(c.rjust(w) for c, w in zip(cols, widths, strict=True))
-    body = ["  ".join(v.rjust(w) for v, w in zip(r, widths, strict=True)) for r in rows]
-    return "\n".join([line, "  ".join("-" * w for w in widths), *body, f"({len(rows)} rows)"]) + "\n"
+    order = list(range(len(cols)))
+    if max_width is not None and sum(widths) + 2 * (len(widths) - 1) > max_width and len(cols) > 2:
+        left, right = [], []  # keep columns from both ends while they fit beside a "…" column
+        room = max_width - 3
+        for i in range(len(cols)):
+            j = i // 2 if i % 2 == 0 else len(cols) - 1 - i // 2
+            if j in left or j in right or widths[j] + 2 > room:
+                break
+            room -= widths[j] + 2
+            (left if i % 2 == 0 else right).append(j)
+        order = sorted(left) + [-1] + sorted(right)
+    def cell(values: list[str], i: int, w: list[int]) -> str:
+        return "…" if i < 0 else values[i].rjust(w[i])
+    line = "  ".join(cell(cols, i, widths) for i in order)
+    rule = "  ".join("-" if i < 0 else "-" * widths[i] for i in order)
+    body = ["  ".join(cell(r, i, widths) for i in order) for r in rows]
+    footer = f"({n_rows:,} rows" + (f", {len(keep) - (len(keep) != n_rows)} shown" if len(keep) != n_rows else "")
+    footer += (f"; {len(cols)} columns, {len(order) - 1} shown" if -1 in order else "") + ")"
+    return "\n".join([line, rule, *body, footer]) + "\n"
 
 
 UNITS = {"": 1, "B": 1, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12, "KIB": 2**10, "MIB": 2**20,
@@ -180,10 +212,26 @@ class Sandbox:
         self.pipe.send((query, timeout))
         kind, value = self._receive(timeout + KILL_AFTER_S, "query")
         if kind == "input":
-            raise InputError(value)
+            raise QueryError(value)
         import pyarrow as pa
 
         return pa.ipc.open_stream(value).read_all()
+
+    def cancel(self, grace: float = 5.0) -> None:
+        """Interrupt the running statement (Ctrl-C in the shell) and take its answer; a child that
+        does not answer within ``grace`` seconds is killed (the next query starts another)."""
+        import signal
+
+        if self.proc is None:
+            return
+        try:
+            os.kill(self.proc.pid, signal.SIGINT)
+            if self.pipe.poll(grace):
+                self.pipe.recv()
+                return
+        except (OSError, EOFError):
+            pass
+        self._kill()
 
     def _kill(self) -> None:
         if self.proc is not None:
@@ -218,26 +266,3 @@ def run_sql(index: str | Path | list, query: str, fmt: str = "table", timeout: f
         raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
     with sandbox(index, memory_limit, threads) as box:
         return format_table(box.query(query, timeout), fmt)
-
-
-def shell(index: str | Path | list, timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:
-    """An interactive console: statements end with ';', an empty line or EOF quits."""
-    with sandbox(index, memory_limit, threads) as box:
-        roots = [Path(p).resolve() for p in (index if isinstance(index, list) else [index])]
-        print(f"vprscale sql on {', '.join(map(str, roots))}: views {', '.join(views(roots))}; end with ';'",
-              file=sys.stderr)
-        buf: list[str] = []
-        while True:
-            try:
-                line = input("sql> " if not buf else "...> ")
-            except EOFError:
-                return 0
-            if not line.strip() and not buf:
-                return 0
-            buf.append(line)
-            if line.rstrip().endswith(";"):
-                query, buf = "\n".join(buf), []
-                try:
-                    print(format_table(box.query(query, timeout), "table"), end="")
-                except InputError as exc:
-                    print(f"error: {exc}", file=sys.stderr)

@@ -28,7 +28,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.dataset as pads
 
-from vprscale.core.errors import InputError
+from vprscale.core.errors import InputError, QueryError
 
 PR_SET_PDEATHSIG = 1
 GRACE_S = 5.0  # how long an interrupted query may take to stop before it is abandoned
@@ -196,6 +196,23 @@ def check_statement(con: duckdb.DuckDBPyConnection, query: str) -> None:
         raise InputError(f"query: only SELECT statements are allowed, got {kind.name}")
 
 
+class Cancel:
+    """Ctrl-C in the shell: the terminal's SIGINT reaches this process too (and the parent sends
+    one), and interrupts the running statement instead of ending the process with a traceback."""
+
+    def __init__(self) -> None:
+        self.con: duckdb.DuckDBPyConnection | None = None
+        self.asked = False
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.asked = True
+        if self.con is not None:
+            self.con.interrupt()
+
+
+_cancel = Cancel()
+
+
 def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
     """Run a checked statement with a timeout; returns a pyarrow table.
 
@@ -207,6 +224,7 @@ def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
         raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
     check_statement(con, query)
     box: dict = {}
+    _cancel.asked = False
 
     def run() -> None:
         try:
@@ -223,9 +241,9 @@ def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
         raise InputError(f"query: stopped at the {timeout:g} s timeout")
     exc = box.get("error")
     if isinstance(exc, duckdb.InterruptException):
-        raise InputError(f"query: stopped at the {timeout:g} s timeout")
+        raise InputError("query: cancelled" if _cancel.asked else f"query: stopped at the {timeout:g} s timeout")
     if isinstance(exc, duckdb.Error):
-        raise InputError(f"query: {str(exc).splitlines()[0]}") from None
+        raise QueryError(f"query: {str(exc).strip()}") from None
     if exc is not None:
         raise exc
     return box["table"]
@@ -245,8 +263,10 @@ def serve(pipe, index: list[str], memory_limit: str, threads: int, spill: str, c
     except (OSError, AttributeError):  # not Linux: the parent's kill and the pipe's end still stop it
         pass
 
+    signal.signal(signal.SIGINT, _cancel)
     try:
         with connect(index, memory_limit, threads, spill_dir=spill) as con:
+            _cancel.con = con
             size = int(Path("/proc/self/statm").read_text().split()[0]) * resource.getpagesize()
             resource.setrlimit(resource.RLIMIT_AS, (size + cap, size + cap))
             pipe.send(("ready", None))
@@ -258,12 +278,14 @@ def serve(pipe, index: list[str], memory_limit: str, threads: int, spill: str, c
                     with pa.ipc.new_stream(sink, table.schema) as writer:
                         writer.write_table(table)
                     pipe.send(("ok", sink.getvalue().to_pybytes()))
+                except QueryError as exc:
+                    pipe.send(("input", "\n".join(filter(None, (str(exc), exc.detail)))))
                 except InputError as exc:
                     pipe.send(("input", str(exc)))
                 except (MemoryError, duckdb.OutOfMemoryException):
                     pipe.send(("input", f"query: stopped at the memory limit ({memory_limit} + 1 GB)"))
                 except (duckdb.Error, pa.ArrowException) as exc:  # anything DuckDB or Arrow refuses is the query's
-                    pipe.send(("input", f"query: {str(exc).splitlines()[0][:300]}"))
+                    pipe.send(("input", f"query: {str(exc).strip()[:2000]}"))
     except InputError as exc:
         pipe.send(("input", str(exc)))
     except (MemoryError, duckdb.OutOfMemoryException):

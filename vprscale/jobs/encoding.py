@@ -22,7 +22,7 @@ encodes them in process: the same bytes for any ``--workers``, local or distribu
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -40,6 +40,8 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.dataset.references import reference_reader
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity
+
+log = logging.getLogger(__name__)
 
 ENCODE_GROUP = 16  # chunks encoded between checkpoints (more with more workers)
 SAMPLE_GROUP = 64  # chunks read between checkpoints of the training sample (each rewrites the rows kept so far)
@@ -111,7 +113,7 @@ def encode_store(store: Path, factories: list[str], deep1b: str | None = None, f
                 key = {"encode": f, "store_identity": identity}
                 partial_out = PartialOutput(out, key)
                 if partial_out.recover() and not quiet:
-                    print(f"{out}: finished publishing the encoding a killed run had completed", file=sys.stderr)
+                    log.info(f"{out}: finished publishing the encoding a killed run had completed")
                 if (out / "encoding.json").is_file() and not force:
                     if json.loads((out / "encoding.json").read_text()).get("store_identity") == identity:
                         summary["methods"][f] = {"out": str(out), "skipped": True}

@@ -10,6 +10,8 @@ written beside its destination and renamed into place when whole.
 
 from __future__ import annotations
 
+import logging
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -17,7 +19,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
+import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import zarr
 
@@ -27,6 +31,8 @@ from vprscale.method.index import Index
 from vprscale.method.indexfile import load_index_meta
 from vprscale.method.online import OnlineMatcher
 from vprscale.protocol import centre_lag
+
+log = logging.getLogger(__name__)
 
 READ_ROWS = 4096
 
@@ -55,9 +61,24 @@ def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
     return src.n_rows, src.dim, (src.read(a, min(src.n_rows, a + READ_ROWS)) for a in range(0, src.n_rows, READ_ROWS))
 
 
+OUT_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
+
+
+def write_matches(table: pa.Table, where: Any, fmt: str) -> None:
+    """One row per frame as Parquet or CSV. The first L − 1 frames complete no window: their
+    ``centre``, ``match`` and ``n_r`` are null (empty in CSV), and pandas reads the Parquet file's
+    columns as nullable integers (``Int64``), not floats with NaN."""
+    if fmt == "csv":
+        pacsv.write_csv(table, where)
+        return
+    frame = table.to_pandas(types_mapper={pa.int64(): pd.Int64Dtype()}.get)
+    pq.write_table(pa.Table.from_pandas(frame, preserve_index=False), where)
+
+
 def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper", out: str | Path | None = None,
              quiet: bool = False) -> dict[str, Any]:
-    """Localise every frame of ``queries``; returns a summary (and writes ``out`` when given)."""
+    """Localise every frame of ``queries``; returns a summary, and writes the rows to ``out`` (a
+    ``.parquet`` or ``.csv`` file, whole or not at all; ``"-"``: CSV on standard output) when given."""
     meta = load_index_meta(index)
     path = Path(queries)
     if not path.exists():
@@ -65,12 +86,17 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     rows, width, blocks = _blocks(path)
     if width != meta["dim"]:
         raise InputError(f"{path}: frames of {width} features; the index hashes frames of {meta['dim']}")
-    if out is not None:
+    to_stdout = out == "-"
+    if out is not None and not to_stdout:
         out = Path(out)
         if out.is_dir():
             raise InputError(f"--out {out}: is a directory; give a file name")
+        if out.suffix.lower() not in OUT_FORMATS:
+            raise InputError(f"--out {out}: name a .parquet or .csv file (the suffix says the format)")
         if not out.parent.is_dir():
             raise InputError(f"--out {out}: the folder {out.parent} does not exist")
+        if not os.access(out.parent, os.W_OK | os.X_OK):
+            raise InputError(f"--out {out}: the folder {out.parent} is not writable")
     if isinstance(L, int) and L > rows:
         raise InputError(f"--L {L}: longer than the {rows:,} frames of {path}")
     try:
@@ -98,12 +124,14 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     done = match >= 0
     table = pa.table({"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
                       "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done)})
-    if out is not None:
+    if to_stdout:
+        sys.stdout.flush()
+        write_matches(table, sys.stdout.buffer, "csv")
+    elif out is not None:
         tmp = out.with_name(f".{out.name}.partial")
-        pq.write_table(table, tmp)
+        write_matches(table, tmp, OUT_FORMATS[out.suffix.lower()])
         tmp.replace(out)
     if not quiet:
-        print(f"localised {rows:,} frames in {secs:.1f} s ({secs / max(1, rows) * 1e6:.1f} µs per frame)",
-              file=sys.stderr)
+        log.info(f"localised {rows:,} frames in {secs:.1f} s ({secs / max(1, rows) * 1e6:.1f} µs per frame)")
     return {"frames": rows, "L": L, "mode": mode, "seconds": secs, "us_per_frame": secs / max(1, rows) * 1e6,
             "out": str(out) if out else None, "state_bytes": matcher.state_bytes}

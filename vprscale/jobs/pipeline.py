@@ -19,6 +19,7 @@ import hashlib
 import importlib.util
 import io
 import json
+import logging
 import shlex
 import subprocess
 import sys
@@ -34,7 +35,7 @@ from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.manifest import check_manifest, read_manifest
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
-from vprscale.dataset.recipe import read_toml
+from vprscale.dataset.recipe import read_toml, shipped
 from vprscale.evaluation.algorithms.registry import BUILTIN
 
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
@@ -90,9 +91,23 @@ _TYPE_WORDS = {"str": "a string", "stage": "the name of an earlier stage", "int"
                "list[stage]": "a list of earlier stage names"}
 
 
+def pipeline_path(name: str | Path) -> Path:
+    """A pipeline file: ``name`` itself when it is a path, else the pipeline shipped with vprscale of
+    that name (``quickstart``, ``paper``)."""
+    path = Path(name)
+    if path.suffix == ".toml" or path.exists():
+        return path
+    found = shipped("vprscale.pipelines") / f"{name}.toml"
+    if not found.is_file():
+        known = sorted(p.stem for p in shipped("vprscale.pipelines").glob("*.toml"))
+        raise InputError(f"{name}: no such pipeline file, nor a shipped pipeline (shipped: {', '.join(known)})")
+    return found
+
+
 def load_pipeline(path: str | Path) -> Pipeline:
-    """Parse and validate a pipeline file; every error names the file, the stage and the key."""
-    path = Path(path)
+    """Parse and validate a pipeline file (or a shipped pipeline's name); every error names the file,
+    the stage and the key."""
+    path = pipeline_path(path)
     data = read_toml(path, "pipeline")
     for key in ("name", "out", "stages"):
         if key not in data:
@@ -189,7 +204,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         fingerprints: dict[str, str] = {}
         ran: set[str] = set()
         outputs: dict[str, dict[str, Any]] = {}
-        tee_err = _Tee(sys.stderr, log)
+        # the run's log file gets everything; the console only what the logging level lets through
+        tee_err = _Tee(*([sys.stderr] if logging.getLogger(__name__).isEnabledFor(logging.INFO) else []), log)
         try:
             for stage in pipe.stages:
                 parts = _parts(stage, fingerprints, graph)
@@ -442,7 +458,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
     cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"]]
     for i in p.get("indexes", []):
         cmd += ["--index", outputs[i]["index"]]
-    return cmd
+    # --force: the pipeline decided this report is out of date (the old one is kept beside)
+    return cmd + ["--force"]
 
 
 _OUTPUT_KEYS = {"synth": ("dir", "fvecs", "fbin", "fas"), "build": ("store",), "index": ("index",),

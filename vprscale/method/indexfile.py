@@ -32,7 +32,7 @@ import json
 import math
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -41,7 +41,6 @@ import pyarrow.parquet as pq
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest
 from vprscale.core.progress import ChunkProgress
-from vprscale.method.coarsehash import CoarseHasher
 from vprscale.method.invlists import InvertedLists, best_first
 from vprscale.method.kernels import plane_words, planes_into
 from vprscale.method.lists import (
@@ -61,6 +60,9 @@ from vprscale.method.succinct import (
     structure_from_words,
     width,
 )
+
+if TYPE_CHECKING:  # the estimator (and scikit-learn) is imported only to read a model: see read_arrays
+    from vprscale.method.coarsehash import CoarseHasher
 
 KIND = "coarsehash-index"
 INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
@@ -446,14 +448,14 @@ def load_index_meta(index: str | Path, upgradable: bool = False) -> dict[str, An
     return meta
 
 
-def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLists, dict[str, Any]]:
-    """``(hasher, codes, lists, meta)`` of an index directory: the model read, the codes and the
-    lists memory-mapped (a query touches only the pages it reads)."""
+def read_lists(path: str | Path) -> tuple[np.ndarray, InvertedLists, dict[str, Any]]:
+    """``(codes, lists, meta)`` of an index directory, memory-mapped (a query touches only the pages
+    it reads): what a tool that reads no model needs (``vprscale occupancy``), without importing the
+    estimator."""
     path = Path(path)
     meta = load_index_meta(path)
     layout = meta["layout"]
     try:
-        model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
         files = {name: np.load(path / file, mmap_mode="r") for name, file in ENGINE_FILES.items()}
         lists = InvertedLists(structure_from_words(files["occupied"], layout["occupied"]),
                               EliasFano.from_words(files["starts"], layout["starts"]), files["ids"],
@@ -465,5 +467,20 @@ def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLis
     if len(files["codes"]) != code_words(n_ref, int(meta["d"]), int(meta["k"])) or \
             len(files["ids"]) != packed_words(n_ref, lists.id_bits):
         raise InputError(f"{path}: codes.npy or ids.npy does not hold {n_ref:,} places; re-run vprscale index")
-    hasher = CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), n_ref, **model)
-    return hasher, files["codes"], lists, meta
+    return files["codes"], lists, meta
+
+
+def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLists, dict[str, Any]]:
+    """``(hasher, codes, lists, meta)`` of an index directory: the model read, the codes and the
+    lists memory-mapped."""
+    from vprscale.method.coarsehash import CoarseHasher
+
+    codes, lists, meta = read_lists(path)
+    path = Path(path)
+    try:
+        model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
+    except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file (no manifest)
+        raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
+                         "re-run vprscale index") from None
+    hasher = CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), int(meta["n_ref"]), **model)
+    return hasher, codes, lists, meta

@@ -19,11 +19,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from vprscale.core.errors import InputError
-from vprscale.evaluation.algorithms.base import Algorithm
-from vprscale.method.index import Index
+
+if TYPE_CHECKING:  # imported by what evaluates, not by ``vprscale methods``
+    from vprscale.evaluation.algorithms.base import Algorithm
+    from vprscale.method.index import Index
 
 ENTRY_POINT_GROUP = "vprscale.algorithms"
 BUILTIN = {  # in this order: the grid reports methods in the order they are created
@@ -33,7 +35,7 @@ BUILTIN = {  # in this order: the grid reports methods in the order they are cre
     "methods": "vprscale.evaluation.algorithms.plugged:create",
 }
 
-Factory = Callable[["Context"], list[Algorithm]]
+Factory = Callable[["Context"], "list[Algorithm]"]
 
 
 @dataclass

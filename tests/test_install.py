@@ -1,0 +1,88 @@
+"""vprscale as a user installs it: every package in the wheel, the recipes and pipelines shipped as
+package data, and a wheel install in a fresh virtual environment that builds, plans and runs the
+README's Python example from a folder that is not the checkout."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_package_is_listed_for_the_wheel():
+    """pyproject lists the packages (the recipes and pipelines map onto top-level folders), so a new
+    subpackage left out of the list would be missing from every wheel."""
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "vprscale").rglob("__init__.py")}
+    assert found <= listed
+    assert {"vprscale.recipes", "vprscale.pipelines"} <= listed
+
+
+def test_recipes_and_pipelines_come_from_the_installed_package():
+    from vprscale.dataset.recipe import known_scales, shipped
+    from vprscale.jobs.pipeline import pipeline_path
+
+    assert {"20K", "1M", "10M", "100M", "1B"} <= set(known_scales())
+    assert pipeline_path("quickstart") == shipped("vprscale.pipelines") / "quickstart.toml"
+    assert pipeline_path("quickstart").read_text() == (ROOT / "pipelines" / "quickstart.toml").read_text()
+
+
+def test_an_unknown_pipeline_name_lists_the_shipped_ones(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "vprscale.cli", "run", "nightly"], capture_output=True, text=True,
+                          cwd=tmp_path)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "vprscale run: error: nightly: no such pipeline file, nor a shipped pipeline (shipped: paper, quickstart)"]
+
+
+def _readme_python_example() -> str:
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert blocks, "the README has a Python example"
+    return blocks[0]
+
+
+@pytest.mark.slow
+def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
+    """A wheel, built by ``python -m build``, installed into a fresh venv (the dependencies come
+    from this environment): from an empty folder it builds the 20K store, plans the shipped
+    quickstart pipeline by name and runs the README's Python example."""
+    source = tmp_path / "source"  # a copy: building writes build/ and egg-info beside the sources
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", "data", "build", "dist", "*.egg-info",
+                                                                "__pycache__", ".*_cache"))
+    wheels = tmp_path / "wheels"
+    subprocess.run([sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(wheels), str(source)],
+                   check=True, capture_output=True)
+    (wheel,) = wheels.glob("vprscale-*.whl")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True,
+                   capture_output=True)
+    work = tmp_path / "work"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VPRSCALE_DATASETS")}
+    where = subprocess.run([str(python), "-c", "import vprscale; print(vprscale.__file__)"], cwd=work, env=env,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(where).is_relative_to(venv), f"the venv imports vprscale from {where}, not the wheel"
+
+    def vprscale(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([str(venv / "bin" / "vprscale"), *argv], cwd=work, env=env, capture_output=True,
+                              text=True)
+
+    built = vprscale("build", "--scale", "20K", "--out", "data", "--quiet")
+    assert built.returncode == 0, built.stderr
+    assert (work / "data" / "20K.zarr" / "manifest.json").is_file()
+    plan = vprscale("run", "quickstart", "--dry-run")
+    assert plan.returncode == 0, plan.stderr
+    assert "build-20K (build)" in plan.stdout and "report (report)" in plan.stdout
+    example = subprocess.run([str(python), "-c", _readme_python_example()], cwd=work, env=env, capture_output=True,
+                             text=True)
+    assert example.returncode == 0, example.stderr[-3000:]
