@@ -20,7 +20,7 @@ DOC = Path(__file__).parents[1] / "docs" / "bring-your-own.md"
 def exact_l2(tmp_path, monkeypatch):
     """The page's example method, written where the page says (``exact_l2.py`` in the working
     directory), imported as ``--method`` would."""
-    code = re.search(r"```python\n(.*?)```", DOC.read_text(), re.S).group(1)
+    code = next(b for b in re.findall(r"```python\n(.*?)```", DOC.read_text(), re.S) if "class ExactL2" in b)
     (tmp_path / "exact_l2.py").write_text(code)
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -29,6 +29,33 @@ def exact_l2(tmp_path, monkeypatch):
 
     yield exact_l2.ExactL2
     sys.modules.pop("exact_l2", None)
+
+
+@pytest.mark.slow
+def test_the_pages_own_descriptors_example_runs_as_written(tmp_path, monkeypatch, capsys):
+    """The page's first two blocks as a new user runs them: the numpy that makes the inputs, then
+    every ``vprscale`` line of the shell block. The small store's chunks fit its data, and a store
+    without parts reports the ``all`` part only."""
+    import shlex
+
+    from vprscale.cli import main
+
+    blocks = DOC.read_text()
+    make = re.findall(r"```python\n(.*?)```", blocks, re.S)[0]
+    shell = re.findall(r"```bash\n(.*?)```", blocks, re.S)[0]
+    monkeypatch.chdir(tmp_path)
+    exec(compile(make, "bring-your-own.md", "exec"), {})
+    for line in shell.strip().splitlines():
+        argv = shlex.split(line)
+        assert argv[0] == "vprscale"
+        assert main(argv[1:]) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    store_bytes = sum(f.stat().st_size for f in (tmp_path / "data" / "mine.zarr").rglob("*") if f.is_file())
+    assert store_bytes < 5e6
+    assert "  all " in out and "deep1b" not in out and " fas " not in out
+    import pyarrow.parquet as pq
+
+    assert set(pq.read_table(tmp_path / "data" / "mine.eval" / "results.parquet").column("part").to_pylist()) == {"all"}
 
 
 def test_the_pages_example_passes_the_contract_suite(exact_l2):

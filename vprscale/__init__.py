@@ -19,6 +19,9 @@ def __getattr__(name: str):
     if name in _PUBLIC:
         import importlib
 
+        from vprscale.core.compiling import announce_compiling
+
+        announce_compiling()  # the first use compiles numba kernels: logged (INFO) where logging is on
         return getattr(importlib.import_module(_PUBLIC[name]), name)
     raise AttributeError(f"module 'vprscale' has no attribute {name!r}")
 

@@ -95,11 +95,18 @@ def _closed_pipe() -> int:
     return 0
 
 
+LIGHT = ("methods", "verify", "sql", "results")  # commands that run no kernel (and should not import numba)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser().parse_args(argv)
     level = getattr(args, "verbosity", logging.INFO)
     configure_logging(level)
+    if args.command not in LIGHT:
+        from vprscale.core.compiling import announce_compiling
+
+        announce_compiling()
     set_command(["vprscale", *argv])
     func: Callable[[argparse.Namespace], int] = args.func
     try:
@@ -116,8 +123,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"vprscale {args.command}: failed: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     except OSError as exc:
-        if not disk_full(exc, args):
-            return _bug(args, exc, level)
+        if not disk_full(exc, args):  # the system's failure, not the input's: one line, exit 1, work kept
+            if level <= logging.DEBUG:
+                traceback.print_exception(exc, file=sys.stderr)
+            print(f"vprscale {args.command}: failed: {exc}; finished work is kept and resumed by the same command",
+                  file=sys.stderr)
+            return EXIT_FAILURE
         # Outputs are published whole, so nothing half-written is visible; checkpoints stay for the re-run.
         where = f" writing {exc.filename}" if exc.filename else ""
         print(f"vprscale {args.command}: error: the disk is full{where}; free space and run the same command "

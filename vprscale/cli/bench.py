@@ -12,9 +12,10 @@ from vprscale.core.errors import InputError
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
         summary: argparse.ArgumentParser) -> None:
-    p = sub.add_parser("bench", help="benchmark a build, an index, look-ups or an evaluation (prints figures)")
-    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes"])
-    p.add_argument("target", help="build: a scale; index/eval/online/format/codes: a store; lookup: an index")
+    p = sub.add_parser("bench", help="benchmark a build, an index, look-ups, an evaluation or the one-shot commands' "
+                                     "start-up (prints figures)")
+    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes", "startup"])
+    p.add_argument("target", help="build: a scale; index/eval/online/format/codes: a store; lookup, startup: an index")
     p.add_argument("--out", default="data/bench", help="build: output directory")
     p.add_argument("--deep1b")
     p.add_argument("--fas")
@@ -36,6 +37,10 @@ def run(args: argparse.Namespace) -> int:
         print(bench.bench_build(args.target, args.out, args.deep1b, args.fas, args.workers))
     elif args.job == "index":
         print(bench.bench_index(args.target, args.d, args.workers))
+    elif args.job == "startup":
+        from vprscale.jobs.startupbench import bench_startup
+
+        print(bench_startup(args.target))
     elif args.job == "lookup":
         print(bench.bench_lookup(args.target))
     elif args.job == "codes":

@@ -59,14 +59,20 @@ def run(args: argparse.Namespace) -> int:
     import shutil
     import sys
 
-    from vprscale.evaluation.results import eval_folder
+    from vprscale.evaluation.results import eval_folder, load_tables
     from vprscale.evaluation.sql import format_table, sandbox
 
-    folders = [eval_folder(p) for p in args.paths]
-    query = f"SELECT * FROM {'queries' if args.queries else 'results'}" + (
-        f" WHERE {args.where}" if args.where else "")  # the user's own predicate, in the sandbox
-    with sandbox(folders, args.memory_limit, 2) as box:
-        table = box.query(query, args.timeout)
+    if args.where is None:  # every row: read as it is, no SQL engine needed
+        import pyarrow as pa
+
+        parts = [t.append_column("run", pa.array([str(folder)] * t.num_rows, pa.string()))
+                 for t, folder, _ in load_tables(*args.paths, queries=args.queries)]
+        table = pa.concat_tables(parts, promote_options="permissive")
+    else:
+        folders = [eval_folder(p) for p in args.paths]
+        query = f"SELECT * FROM {'queries' if args.queries else 'results'} WHERE {args.where}"  # in the sandbox
+        with sandbox(folders, args.memory_limit, 2) as box:
+            table = box.query(query, args.timeout)
     if args.format == "table":
         width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None
         print(format_table(_shown(table, args.all_columns, args.queries), "table", max_width=width), end="")

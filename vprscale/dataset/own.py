@@ -104,6 +104,13 @@ def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource], np.n
     return ref, queries, gt, part
 
 
+def chunk_rows(n_rows: int) -> int:
+    """Rows per Zarr chunk (and task) of an array of ``n_rows``: ``CHUNK_ROWS``, or the whole array
+    when it is smaller. Chunks are stored uncompressed and whole, so a small store's chunks must
+    fit its data (6,000 rows take 6,000 rows of bytes, not 262,144)."""
+    return max(1, min(CHUNK_ROWS, n_rows))
+
+
 def build_own(req: OwnRequest) -> dict[str, Any]:
     """Write the store ``<out>/<name>.zarr``; returns the summary the CLI prints."""
     ref, queries, gt, part = check_inputs(req)
@@ -134,18 +141,18 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
         group = zarr.open_group(str(partial.path), mode="a", zarr_format=3)
         if not partial.done("arrays"):
             for array, rows in (("ref", ref.n_rows), *((f"query_{n}", len(gt)) for n in queries)):
-                group.create_array(array, shape=(rows, ref.dim), chunks=(CHUNK_ROWS, ref.dim), dtype="f4",
+                group.create_array(array, shape=(rows, ref.dim), chunks=(chunk_rows(rows), ref.dim), dtype="f4",
                                    overwrite=True, **codecs("descriptors"))
             for array, data, dtype in (("gt", gt, "i8"), ("query_part", part, "u1"),
                                        ("ref_part", np.zeros(ref.n_rows), "u1")):
-                group.create_array(array, shape=data.shape, chunks=(CHUNK_ROWS,), dtype=dtype, overwrite=True,
-                                   **codecs("labels"))
+                group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data)),), dtype=dtype,
+                                   overwrite=True, **codecs("labels"))
                 group[array][:] = data.astype(dtype)
             partial.mark("arrays")
         sources = {"ref": ref, **{f"query_{n}": q for n, q in queries.items()}}
         tasks = [dask.delayed(_copy_chunk)(str(partial.path), array, src, a, b, partial, f"{array}-{c}")
                  for array, src in sources.items()
-                 for c, (a, b) in enumerate(chunk_bounds(src.n_rows, CHUNK_ROWS))
+                 for c, (a, b) in enumerate(chunk_bounds(src.n_rows, chunk_rows(src.n_rows)))
                  if not partial.done(f"{array}-{c}")]
         with dask_client(req.scheduler, req.workers) as client, timings.stage(f"copy {len(tasks)} chunks"):
             run_tasks(tasks, "copy chunks")

@@ -29,12 +29,20 @@ def recipe_dir() -> Path:
     return Path(env) if env else shipped("vprscale.recipes")
 
 
+CHECKOUT_FOLDERS = {"vprscale.recipes": "datasets", "vprscale.pipelines": "pipelines"}  # as pyproject maps them
+
+
 def shipped(package: str) -> Path:
     """The folder of TOML files that ships as ``package`` (recipes, pipelines): installs unpack
-    package data onto disk, so it is a plain directory."""
+    package data onto disk, so it is a plain directory. Where vprscale is imported from a source
+    checkout that shadows an installed copy (pytest run in the checkout), the package does not
+    exist and the checkout's own folder is it."""
     from importlib.resources import files
 
-    return Path(str(files(package)))
+    try:
+        return Path(str(files(package)))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / CHECKOUT_FOLDERS[package]
 
 
 @dataclass(frozen=True)

@@ -386,6 +386,8 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
     error = np.abs(np.asarray(match, np.int64) - truth)
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
     held = [p for p in ("deep1b", "fas") if select[p].any()]
+    if len(held) < 2:  # one part (a store of your own without --part): its rows are the "all" rows
+        select = {"all": select["all"]}
     per_query = None
     if weights is not None and held:
         per_query = np.zeros(len(t))
@@ -423,16 +425,20 @@ def _write_parquet(path: Path, rows: list[dict], columns: dict, record: dict) ->
 
 
 def _summary_table(rows: list[dict]) -> str:
-    lines = [f"{'noise':<5} {'method':<20} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
+    """The printed summary: one line per method, parameters, mode, L and part (recall at 0, 5 and
+    20 frames); ``vprscale results`` shows every column."""
+    keys = [(r["noise"], r["method"], r.get("params") or "-", r["mode"] or "-", "-" if r["d"] is None else r["d"],
+             r["L"], r["part"]) for r in rows]
+    width = max([len("params"), *(len(k[2]) for k in keys)])
+    lines = [f"{'noise':<5} {'method':<20} {'params':<{width}} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
              f"{'R@0':>6} {'R@5':>6} {'R@20':>6} {'N_r':>7} {'B/place':>8} {'µs/q':>10} {'ops/q':>11}"]
     by_key: dict[tuple, dict[int, dict]] = {}
-    for r in rows:
-        key = (r["noise"], r["method"], r["mode"] or "-", "-" if r["d"] is None else r["d"], r["L"], r["part"])
+    for key, r in zip(keys, rows, strict=True):
         by_key.setdefault(key, {})[r["radius"]] = r
-    for (noise, method, mode, d, L, part), radii in by_key.items():
+    for (noise, method, params, mode, d, L, part), radii in by_key.items():
         r0 = radii[0]
-        lines.append(f"{noise:<5} {method:<20} {mode:<8} {d:>3} {L:>4} {part:<7} {r0['n_queries']:>6} "
-                     f"{radii[0]['recall']:>6.3f} {radii[5]['recall']:>6.3f} {radii[20]['recall']:>6.3f} "
-                     f"{r0['nr_mean']:>7.1f} {r0['bytes_per_place']:>8.2f} {r0['us_per_query']:>10.2f} "
-                     f"{r0['ops_per_query']:>11.0f}")
+        lines.append(f"{noise:<5} {method:<20} {params:<{width}} {mode:<8} {d:>3} {L:>4} {part:<7} "
+                     f"{r0['n_queries']:>6} {radii[0]['recall']:>6.3f} {radii[5]['recall']:>6.3f} "
+                     f"{radii[20]['recall']:>6.3f} {r0['nr_mean']:>7.1f} {r0['bytes_per_place']:>8.2f} "
+                     f"{r0['us_per_query']:>10.2f} {r0['ops_per_query']:>11.0f}")
     return "\n".join(lines)

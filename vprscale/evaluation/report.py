@@ -26,7 +26,7 @@ from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
-from vprscale.evaluation.storage import floor_bits  # noqa: E402
+from vprscale.evaluation.storage import floor_bits, index_parts  # noqa: E402
 
 PAPER = {"nr_L50": {"20K": 74, "1M": 57, "10M": 32}, "storage_mb": {"20K": 0.2, "1M": 8.4, "10M": 80.4},
          "ops_10M": 37_400, "baseline_ratio": 1300, "fas20K": (1, 98, 267)}
@@ -246,6 +246,15 @@ def _num(x: Any, fmt: str) -> str:
     return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
 
+def _whole_index_bytes(meta: dict) -> int | None:
+    """Every file of the index directory, measured as ``vprscale index`` measures it (its
+    metadata included); the parts recorded at indexing time where the directory is gone."""
+    path = Path(meta.get("path", ""))
+    if (path / "index.json").is_file():
+        return sum(index_parts(path).values())
+    return sum(meta["parts"].values()) if "parts" in meta else None
+
+
 def _provenance_block(evals: list[dict]) -> list[str]:
     """Who made this report and the results in it: commits, machines, commands; mixed commits said so."""
     me = provenance()
@@ -419,7 +428,8 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compar
     for i in sorted(indexes, key=lambda i: (i["n_ref"], i["d"])):
         st = i["storage"]
         lists = i.get("lists", {}).get("bytes_per_place")
-        whole = sum(i["parts"].values()) / i["n_ref"] if "parts" in i else None
+        whole = _whole_index_bytes(i)
+        whole = whole / i["n_ref"] if whole else None
         floor = floor_bits(i["n_ref"], i["d"], i["k"]) / 8
         rows.append([i["store"]["scale"] + ("" if i["store"].get("rescale", True) else " (no rescale)"), i["d"],
                      f"{i['n_ref']:,}", *(f"{st[p]['paper'] / 1e6:.3f}" for p in ("P1", "P2", "P3", "P4", "total")),
@@ -435,7 +445,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compar
            "keeps 12 bytes per place (address, quantisation error, baseline value) and the evaluated query "
            "windows; a full one 1.15 KB per place.", "",
            _md_table(["scale", "d", "N_ref", "P1", "P2", "P3", "P4", "total (8 B)", "total packed", "on disk",
-                      "lists B/place", "SQL tables B/place", "index B/place", "floor B/place", "× floor",
+                      "lists B/place", "SQL tables B/place", "whole index B/place", "floor B/place", "× floor",
                       "store layout"], rows),
            ""]
     rows = []

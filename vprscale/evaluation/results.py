@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
 import pyarrow.parquet as pq
 
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest
 from vprscale.core.provenance import PARQUET_KEY
+
+if TYPE_CHECKING:  # pandas is imported by what returns a DataFrame, not by ``vprscale results``
+    import pandas as pd
 
 
 def eval_folder(path: str | Path) -> Path:
@@ -30,21 +32,28 @@ def eval_folder(path: str | Path) -> Path:
     return folder
 
 
-def load_results(*paths: str | Path, queries: bool = False) -> pd.DataFrame:
-    """The results (or, with ``queries``, the per-query rows) of every evaluation given, as one
-    DataFrame with ``run`` (the folder), ``commit`` and ``run_time`` (from its provenance)."""
+def load_tables(*paths: str | Path, queries: bool = False) -> list[tuple[Any, Path, dict[str, Any]]]:
+    """``(pyarrow table, evaluation folder, provenance record)`` of every evaluation given."""
     if not paths:
         raise InputError("results: give at least one evaluation folder or index")
-    frames = []
+    found = []
     for path in paths:
         file = eval_folder(path) / ("queries.parquet" if queries else "results.parquet")
         try:
             table = pq.read_table(file)
         except (OSError, ValueError) as exc:
             raise InputError(f"{file}: not a readable Parquet file ({str(exc).splitlines()[0]})") from None
-        record = json.loads((table.schema.metadata or {}).get(PARQUET_KEY, b"{}"))
-        frames.append(table.to_pandas().assign(run=str(file.parent.resolve()), commit=record.get("commit"),
-                                               run_time=record.get("time")))
+        found.append((table, file.parent.resolve(), json.loads((table.schema.metadata or {}).get(PARQUET_KEY, b"{}"))))
+    return found
+
+
+def load_results(*paths: str | Path, queries: bool = False) -> pd.DataFrame:
+    """The results (or, with ``queries``, the per-query rows) of every evaluation given, as one
+    DataFrame with ``run`` (the folder), ``commit`` and ``run_time`` (from its provenance)."""
+    import pandas as pd
+
+    frames = [table.to_pandas().assign(run=str(folder), commit=record.get("commit"), run_time=record.get("time"))
+              for table, folder, record in load_tables(*paths, queries=queries)]
     return pd.concat(frames, ignore_index=True)
 
 

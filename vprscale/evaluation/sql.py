@@ -33,12 +33,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import pyarrow.csv as pacsv
-
 from vprscale.core.errors import InputError, QueryError
 from vprscale.core.manifest import check_manifest
-from vprscale.evaluation.sqlchild import serve
-from vprscale.method.indexfile import load_index_meta
+from vprscale.method.indexmeta import load_index_meta
 
 
 def _flat(table):
@@ -65,6 +62,8 @@ def format_table(table, fmt: str, max_rows: int | None = None, max_width: int | 
     there are and how many are shown.
     """
     if fmt == "csv":
+        import pyarrow.csv as pacsv
+
         buf = io.BytesIO()
         pacsv.write_csv(_flat(table), buf)
         return buf.getvalue().decode()
@@ -146,6 +145,14 @@ def _spill_dir() -> str:
     return tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base)
 
 
+def _serve(*args: Any) -> None:
+    """The child's entry point, by name: the parent never imports DuckDB itself (the forkserver
+    has it preloaded), which keeps a one-shot ``vprscale sql`` quick to start."""
+    from vprscale.evaluation.sqlchild import serve
+
+    serve(*args)
+
+
 class Sandbox:
     """A child process holding one locked-down connection; each query runs there under OS caps.
 
@@ -168,7 +175,7 @@ class Sandbox:
         ctx = multiprocessing.get_context("forkserver")
         ctx.set_forkserver_preload(["duckdb", "pyarrow", "pyarrow.dataset", "vprscale.evaluation.sqlchild"])
         self.pipe, child = ctx.Pipe()
-        self.proc = ctx.Process(target=serve, args=(child, *self.args, self.spill, self.cap), daemon=True)
+        self.proc = ctx.Process(target=_serve, args=(child, *self.args, self.spill, self.cap), daemon=True)
         self.proc.start()
         child.close()
         kind, value = self._receive(60.0, "start-up")

@@ -59,7 +59,7 @@ def format_parts(parts: dict[str, int], n_ref: int, d: int, k: int) -> str:
     floor = floor_bits(n_ref, d, k) / 8
     lines = [f"{'part':<16}{'bytes':>16}{'B/place':>10}"]
     lines += [f"{name:<16}{b:>16,}{b / max(1, n_ref):>10.3f}" for name, b in parts.items()]
-    lines.append(f"{'total':<16}{total:>16,}{total / max(1, n_ref):>10.3f}")
+    lines.append(f"{'whole index':<16}{total:>16,}{total / max(1, n_ref):>10.3f}")
     lines.append(f"floor d + ⌈log2 N⌉ = {floor_bits(n_ref, d, k)} bits = {floor:.3f} B/place; "
                  f"the index is {total / max(1, n_ref) / floor:.2f}× the floor")
     return "\n".join(lines)

@@ -22,7 +22,9 @@ Three writers produce the same files through :class:`_Writer`: :func:`write_list
 job's references through the partitioned sort of :mod:`vprscale.method.lists` (bounded
 memory at any scale), :func:`write_arrays` writes lists held in memory (``Index.save``) and
 :func:`upgrade` converts a format-2 directory without refitting. :func:`read_arrays` opens
-any of them. Publishing (hidden work copy, lock, atomic rename) is the caller's.
+any of them. Publishing (hidden work copy, lock, atomic rename) is the caller's. ``index.json``
+is read by :mod:`vprscale.method.indexmeta`, which imports nothing heavy, so that tools that
+only check an index (``vprscale sql``, ``verify``) start fast.
 """
 
 from __future__ import annotations
@@ -39,8 +41,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from vprscale.core.errors import InputError
-from vprscale.core.manifest import check_manifest
 from vprscale.core.progress import ChunkProgress
+from vprscale.method.indexmeta import INDEX_FORMAT, KIND, load_index_meta
 from vprscale.method.invlists import InvertedLists, best_first
 from vprscale.method.kernels import plane_words, planes_into
 from vprscale.method.lists import (
@@ -64,8 +66,6 @@ from vprscale.method.succinct import (
 if TYPE_CHECKING:  # the estimator (and scikit-learn) is imported only to read a model: see read_arrays
     from vprscale.method.coarsehash import CoarseHasher
 
-KIND = "coarsehash-index"
-INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
 MODEL = ("mean", "components", "centres", "explained_variance")
 MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_variance.npy"], "P4": ["mean.npy"]}
 ENGINE_FILES = {"codes": "codes.npy", "ids": "ids.npy", "occupied": "occupied.npy", "starts": "starts.npy"}
@@ -416,35 +416,6 @@ def upgrade(old: Path, out: Path, quiet: bool = False) -> dict[str, Any]:
     meta.update({"format": INDEX_FORMAT, "layout": layout, "occupied": int(layout["occupied"]["count"]),
                  "upgraded_from": 2})
     (out / "index.json").write_text(json.dumps(meta, indent=1, default=str))
-    return meta
-
-
-def load_index_meta(index: str | Path, upgradable: bool = False) -> dict[str, Any]:
-    """``index.json`` of a complete index, or an error naming the directory.
-
-    An index of an older format is refused with what to run; with ``upgradable`` a format-2
-    index (which ``vprscale index --upgrade`` converts) is returned as it is.
-    """
-    p = Path(index)
-    meta_file = p / "index.json"
-    if not meta_file.is_file():
-        raise InputError(f"{p}: not a vprscale index (no index.json)")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
-    if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != KIND:
-        raise InputError(f"{p}: the index is incomplete or of another kind")
-    fmt = meta.get("format", 1)
-    if fmt < 2:
-        raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")
-    if fmt == 2 and not upgradable:
-        raise InputError(f"{p}: an index of format 2 (plain lists, 2-3x larger); convert it without refitting: "
-                         f"vprscale index --upgrade {p}")
-    if fmt > INDEX_FORMAT:
-        raise InputError(f"{p}: index format {fmt} is newer than this vprscale reads ({INDEX_FORMAT}); "
-                         "upgrade vprscale")
-    check_manifest(p)
     return meta
 
 

@@ -1,0 +1,198 @@
+"""The command line as a user meets it: statements of any length, closed pipes, the SQL shell on a
+real terminal (history, Ctrl-C), reports that are not replaced by accident, localise's formats,
+help with defaults and examples, quiet and verbose, and a bug reported in one line."""
+
+from __future__ import annotations
+
+import os
+import pty
+import select
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from vprscale.cli import COMMANDS, main, parser
+
+
+def _vprscale(*argv: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "vprscale.cli", *argv], capture_output=True, text=True, **kw)
+
+
+@pytest.fixture(scope="module")
+def evaluated(tiny_store, tiny_index, tmp_path_factory) -> Path:
+    """A copy of the tiny index with a small evaluation in its eval/ folder."""
+    index = tmp_path_factory.mktemp("cli") / "tiny.index"
+    shutil.copytree(tiny_index, index)
+    assert main(["eval", str(tiny_store), str(index), "--L", "1,20", "--noise", "qm1", "--no-baseline",
+                 "--repeats", "1", "--quiet"]) == 0
+    return index
+
+
+def test_a_statement_longer_than_a_file_name_runs(evaluated):
+    """The last word is a statement when it names nothing on disk, even past 255 bytes (a path of
+    that length makes ``Path.exists`` raise ENAMETOOLONG)."""
+    columns = ", ".join(f"b.size + {i} AS x{i}" for i in range(40))
+    query = (f"SELECT b.hash, {columns}, count(l.ref_id) AS n FROM buckets b JOIN lists l ON l.hash = b.hash "
+             "GROUP BY ALL ORDER BY n DESC, b.hash LIMIT 2")
+    assert len(query) > 600
+    done = _vprscale("sql", str(evaluated), query, "--csv")
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith('"hash","x0"') and len(lines) == 3
+
+
+@pytest.mark.parametrize("argv", [["methods"], ["occupancy", "{index}"], ["results", "{index}"],
+                                  ["results", "{index}", "--queries", "--csv"], ["verify", "{index}"]])
+def test_a_closed_pipe_ends_quietly(evaluated, argv):
+    """``vprscale … | head -1``: exit 0 and nothing on stderr, as git and ripgrep do."""
+    argv = [a.format(index=evaluated) for a in argv]
+    cmd = f"{sys.executable} -m vprscale.cli {' '.join(argv)} | head -c 1; echo \" ${{PIPESTATUS[0]}}\" >&2"
+    done = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True)
+    assert done.stderr.strip().splitlines() == ["0"], done.stderr
+
+
+def _read_until(fd: int, marker: bytes, seconds: float = 60.0) -> bytes:
+    got = b""
+    deadline = time.monotonic() + seconds
+    while marker not in got:
+        left = deadline - time.monotonic()
+        assert left > 0, f"no {marker!r} in {got[-2000:]!r}"
+        ready, _, _ = select.select([fd], [], [], left)
+        if ready:
+            try:
+                chunk = os.read(fd, 65536)
+            except OSError:  # the child closed the terminal
+                break
+            if not chunk:
+                break
+            got += chunk
+    return got
+
+
+@pytest.mark.slow
+def test_the_sql_shell_on_a_terminal(evaluated, tmp_path):
+    """On a pseudo-terminal: an empty line does not quit, Ctrl-C cancels a running statement and the
+    shell goes on, the engine's context lines are shown, history is written, Ctrl-D leaves with 0."""
+    history = tmp_path / "history"
+    env = {**os.environ, "VPRSCALE_SQL_HISTORY": str(history), "COLUMNS": "100"}
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: vprscale on the terminal
+        os.execve(sys.executable, [sys.executable, "-m", "vprscale.cli", "sql", str(evaluated)], env)
+    try:
+        out = _read_until(fd, b"sql> ")
+        os.write(fd, b"\n")
+        out += _read_until(fd, b"sql> ")
+        os.write(fd, b"SELECT count(*) AS n FROM lists a, lists b, lists c, lists d;\n")
+        time.sleep(1.5)
+        os.write(fd, b"\x03")
+        out += _read_until(fd, b"cancelled")
+        out += _read_until(fd, b"sql> ")
+        os.write(fd, b"SELECT nope FROM buckets;\n")
+        out += _read_until(fd, b"sql> ")
+        os.write(fd, b"SELECT 6 * 7 AS answer;\n")
+        out += _read_until(fd, b"(1 rows)")
+        os.write(fd, b"\x04")
+        out += _read_until(fd, b"\x00", 30)
+    finally:
+        _, status = os.waitpid(pid, 0)
+        os.close(fd)
+    text = out.decode(errors="replace")
+    assert os.waitstatus_to_exitcode(status) == 0, text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text
+    assert "cancelled" in text and "42" in text
+    assert 'Referenced column "nope" not found' in text and "Candidate bindings" in text  # the context line
+    assert "SELECT 6 * 7 AS answer;" in history.read_text()
+
+
+def test_report_is_not_replaced_without_force_and_is_kept_with_it(evaluated, tmp_path):
+    out = tmp_path / "rep"
+    assert main(["report", str(evaluated / "eval"), "--out", str(out), "--quiet"]) == 0
+    first = {p.name: p.read_bytes() for p in out.iterdir()}
+    done = _vprscale("report", str(evaluated / "eval"), "--out", str(out))
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        f"vprscale report: error: --out {out}: already holds a report; --force replaces it and keeps it beside, "
+        "in rep.previous/"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == first
+    assert main(["report", str(evaluated / "eval"), "--out", str(out), "--force", "--quiet"]) == 0
+    assert {p.name: p.read_bytes() for p in (tmp_path / "rep.previous").iterdir()} == first
+    assert (out / "report.md").is_file()
+    assert not any(p.name.startswith(".rep.partial") for p in tmp_path.iterdir())
+
+
+def test_report_refuses_a_folder_of_other_files(evaluated, tmp_path):
+    mine = tmp_path / "notes"
+    mine.mkdir()
+    (mine / "report.md").write_text("my own notes\n")
+    done = _vprscale("report", str(evaluated / "eval"), "--out", str(mine), "--force")
+    assert done.returncode == 2 and "holds files that are not a vprscale report" in done.stderr
+    assert (mine / "report.md").read_text() == "my own notes\n"
+
+
+def test_localise_writes_the_format_its_out_names(evaluated, tiny_store, tmp_path):
+    queries = str(tiny_store / "query_qm1")
+    assert main(["localise", str(evaluated), queries, "--L", "20", "--out", str(tmp_path / "m.parquet"), "-q"]) == 0
+    assert main(["localise", str(evaluated), queries, "--L", "20", "--out", str(tmp_path / "m.csv"), "-q"]) == 0
+    table = pd.read_parquet(tmp_path / "m.parquet")
+    assert {str(t) for t in table.dtypes} == {"Int64"}  # nullable integers, not floats with NaN
+    assert table.match.isna().sum() == 19 and table.match.iloc[19:].notna().all()
+    csv = pd.read_csv(tmp_path / "m.csv", dtype="Int64")
+    pd.testing.assert_frame_equal(csv, table)
+    stdout = _vprscale("localise", str(evaluated), queries, "--L", "20", "-q")
+    assert stdout.returncode == 0 and stdout.stdout == (tmp_path / "m.csv").read_text()
+    wrong = _vprscale("localise", str(evaluated), queries, "--out", str(tmp_path / "m.txt"))
+    assert wrong.returncode == 2 and "name a .parquet or .csv file" in wrong.stderr
+    assert not (tmp_path / "m.txt").exists()
+
+
+def test_results_show_method_parameters_and_recall(evaluated):
+    done = _vprscale("results", str(evaluated), "--where", "radius = 20 AND part = 'all'")
+    header = done.stdout.splitlines()[0].split()
+    assert header[:8] == ["scale", "noise", "method", "params", "mode", "L", "part", "radius"]
+    assert "recall" in header and "recall_at_20" in header and "/" not in done.stdout.splitlines()[2]
+
+
+def test_every_command_has_help_with_defaults_and_an_example():
+    top = parser()
+    sub = next(a for a in top._actions if a.dest == "command")
+    assert set(sub.choices) == {c.__name__.rsplit(".", 1)[-1] for c in COMMANDS}
+    for name, p in sub.choices.items():
+        text = p.format_help()
+        assert "examples:\n  vprscale " + name in text, name
+        formatter = p.formatter_class(prog=name)
+        for action in p._actions:
+            if action.option_strings and action.default not in (None, False, [], "==SUPPRESS==") and \
+                    action.dest not in ("help", "version"):
+                assert "default" in (formatter._get_help_string(action) or ""), f"{name} --{action.dest}: no default"
+    assert "(default: 1,50,100)" in sub.choices["eval"].format_help().replace("\n", " ").replace("  ", " ")
+
+
+def test_quiet_prints_no_progress_and_the_library_prints_nothing(tiny_store, tmp_path):
+    done = _vprscale("index", str(tiny_store), "--d", "10", "--out", str(tmp_path / "q.index"), "--quiet")
+    assert done.returncode == 0 and done.stderr == ""
+    loud = _vprscale("index", str(tiny_store), "--d", "10", "--out", str(tmp_path / "l.index"))
+    assert "…" in loud.stderr
+    code = ("import zarr, vprscale; s = zarr.open_group(%r, mode='r'); "
+            "vprscale.Index.build(s['ref'][:20000], d=10).match(s['query_qm1'][:500], L=20)") % str(tiny_store)
+    lib = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert lib.returncode == 0 and lib.stderr == "" and lib.stdout == ""
+
+
+def test_a_bug_is_one_line_and_exit_1(evaluated, monkeypatch, capsys):
+    import vprscale.cli.verify as verify
+
+    def broken(args):
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(verify, "run", broken)
+    assert main(["verify", str(evaluated)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["vprscale verify: internal error: ZeroDivisionError: division by zero (a bug in vprscale; "
+                   "--verbose shows the traceback)"]
+    assert main(["verify", str(evaluated), "--verbose"]) == 1
+    assert "Traceback" in capsys.readouterr().err
