@@ -177,8 +177,8 @@ def test_quiet_prints_no_progress_and_the_library_prints_nothing(tiny_store, tmp
     assert done.returncode == 0 and done.stderr == ""
     loud = _vprscale("index", str(tiny_store), "--d", "10", "--out", str(tmp_path / "l.index"))
     assert "…" in loud.stderr
-    code = ("import zarr, vprscale; s = zarr.open_group(%r, mode='r'); "
-            "vprscale.Index.build(s['ref'][:20000], d=10).match(s['query_qm1'][:500], L=20)") % str(tiny_store)
+    code = (f"import zarr, vprscale; s = zarr.open_group({str(tiny_store)!r}, mode='r'); "
+            "vprscale.Index.build(s['ref'][:20000], d=10).match(s['query_qm1'][:500], L=20)")
     lib = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert lib.returncode == 0 and lib.stderr == "" and lib.stdout == ""
 
