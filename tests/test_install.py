@@ -52,8 +52,9 @@ def _readme_python_example() -> str:
 @pytest.mark.slow
 def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
     """A wheel, built by ``python -m build``, installed into a fresh venv (the dependencies come
-    from this environment): from an empty folder it builds the 20K store, plans the shipped
-    quickstart pipeline by name and runs the README's Python example."""
+    from this environment): from an empty folder it builds, indexes and evaluates the 20K store
+    where the quickstart puts it, plans the shipped quickstart pipeline by name and runs the
+    README's Python example on them."""
     source = tmp_path / "source"  # a copy: building writes build/ and egg-info beside the sources
     shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", "data", "build", "dist", "*.egg-info",
                                                                 "__pycache__", ".*_cache"))
@@ -77,9 +78,13 @@ def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
         return subprocess.run([str(venv / "bin" / "vprscale"), *argv], cwd=work, env=env, capture_output=True,
                               text=True)
 
-    built = vprscale("build", "--scale", "20K", "--out", "data", "--quiet")
-    assert built.returncode == 0, built.stderr
-    assert (work / "data" / "20K.zarr" / "manifest.json").is_file()
+    q = "data/quickstart"  # where the quickstart leaves them, which the README's example reads
+    for argv in (["build", "--scale", "20K", "--out", q], ["index", f"{q}/20K.zarr", "--out", f"{q}/20K-d15-k2.index"],
+                 ["eval", f"{q}/20K.zarr", f"{q}/20K-d15-k2.index", "--L", "1", "--noise", "qm1", "--no-baseline",
+                  "--repeats", "1"]):
+        done = vprscale(*argv, "--quiet")
+        assert done.returncode == 0, done.stderr
+    assert (work / q / "20K.zarr" / "manifest.json").is_file()
     plan = vprscale("run", "quickstart", "--dry-run")
     assert plan.returncode == 0, plan.stderr
     assert "build-20K (build)" in plan.stdout and "report (report)" in plan.stdout

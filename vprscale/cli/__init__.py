@@ -76,11 +76,24 @@ def parser() -> argparse.ArgumentParser:
     return top
 
 
+class _Stderr(logging.StreamHandler):
+    """A handler writing to whatever ``sys.stderr`` is when a record is emitted (a test's capture,
+    a pipeline's redirection), never to a stream that has since been closed."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def configure_logging(level: int) -> None:
     """The library logs under ``vprscale`` and stays silent unless asked; the command line shows
     INFO (progress) on stderr, WARNING and up with ``--quiet``, DEBUG with ``--verbose``."""
     log = logging.getLogger("vprscale")
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _Stderr()
     handler.setFormatter(logging.Formatter("%(message)s"))
     log.handlers[:] = [h for h in log.handlers if isinstance(h, logging.NullHandler)] + [handler]
     log.setLevel(level)

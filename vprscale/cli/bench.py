@@ -14,18 +14,20 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
         summary: argparse.ArgumentParser) -> None:
     p = sub.add_parser("bench", help="benchmark a build, an index, look-ups, an evaluation or the one-shot commands' "
                                      "start-up (prints figures)")
-    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes", "startup"])
+    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes", "startup"],
+                   help="what to benchmark")
     p.add_argument("target", help="build: a scale; index/eval/online/format/codes: a store; lookup, startup: an index")
     p.add_argument("--out", default="data/bench", help="build: output directory")
-    p.add_argument("--deep1b")
-    p.add_argument("--fas")
-    p.add_argument("--d", type=positive_int)
+    p.add_argument("--deep1b", help="build: a Deep1B file (default: synthetic)")
+    p.add_argument("--fas", help="build: a FAS100K .npz (default: synthetic)")
+    p.add_argument("--d", type=positive_int, help="index: hash digits (default ⌈log2 N_ref⌉)")
     p.add_argument("--index", help="eval, online, format: the index to evaluate")
     p.add_argument("--L", type=positive_int, default=100, help="online, codes: sequence length (default 100)")
     p.add_argument("--compare", action="append", metavar="FACTORY",
                    help="codes: a FAISS index_factory string (repeat; default PQ3, OPQ3,PQ3, IVF1024,PQ3)")
     p.add_argument("--places", type=positive_int, help="codes: references encoded (default: all of the store's)")
-    p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
+    p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
+                   help="threads for the job (default: all cores)")
     p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')
     p.set_defaults(func=run)
 

@@ -76,7 +76,7 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         text = action.help or ""
         default = action.default
         if (not action.option_strings or "default" in text.lower() or default in (None, False, [], argparse.SUPPRESS)
-                or isinstance(action, argparse._VersionAction)):
+                or isinstance(action, argparse._VersionAction | argparse._StoreConstAction)):
             return action.help
         shown = ",".join(map(str, default)) if isinstance(default, list | tuple) else str(default)
         return f"{text} (default: {shown.replace('%', '%%')})".lstrip()

@@ -16,8 +16,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--all-columns", action="store_true",
                    help="every column in the table (--csv and --json always have every column)")
     fmt = p.add_mutually_exclusive_group()
-    fmt.add_argument("--csv", dest="format", action="store_const", const="csv", default="table")
-    fmt.add_argument("--json", dest="format", action="store_const", const="json")
+    fmt.add_argument("--csv", dest="format", action="store_const", const="csv", default="table",
+                     help="CSV with a header row")
+    fmt.add_argument("--json", dest="format", action="store_const", const="json", help="one JSON object per row")
     p.add_argument("--timeout", type=positive_float, default=30.0, help="seconds the --where query may run")
     p.add_argument("--memory-limit", default="2GB", help="memory cap of the --where query (default 2GB)")
     p.set_defaults(func=run)

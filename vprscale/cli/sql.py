@@ -18,8 +18,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                    help="an index directory and/or evaluation folders (viewed together, with a run column), then "
                         "one SELECT statement; without it, an interactive shell")
     fmt = p.add_mutually_exclusive_group()
-    fmt.add_argument("--csv", dest="format", action="store_const", const="csv")
-    fmt.add_argument("--json", dest="format", action="store_const", const="json")
+    fmt.add_argument("--csv", dest="format", action="store_const", const="csv", help="CSV with a header row")
+    fmt.add_argument("--json", dest="format", action="store_const", const="json", help="one JSON object per row")
     p.add_argument("--timeout", type=positive_float, default=30.0,
                    help="seconds before a query is stopped (default 30)")
     p.add_argument("--memory-limit", default="2GB", help="DuckDB's memory cap (default 2GB)")

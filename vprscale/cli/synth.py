@@ -13,10 +13,10 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p = sub.add_parser("synth", parents=[summary],
                        help="write synthetic Deep1B (fvecs, fbin) and FAS100K (npz) files")
     p.add_argument("--out", required=True, help="directory to write into")
-    p.add_argument("--deep1b-rows", type=positive_int, default=1_000_000)
+    p.add_argument("--deep1b-rows", type=positive_int, default=1_000_000, help="rows of the Deep1B-like files")
     p.add_argument("--fas-dim", type=bounded_int(MAX_FAS_DIM, "the real FAS100K has 4,096"), default=4096,
                    help="FAS descriptor width (real: 4096)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="the generator's seed: the same seed writes the same bytes")
     p.add_argument("--rows-per-file", type=positive_int, default=None,
                    help="split the fvecs output into base_NN files of this many rows")
     p.set_defaults(func=run, out_is_dir=True)
