@@ -141,6 +141,30 @@ def test_online_matches_index_match_on_every_centre_with_bounded_state(tiny_stor
         assert online.state_bytes == held
 
 
+def test_online_scores_are_the_batch_scores(tiny_store, tiny_index):
+    """With ``return_score``, ``push`` and ``push_many`` give each match the batch's score (the same
+    number, in δ_max units), at L = 1 (quantisation error and the move to an occupied address) and
+    for sequences in both modes; frames that complete no window have none."""
+    import zarr
+
+    idx = Index.load(tiny_index)
+    x = zarr.open_group(tiny_store, mode="r")["query_qm2"][46_000:47_200]
+    for L, mode in ((1, "paper"), (20, "paper"), (50, "aligned")):
+        batch = idx.match(x, L, mode=mode)
+        one = OnlineMatcher(idx, L=L, mode=mode)
+        pushed = [one.push(row, return_score=True) for row in x]
+        assert pushed[: L - 1] == [None] * (L - 1)
+        np.testing.assert_array_equal([m for m, _ in pushed[L - 1 :]], batch.match)
+        np.testing.assert_array_equal([s for _, s in pushed[L - 1 :]], batch.score)
+        many = OnlineMatcher(idx, L=L, mode=mode)
+        parts = [many.push_many(x[a : a + 333], return_score=True) for a in range(0, len(x), 333)]
+        match, _, score = (np.concatenate(p) for p in zip(*parts, strict=True))
+        np.testing.assert_array_equal(match[L - 1 :], batch.match)
+        np.testing.assert_array_equal(score[L - 1 :], batch.score)
+        assert np.isnan(score[: L - 1]).all()
+        assert len(np.unique(score[L - 1 :])) > 10  # scores that tell matches apart, not a constant
+
+
 def test_baseline_nearest_and_candidate_count():
     x = np.array([0.0, 5.0, 1.0, 1.0, 9.0, 2.0])
     np.testing.assert_array_equal(nearest(x, 1.2, 3), [2, 3, 5])

@@ -62,7 +62,7 @@ def _verbosity(p: argparse.ArgumentParser) -> None:
 
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(prog="vprscale", description=DESCRIPTION, formatter_class=HelpFormatter,
-                                  epilog="a fresh machine: vprscale run quickstart (about 3 minutes on 2 cores); "
+                                  epilog="a fresh machine: vprscale run quickstart (a few minutes on 2 cores); "
                                          "vprscale COMMAND --help for each command")
     top.add_argument("--version", action="version", version=_version())
     _verbosity(top)

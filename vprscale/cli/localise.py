@@ -17,8 +17,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
     p.add_argument("--L", type=positive_int, default=100, help="sequence length (default 100)")
     p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
-    p.add_argument("--out", help="a .parquet or .csv file of (frame, centre, match, n_r), one row per frame "
-                                 "(default: CSV on standard output)")
+    p.add_argument("--out", help="a .parquet or .csv file of (frame, centre, match, n_r, score), one row per "
+                                 "frame (default: CSV on standard output)")
     p.set_defaults(func=run, input_flags=INPUTS)
 
 

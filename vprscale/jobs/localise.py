@@ -65,9 +65,10 @@ OUT_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
 
 
 def write_matches(table: pa.Table, where: Any, fmt: str) -> None:
-    """One row per frame as Parquet or CSV. The first L − 1 frames complete no window: their
-    ``centre``, ``match`` and ``n_r`` are null (empty in CSV), and pandas reads the Parquet file's
-    columns as nullable integers (``Int64``), not floats with NaN."""
+    """One row per frame as Parquet or CSV: ``frame``, ``centre``, ``match``, ``n_r`` and ``score``
+    (the matched window's, in δ_max units as the batch reports it; lower is more confident). The
+    first L − 1 frames complete no window: their columns are null (empty in CSV), and pandas reads
+    the Parquet file's integer columns as nullable integers (``Int64``), not floats with NaN."""
     if fmt == "csv":
         pacsv.write_csv(table, where)
         return
@@ -106,6 +107,7 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     lag = centre_lag(L)
     match = np.full(rows, -1, np.int64)
     n_r = np.zeros(rows, np.int64)
+    score = np.full(rows, np.nan)
     progress = None if quiet else ChunkProgress("localise", (rows + READ_ROWS - 1) // READ_ROWS)
     t0 = time.perf_counter()
     u = 0
@@ -113,9 +115,10 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
         bad = np.flatnonzero(~np.isfinite(block).all(axis=1))
         if len(bad):  # a NaN frame would hash to an arbitrary address and be matched
             raise InputError(f"{path}: frame {u + int(bad[0]):,} holds NaN or Inf")
-        got, got_n_r = matcher.push_many(block)  # frame by frame, one call per block
+        got, got_n_r, got_score = matcher.push_many(block, return_score=True)  # frame by frame, one call a block
         done = got >= 0
-        match[u : u + len(block)][done], n_r[u : u + len(block)][done] = got[done], got_n_r[done]
+        at = slice(u, u + len(block))
+        match[at][done], n_r[at][done], score[at][done] = got[done], got_n_r[done], got_score[done]
         u += len(block)
         if progress:
             progress.update(1)
@@ -123,7 +126,8 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     frames = np.arange(rows)
     done = match >= 0
     table = pa.table({"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
-                      "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done)})
+                      "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done),
+                      "score": pa.array(score, mask=~done)})
     if to_stdout:
         sys.stdout.flush()
         write_matches(table, sys.stdout.buffer, "csv")

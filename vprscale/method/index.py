@@ -266,16 +266,21 @@ class Index:
         :class:`Matches`; ``score`` of the best, in δ_max units)."""
         pos = np.asarray(pos, np.int64)
         if L == 1:  # the frame's own list, decoded with the per-frame work: its best first
-            w, tables, dmax = self.delta_tables()
-            span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
-            err = np.zeros(len(pos)) if qf.errors is None else np.asarray(qf.errors)[pos].astype(np.float64)
-            moved = address_delta(qf.hashes[pos], qf.taken[pos], w, tables, self.d, self.k)
-            score = err / span + moved / float(dmax)
+            err = None if qf.errors is None else np.asarray(qf.errors)[pos]
+            score = self.single_scores(qf.hashes[pos], qf.taken[pos], err)
             return frame_top(qf.start, qf.stop, qf.ids, pos, n_best), score, qf.stop[pos] - qf.start[pos]
         args = self.kernel_args()  # (…, δ_max) last
         top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, n_best,
                                        numba.get_num_threads())
         return top, scores[:, 0] / float(args[-1]), n_r
+
+    def single_scores(self, h: np.ndarray, taken: np.ndarray, errors: np.ndarray | None) -> np.ndarray:
+        """L = 1 scores, in δ_max units: the frame's quantisation error (over the centres' span;
+        0 where unknown) plus the distance from its own address to the occupied one it took."""
+        w, tables, dmax = self.delta_tables()
+        span = float((self.centres[:, -1] - self.centres[:, 0]).sum())
+        err = np.zeros(len(h)) if errors is None else np.asarray(errors, np.float64)
+        return err / span + address_delta(h, taken, w, tables, self.d, self.k) / float(dmax)
 
     def warm(self) -> Index:
         """Hold the directory (occupied addresses, list starts: well under a byte per place) and

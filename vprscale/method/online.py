@@ -41,7 +41,10 @@ class OnlineMatcher:
 
     ``push(descriptor)`` returns the match of the window the frame completes (None for the
     first L − 1 frames); ``n_r`` is then that window's number of candidates. With L = 1 the
-    match is the single best of the frame's address, as in the batch evaluation.
+    match is the single best of the frame's address, as in the batch evaluation. With
+    ``return_score=True`` each match comes with its score, the batch's ``Matches.score`` (the
+    matched window's score in δ_max units; lower is more confident), so a live user can
+    threshold it.
     """
 
     def __init__(self, index: Index, L: int, mode: str = "paper") -> None:
@@ -65,10 +68,15 @@ class OnlineMatcher:
                       planes, gaps, masks, w, tables, d, k, dmax)
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
 
-    def push(self, descriptor: np.ndarray) -> int | None:
-        """Add one query frame; the match of the window it completes (None until L frames)."""
-        h = self.index.hash_queries(np.asarray(descriptor, np.float32).reshape(1, -1))
-        return self.push_address(int(h[0]))
+    def push(self, descriptor: np.ndarray, return_score: bool = False) -> int | tuple[int, float] | None:
+        """Add one query frame; the match of the window it completes (None until L frames), and
+        its score with ``return_score``."""
+        h, err = self.index.hash_frames(np.asarray(descriptor, np.float32).reshape(1, -1))
+        match, n_r, score = self._advance(h, err)
+        if match[0] < 0:
+            return None
+        self.n_r = int(n_r[0])
+        return (int(match[0]), float(score[0])) if return_score else int(match[0])
 
     def push_address(self, h: int) -> int | None:
         """Add one query frame given its own address (already hashed)."""
@@ -78,20 +86,32 @@ class OnlineMatcher:
         self.n_r = int(n_r[0])
         return int(match[0])
 
-    def push_many(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def push_many(self, descriptors: np.ndarray, return_score: bool = False) -> tuple[np.ndarray, ...]:
         """Add consecutive query frames (rows); ``(match, n_r)`` of the window each completes
-        (−1 and 0 for the first L − 1 frames): what :meth:`push` answers frame by frame, with
-        the hashing and the Python call done once for the block."""
-        return self.push_addresses(self.index.hash_queries(np.asarray(descriptors, np.float32)))
+        (−1 and 0 for the first L − 1 frames), and ``score`` (NaN there) with ``return_score``:
+        what :meth:`push` answers frame by frame, with the hashing and the Python call done once
+        for the block."""
+        h, err = self.index.hash_frames(np.asarray(descriptors, np.float32))
+        match, n_r, score = self._advance(h, err)
+        return (match, n_r, score) if return_score else (match, n_r)
 
-    def push_addresses(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`push_many` for frames given by their own addresses (already hashed)."""
+    def push_addresses(self, h: np.ndarray, return_score: bool = False) -> tuple[np.ndarray, ...]:
+        """:meth:`push_many` for frames given by their own addresses (already hashed; an L = 1
+        score then counts no quantisation error, as the batch's without errors)."""
+        match, n_r, score = self._advance(np.asarray(h, np.uint64), None)
+        return (match, n_r, score) if return_score else (match, n_r)
+
+    def _advance(self, h: np.ndarray, errors: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frames in, ``(match, n_r, score)`` out: scores in δ_max units, as the batch's."""
         h = np.asarray(h, np.uint64)
         if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
             lists = self.index.lists
-            return heads(lists.starts_args(), lists.ids, lists.id_bits, lists.nearest(h)[0])
-        return _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots, self.L,
-                      self.mode == "aligned", self._fast, *self._args)
+            slots, taken = lists.nearest(h)
+            match, n_r = heads(lists.starts_args(), lists.ids, lists.id_bits, slots)
+            return match, n_r, self.index.single_scores(h, taken, errors)
+        match, n_r, units = _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
+                                   self.L, self.mode == "aligned", self._fast, *self._args)
+        return match, n_r, np.where(match >= 0, units / float(self._args[-1]), np.nan)
 
     @property
     def state_bytes(self) -> int:
@@ -104,14 +124,17 @@ def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarra
            cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, occ: tuple, starts: tuple,
            ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int,
            planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
-           k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_step` for each address of ``hs`` in turn."""
+           k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_step` for each address of ``hs`` in turn: match, N_r and the match's score in
+    fixed-point units."""
     match = np.empty(hs.shape[0], np.int64)
     n_r = np.empty(hs.shape[0], np.int64)
+    units = np.empty(hs.shape[0], np.int64)
     for i in range(hs.shape[0]):
-        match[i], n_r[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, L, aligned, fast, occ, starts, ids,
-                                 id_bits, codes, code_bits, n_ref, planes, gaps, masks, w, tables, d, k, dmax)
-    return match, n_r
+        match[i], n_r[i], units[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, L, aligned, fast, occ,
+                                           starts, ids, id_bits, codes, code_bits, n_ref, planes, gaps, masks, w,
+                                           tables, d, k, dmax)
+    return match, n_r, units
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
@@ -119,8 +142,9 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
           cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, occ: tuple, starts: tuple,
           ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int,
           planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
-          k: int, dmax: np.int64) -> tuple[np.int64, np.int64]:
-    """One frame: its list into the window, then the window's match (−1 until L frames)."""
+          k: int, dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
+    """One frame: its list into the window, then the window's match (−1 until L frames), its N_r
+    and its score (fixed point)."""
     one = np.empty(1, np.uint64)
     one[0] = h
     a = nearest_slots(occ, one)[0][0]
@@ -141,7 +165,7 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
     st[3] = (slot + 1) % L
     st[0] += 1
     if st[0] < L:
-        return np.int64(-1), np.int64(0)
+        return np.int64(-1), np.int64(0), np.int64(0)
     # The window, oldest frame first: its addresses, list bounds and bit planes.
     half = L // 2
     q_hash = np.empty(L, np.uint64)
@@ -174,4 +198,4 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
                              best_s + 1)
         if s < best_s or (s == best_s and c < best):
             best_s, best = s, c
-    return best, np.int64(n_r)
+    return best, np.int64(n_r), np.int64(best_s)
