@@ -49,6 +49,19 @@ def _readme_python_example() -> str:
     return blocks[0]
 
 
+def _readme_what_next() -> list[str]:
+    """The shell lines of the README's "What next" (its one interactive line left out), in order."""
+    part = (ROOT / "README.md").read_text().split("## What next", 1)[1].split("\n## ", 1)[0]
+    lines = [line.split("  #")[0].strip() for block in re.findall(r"```bash\n(.*?)```", part, re.S)
+             for line in block.strip().splitlines()]
+    return [line for line in lines if line and not re.fullmatch(r"vprscale sql \$I", line)]
+
+
+def _byo_inputs() -> str:
+    """docs/bring-your-own.md's numpy that makes a traverse pair (what the README's step 3 reads)."""
+    return re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "bring-your-own.md").read_text(), re.S)[0]
+
+
 @pytest.mark.slow
 def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
     """A wheel, built by ``python -m build``, installed into a fresh venv (the dependencies come
@@ -91,3 +104,11 @@ def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
     example = subprocess.run([str(python), "-c", _readme_python_example()], cwd=work, env=env, capture_output=True,
                              text=True)
     assert example.returncode == 0, example.stderr[-3000:]
+    made = subprocess.run([str(python), "-c", _byo_inputs()], cwd=work, env=env, capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    shell_env = {**env, "PATH": f"{venv / 'bin'}:{env.get('PATH', '')}"}
+    lines = _readme_what_next()
+    assert any(line.startswith("vprscale results") for line in lines) and any("--compare PQ2" in x for x in lines)
+    done = subprocess.run(["bash", "-ec", "\n".join(lines)], cwd=work, env=shell_env, capture_output=True, text=True)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert (work / "runs" / "mine" / "results.parquet").is_file()

@@ -15,7 +15,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
         summary: argparse.ArgumentParser) -> None:
     p = sub.add_parser("build", parents=[cluster, summary],
                        help="build a localisation dataset (docs/dataset.md) into <out>/<scale>.zarr")
-    p.add_argument("--scale", help="20K, 1M, 10M, 100M, 1B or a recipe .toml")
+    p.add_argument("--scale", help="20K, 1M, 10M, 100M, 1B or a recipe .toml (no default: give a scale, or --ref, "
+                                   "--query and --gt for your own descriptors)")
     own = p.add_argument_group("your own descriptors (docs/bring-your-own.md), instead of --scale")
     own.add_argument("--ref", help="reference rows: .npy, .fbin or fvecs")
     own.add_argument("--query", action="append", default=[], metavar="NAME=PATH",
