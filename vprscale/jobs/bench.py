@@ -154,13 +154,13 @@ def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
     return "\n".join(lines)
 
 
-def bench_online(store: str, index: str, L: int, frames: int = 3000) -> str:
-    """Online matching against the batch kernel on the same frames, interleaved in one process.
+def bench_online(store: str, index: str, L: int, frames: int = 3000, repeats: int = 5) -> str:
+    """Online matching against the batch on the same frames, in one process, paper and aligned.
 
-    The per-frame cost of :class:`~vprscale.method.online.OnlineMatcher` (hashing included) and
-    the batch's per query per core (its per-frame work included), over a traverse of
-    ``frames`` consecutive query frames from the middle of the store; the matches are checked
-    equal. Interleaving the two in one process keeps the machine's drift out of the ratio.
+    Per frame, the CPU time of this thread: ``push`` frame by frame (each push timed on its own:
+    median and p99 over every frame of every repeat), ``push_many`` over the whole traverse, and
+    the batch's ``Index.match`` on one thread, per query; hashing and per-frame work included in
+    all three. The matches are checked equal; the ratios are of medians from this run.
     """
     import numba
     import zarr
@@ -173,23 +173,42 @@ def bench_online(store: str, index: str, L: int, frames: int = 3000) -> str:
     start = max(0, q.shape[0] // 2 - frames // 2)
     x = q[start : start + frames]
     _ = idx.planes
-    warm = OnlineMatcher(idx, L)
-    for row in x[: L + 10]:
-        warm.push(row)
-    idx.match(x[: L + 10], L)
-    lines = []
-    for rep in range(3):
-        online = OnlineMatcher(idx, L)
-        t0 = time.perf_counter()
-        got = [online.push(row) for row in x]
-        t_online = (time.perf_counter() - t0) / len(x)
-        t0 = time.perf_counter()
-        found = idx.match(x, L)
-        match, n_r = found.match, found.n_r
-        t_batch = (time.perf_counter() - t0) * numba.get_num_threads() / len(match)
-        if not np.array_equal(np.array(got[L - 1 :], dtype=np.int64), match):
-            raise SystemExit("bench online: the online matches differ from the batch")
-        lines.append(f"  run {rep + 1}: online {t_online * 1e6:.1f} µs per frame, batch {t_batch * 1e6:.1f} µs per "
-                     f"query per core; online / batch {t_online / t_batch:.2f}; N_r mean {n_r.mean():.0f}; "
-                     f"state {online.state_bytes / 1e3:.0f} kB")
-    return f"online matching, {idx.n_ref:,} places, L = {L}, {len(x):,} frames\n" + "\n".join(lines)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    lines = [f"online matching, {idx.n_ref:,} places, L = {L}, {len(x):,} frames, CPU time of one thread, "
+             f"{repeats} repeats"]
+    try:
+        for mode in ("paper", "aligned") if L > 1 else ("paper",):
+            warm = OnlineMatcher(idx, L, mode)
+            warm.push_many(x[: L + 10])
+            for row in x[: L + 10]:
+                warm.push(row)
+            idx.match(x[: L + 10], L, mode=mode)
+            each: list[float] = []
+            many, batch = [], []
+            for _ in range(repeats):
+                online = OnlineMatcher(idx, L, mode)
+                got = []
+                for row in x:
+                    t0 = time.thread_time_ns()
+                    got.append(online.push(row))
+                    each.append(time.thread_time_ns() - t0)
+                blocks = OnlineMatcher(idx, L, mode)
+                t0 = time.thread_time_ns()
+                block_match, _ = blocks.push_many(x)
+                many.append((time.thread_time_ns() - t0) / len(x))
+                t0 = time.thread_time_ns()
+                found = idx.match(x, L, mode=mode)
+                batch.append((time.thread_time_ns() - t0) / len(found.match))
+                if not (np.array_equal(np.array(got[L - 1 :], dtype=np.int64), found.match)
+                        and np.array_equal(block_match[L - 1 :], found.match)):
+                    raise SystemExit("bench online: the online matches differ from the batch")
+            push, p99 = float(np.median(each)) / 1e3, float(np.percentile(each, 99)) / 1e3
+            many_us, batch_us = float(np.median(many)) / 1e3, float(np.median(batch)) / 1e3
+            lines.append(f"  {mode:<8} push {push:.2f} µs a frame (p99 {p99:.2f}), push_many {many_us:.2f} µs a "
+                         f"frame, batch {batch_us:.2f} µs a query; push / batch {push / batch_us:.2f}, "
+                         f"push / push_many {push / many_us:.2f}; N_r mean {found.n_r.mean():.0f}; "
+                         f"state {online.state_bytes / 1e3:.0f} kB")
+    finally:
+        numba.set_num_threads(threads)
+    return "\n".join(lines)

@@ -64,15 +64,15 @@ class OnlineMatcher:
             slots *= 2
         self._slots = np.empty(slots, np.int64)
         lists = index.lists
-        self._args = (lists.occupied_args(), lists.starts_args(), lists.ids, lists.id_bits, codes, code_bits, n_ref,
-                      planes, gaps, masks, w, tables, d, k, dmax)
+        self._args = _plain((lists.occupied_args(), lists.starts_args(), lists.ids, lists.id_bits, codes, code_bits,
+                             n_ref, planes, gaps, masks, w, tables, d, k, dmax))
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
 
     def push(self, descriptor: np.ndarray, return_score: bool = False) -> int | tuple[int, float] | None:
         """Add one query frame; the match of the window it completes (None until L frames), and
         its score with ``return_score``."""
         h, err = self.index.hash_frames(np.asarray(descriptor, np.float32).reshape(1, -1))
-        match, n_r, score = self._advance(h, err)
+        match, n_r, score = self._advance(h, err, return_score)
         if match[0] < 0:
             return None
         self.n_r = int(n_r[0])
@@ -92,23 +92,25 @@ class OnlineMatcher:
         what :meth:`push` answers frame by frame, with the hashing and the Python call done once
         for the block."""
         h, err = self.index.hash_frames(np.asarray(descriptors, np.float32))
-        match, n_r, score = self._advance(h, err)
+        match, n_r, score = self._advance(h, err, return_score)
         return (match, n_r, score) if return_score else (match, n_r)
 
     def push_addresses(self, h: np.ndarray, return_score: bool = False) -> tuple[np.ndarray, ...]:
         """:meth:`push_many` for frames given by their own addresses (already hashed; an L = 1
         score then counts no quantisation error, as the batch's without errors)."""
-        match, n_r, score = self._advance(np.asarray(h, np.uint64), None)
+        match, n_r, score = self._advance(np.asarray(h, np.uint64), None, return_score)
         return (match, n_r, score) if return_score else (match, n_r)
 
-    def _advance(self, h: np.ndarray, errors: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The frames in, ``(match, n_r, score)`` out: scores in δ_max units, as the batch's."""
+    def _advance(self, h: np.ndarray, errors: np.ndarray | None,
+                 scores: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The frames in, ``(match, n_r, score)`` out: scores in δ_max units, as the batch's (at
+        L = 1 computed only when asked for; for sequences the step finds them anyway)."""
         h = np.asarray(h, np.uint64)
         if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
             lists = self.index.lists
             slots, taken = lists.nearest(h)
             match, n_r = heads(lists.starts_args(), lists.ids, lists.id_bits, slots)
-            return match, n_r, self.index.single_scores(h, taken, errors)
+            return match, n_r, self.index.single_scores(h, taken, errors) if scores else None
         match, n_r, units = _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
                                    self.L, self.mode == "aligned", self._fast, *self._args)
         return match, n_r, np.where(match >= 0, units / float(self._args[-1]), np.nan)
@@ -117,6 +119,16 @@ class OnlineMatcher:
     def state_bytes(self) -> int:
         """Bytes held between frames: fixed at construction, whatever the length of the stream."""
         return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots))
+
+
+def _plain(value):
+    """Memory-mapped arrays as plain ndarray views of the same pages (nothing copied): numba types
+    an ndarray subclass on its slow path, and a push pays that on every call."""
+    if isinstance(value, np.ndarray):
+        return value.view(np.ndarray)
+    if isinstance(value, tuple):
+        return tuple(_plain(v) for v in value)
+    return value
 
 
 @numba.njit(cache=True, nogil=True)
