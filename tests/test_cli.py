@@ -57,22 +57,51 @@ def test_a_closed_pipe_ends_quietly(evaluated, argv):
     assert done.stderr.strip().splitlines() == ["0"], done.stderr
 
 
-def _read_until(fd: int, marker: bytes, seconds: float = 60.0) -> bytes:
-    got = b""
+class _Terminal:
+    """The master side of a pseudo-terminal: ``expect`` reads until a marker and keeps what came
+    after it for the next ``expect``; ``seen`` is everything read."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd, self.pending, self.seen = fd, b"", b""
+
+    def _read(self, left: float) -> bytes | None:
+        """What the child wrote next (b"" once it closed the terminal; None: nothing yet)."""
+        if not select.select([self.fd], [], [], left)[0]:
+            return None
+        try:
+            chunk = os.read(self.fd, 65536)
+        except OSError:  # the child closed the terminal
+            chunk = b""
+        self.pending += chunk
+        self.seen += chunk
+        return chunk
+
+    def expect(self, marker: bytes, seconds: float = 60.0) -> None:
+        deadline = time.monotonic() + seconds
+        while marker not in self.pending:
+            left = deadline - time.monotonic()
+            assert left > 0, f"no {marker!r} in {self.seen[-2000:]!r}"
+            assert self._read(left) != b"", f"the terminal closed before {marker!r}: {self.seen[-2000:]!r}"
+        self.pending = self.pending.split(marker, 1)[1]
+
+    def closed(self, seconds: float = 30.0) -> None:
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            if self._read(left) == b"":
+                return
+        raise AssertionError(f"the terminal is still open: {self.seen[-2000:]!r}")
+
+
+def _reap(pid: int, seconds: float = 20.0) -> int:
+    """The child's wait status; a child still running after ``seconds`` is killed first."""
     deadline = time.monotonic() + seconds
-    while marker not in got:
-        left = deadline - time.monotonic()
-        assert left > 0, f"no {marker!r} in {got[-2000:]!r}"
-        ready, _, _ = select.select([fd], [], [], left)
-        if ready:
-            try:
-                chunk = os.read(fd, 65536)
-            except OSError:  # the child closed the terminal
-                break
-            if not chunk:
-                break
-            got += chunk
-    return got
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            return status
+        time.sleep(0.1)
+    os.kill(pid, 9)
+    return os.waitpid(pid, 0)[1]
 
 
 @pytest.mark.slow
@@ -84,25 +113,28 @@ def test_the_sql_shell_on_a_terminal(evaluated, tmp_path):
     pid, fd = pty.fork()
     if pid == 0:  # the child: vprscale on the terminal
         os.execve(sys.executable, [sys.executable, "-m", "vprscale.cli", "sql", str(evaluated)], env)
+    term = _Terminal(fd)
     try:
-        out = _read_until(fd, b"sql> ")
+        term.expect(b"sql> ")
         os.write(fd, b"\n")
-        out += _read_until(fd, b"sql> ")
+        term.expect(b"sql> ")
         os.write(fd, b"SELECT count(*) AS n FROM lists a, lists b, lists c, lists d;\n")
         time.sleep(1.5)
         os.write(fd, b"\x03")
-        out += _read_until(fd, b"cancelled")
-        out += _read_until(fd, b"sql> ")
+        term.expect(b"cancelled")
+        term.expect(b"sql> ")
         os.write(fd, b"SELECT nope FROM buckets;\n")
-        out += _read_until(fd, b"sql> ")
+        term.expect(b"sql> ")
         os.write(fd, b"SELECT 6 * 7 AS answer;\n")
-        out += _read_until(fd, b"(1 rows)")
+        term.expect(b"(1 rows)")
+        term.expect(b"sql> ")
+        time.sleep(0.5)  # readline has the terminal now: Ctrl-D on an empty line is the end of input
         os.write(fd, b"\x04")
-        out += _read_until(fd, b"\x00", 30)
+        term.closed()
     finally:
-        _, status = os.waitpid(pid, 0)
+        status = _reap(pid)
         os.close(fd)
-    text = out.decode(errors="replace")
+    text = term.seen.decode(errors="replace")
     assert os.waitstatus_to_exitcode(status) == 0, text
     assert "Traceback" not in text and "KeyboardInterrupt" not in text
     assert "cancelled" in text and "42" in text
