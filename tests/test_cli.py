@@ -231,3 +231,31 @@ def test_a_bug_is_one_line_and_exit_1(evaluated, monkeypatch, capsys):
                    "--verbose shows the traceback)"]
     assert main(["verify", str(evaluated), "--verbose"]) == 1
     assert "Traceback" in capsys.readouterr().err
+
+
+def test_an_output_over_an_own_data_input_is_refused(tmp_path, capsys):
+    """The own-data flags are inputs too: --summary (or --out) over --ref, a --query file or --gt is
+    one line, and the file is left as it was."""
+    import numpy as np
+
+    rows = np.random.default_rng(0).normal(size=(300, 8)).astype(np.float32)
+    for name in ("ref", "day"):
+        np.save(tmp_path / f"{name}.npy", rows)
+    np.save(tmp_path / "gt.npy", np.arange(300))
+    before = (tmp_path / "day.npy").read_bytes()
+    argv = ["build", "--ref", str(tmp_path / "ref.npy"), "--query", f"day={tmp_path / 'day.npy'}", "--gt",
+            str(tmp_path / "gt.npy"), "--out", str(tmp_path / "data")]
+    assert main([*argv, "--summary", str(tmp_path / "day.npy")]) == 2
+    assert capsys.readouterr().err.strip() == (f"vprscale build: error: --summary {tmp_path / 'day.npy'}: would "
+                                               f"write over the input {tmp_path / 'day.npy'} (--query)")
+    assert (tmp_path / "day.npy").read_bytes() == before
+    assert main([*argv, "--summary", str(tmp_path / "gt.npy")]) == 2
+    assert "(--gt)" in capsys.readouterr().err
+
+
+def test_a_method_that_is_not_a_class_is_never_called(evaluated, tiny_store, capsys):
+    assert main(["eval", str(tiny_store), str(evaluated), "--method", "os:system", "--L", "1", "--noise", "qm1",
+                 "--no-baseline", "--out", str(evaluated.parent / "never")]) == 2
+    assert capsys.readouterr().err.strip() == ("vprscale eval: error: --method os:system: os.system is a "
+                                               "builtin_function_or_method, not a class (docs/bring-your-own.md)")
+    assert not (evaluated.parent / "never").exists()

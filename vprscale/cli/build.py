@@ -8,7 +8,7 @@ from pathlib import Path
 from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_int, write_summary
 from vprscale.core.errors import InputError
 
-INPUTS = ('deep1b', 'fas', 'scale')  # the flags naming what it reads: no output may be written over them
+INPUTS = ('deep1b', 'fas', 'scale', 'ref', 'query', 'gt', 'part')  # what it reads: no output may be written over them
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,

@@ -100,6 +100,8 @@ def _flag_paths(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[st
     for name in names:
         value = getattr(args, name, None)
         for v in value if isinstance(value, list) else [value]:
+            if name == "query" and isinstance(v, str):  # NAME=PATH
+                v = v.partition("=")[2]
             if isinstance(v, str) and v and (name != "scale" or Path(v).suffix == ".toml"):
                 found.append((name, Path(v)))
     return found

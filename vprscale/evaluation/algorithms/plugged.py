@@ -56,9 +56,16 @@ def load_method(spec: str, installed: dict[str, str] | None = None) -> tuple[str
     if not module or not attr:
         raise InputError(f"--method {spec}: give package.module:Class, or the name of an installed method")
     try:
-        method = getattr(importlib.import_module(module), attr)()
+        cls = getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError) as exc:
         raise InputError(f"--method {spec}: cannot be loaded ({exc})") from None
+    if not isinstance(cls, type):  # never call an arbitrary function (os:system) to make a method
+        raise InputError(f"--method {spec}: {module}.{attr} is a {type(cls).__name__}, not a class "
+                         "(docs/bring-your-own.md)")
+    try:
+        method = cls()
+    except Exception as exc:  # noqa: BLE001 - the user's constructor: its failure is the input's
+        raise InputError(f"--method {spec}: {attr}() failed ({type(exc).__name__}: {exc})") from None
     missing = [m for m in ("fit", "query") if not callable(getattr(method, m, None))]
     if missing:
         raise InputError(f"--method {spec}: {type(method).__name__} has no {' or '.join(missing)} method "
