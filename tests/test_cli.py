@@ -259,3 +259,17 @@ def test_a_method_that_is_not_a_class_is_never_called(evaluated, tiny_store, cap
     assert capsys.readouterr().err.strip() == ("vprscale eval: error: --method os:system: os.system is a "
                                                "builtin_function_or_method, not a class (docs/bring-your-own.md)")
     assert not (evaluated.parent / "never").exists()
+
+
+def test_synth_does_not_write_over_a_dataset_without_force(tmp_path, capsys):
+    """``DIR/Deep1B/base.fbin`` is the real dataset's own name: synthetic rows never silently replace it."""
+    real = tmp_path / "Deep1B" / "base.fbin"
+    real.parent.mkdir(parents=True)
+    real.write_bytes(b"the real one")
+    argv = ["synth", "--out", str(tmp_path), "--deep1b-rows", "100", "--fas-dim", "16"]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip() == (f"vprscale synth: error: --out {tmp_path}: already holds {real}; "
+                                               "--force replaces the synthetic files there (or give another --out)")
+    assert real.read_bytes() == b"the real one" and not (tmp_path / "FAS").exists()
+    assert main([*argv, "--force", "--quiet"]) == 0
+    assert real.stat().st_size == 8 + 4 * 100 * 96

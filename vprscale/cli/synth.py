@@ -19,6 +19,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--seed", type=int, default=0, help="the generator's seed: the same seed writes the same bytes")
     p.add_argument("--rows-per-file", type=positive_int, default=None,
                    help="split the fvecs output into base_NN files of this many rows")
+    p.add_argument("--force", action="store_true",
+                   help="write over Deep1B/… and FAS/… files already in --out (refused without it)")
     p.set_defaults(func=run, out_is_dir=True)
 
 
@@ -26,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     from vprscale.dataset.synth import write_synthetic
 
     paths = write_synthetic(Path(args.out), args.deep1b_rows, args.fas_dim, args.seed,
-                            rows_per_file=args.rows_per_file)
+                            rows_per_file=args.rows_per_file, force=args.force)
     for p in paths:
         print(p)
     write_summary(args, {"dir": args.out, "fvecs": str(paths[0].parent), "fbin": str(paths[-2]),

@@ -420,8 +420,9 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
     p = stage.params
     cluster = ["--scheduler", scheduler] if scheduler else ["--workers", str(pipe.workers)]
     if stage.kind == "synth":
+        # --force: the stage's own folder, which the pipeline decided is out of date
         return ["synth", "--out", str(pipe.out / stage.name), "--deep1b-rows", str(p["deep1b_rows"]),
-                "--fas-dim", str(p.get("fas_dim", 4096)), "--seed", str(p.get("seed", 0))]
+                "--fas-dim", str(p.get("fas_dim", 4096)), "--seed", str(p.get("seed", 0)), "--force"]
     if stage.kind == "build":
         src = outputs.get(p.get("source", ""), {})
         cmd = ["build", "--scale", p["scale"], "--out", str(pipe.out), "--force",
