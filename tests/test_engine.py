@@ -165,6 +165,26 @@ def test_online_scores_are_the_batch_scores(tiny_store, tiny_index):
         assert len(np.unique(score[L - 1 :])) > 10  # scores that tell matches apart, not a constant
 
 
+def test_push_and_push_many_share_one_stream(tiny_store, tiny_index):
+    """Frames pushed one at a time and in blocks, interleaved, are one traverse: the batch's
+    matches; a frame of another width is refused and changes nothing."""
+    import zarr
+
+    idx = Index.load(tiny_index)
+    x = zarr.open_group(tiny_store, mode="r")["query_qm1"][47_000:47_600]
+    for L in (1, 30):
+        online = OnlineMatcher(idx, L=L, mode="aligned")
+        got = []
+        for a in range(0, len(x), 50):
+            if a % 100:
+                got += list(online.push_many(x[a : a + 50])[0])
+            else:
+                got += [-1 if m is None else m for m in (online.push(row) for row in x[a : a + 50])]
+            with pytest.raises(ValueError, match="a query frame of 95 features; this index hashes frames of 96"):
+                online.push(x[a, :95])
+        np.testing.assert_array_equal(got[L - 1 :], idx.match(x, L, mode="aligned").match)
+
+
 def test_baseline_nearest_and_candidate_count():
     x = np.array([0.0, 5.0, 1.0, 1.0, 9.0, 2.0])
     np.testing.assert_array_equal(nearest(x, 1.2, 3), [2, 3, 5])

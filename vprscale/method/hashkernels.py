@@ -129,20 +129,36 @@ def hash_rows(x: np.ndarray, mean: np.ndarray, w: np.ndarray, centres: np.ndarra
         _project_block(x, start, rows, mean, w, tile)
         for r in range(rows):
             i = start + r
-            acc = tile[r]
-            addr = np.uint64(0)
-            e = 0.0
+            h[i], err[i] = _quantise(tile[r], centres, k, base, codes[i])
             for j in range(d):
-                best = abs(acc[j] - centres[j, 0])
-                code = 0
-                for level in range(1, k):
-                    dist = abs(acc[j] - centres[j, level])
-                    if dist < best:  # strict: a tie keeps the smaller level
-                        best, code = dist, level
-                codes[i, j] = code
-                counts[j, code] += 1
-                addr = addr * base + np.uint64(code)
-                e += best
-            h[i] = addr
-            err[i] = e
+                counts[j, codes[i, j]] += 1
     return codes, h, err, counts
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _quantise(acc: np.ndarray, centres: np.ndarray, k: int, base: np.uint64,
+              codes: np.ndarray) -> tuple[np.uint64, float]:
+    """One projected row's codes (into ``codes``), address and quantisation error."""
+    addr = np.uint64(0)
+    e = 0.0
+    for j in range(acc.shape[0]):
+        best = abs(acc[j] - centres[j, 0])
+        code = 0
+        for level in range(1, k):
+            dist = abs(acc[j] - centres[j, level])
+            if dist < best:  # strict: a tie keeps the smaller level
+                best, code = dist, level
+        codes[j] = code
+        addr = addr * base + np.uint64(code)
+        e += best
+    return addr, e
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def hash_one(x: np.ndarray, i: int, mean: np.ndarray, w: np.ndarray, centres: np.ndarray, acc: np.ndarray,
+             codes: np.ndarray) -> tuple[np.uint64, float]:
+    """Row ``i``'s address and quantisation error, the bits :func:`hash_rows` gives it (the same
+    projection, column by column, and the same quantisation), with no array made: what a live
+    frame costs. ``acc`` and ``codes`` are scratch of d values."""
+    _project_row(x, i, mean, w, acc)
+    return _quantise(acc, centres, centres.shape[1], np.uint64(centres.shape[1]), codes)

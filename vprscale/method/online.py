@@ -10,16 +10,26 @@ query costs, without the batch's sort.
 State is O(L + N_r): a ring of the last L frames' addresses and list lengths, their lists
 in one sliding buffer, and scratch space for the candidates; nothing grows with the length
 of the stream.
+
+A frame pushed alone costs what a batched query costs only if the call itself is cheap: numba
+types and unboxes every argument of every call (about 0.1 µs an array, more for a tuple), and a
+step reads some twenty arrays. So the matcher holds them in one struct (:class:`_Engine`, a
+numba ``StructRef``, unboxed as one pointer), and :func:`_push` hashes the frame (the batch's
+own kernel, row by row: the same bits) and steps in a single compiled call.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+from numba.core import types
+from numba.experimental import structref
 
+from vprscale.method.hashkernels import hash_one
 from vprscale.method.index import Index
 from vprscale.method.invlists import heads, list_span, nearest_slots
 from vprscale.method.kernels import (
+    delta,
     score_planes,
     score_window,
     set_bit,
@@ -67,16 +77,25 @@ class OnlineMatcher:
         self._args = _plain((lists.occupied_args(), lists.starts_args(), lists.ids, lists.id_bits, codes, code_bits,
                              n_ref, planes, gaps, masks, w, tables, d, k, dmax))
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
+        centres = np.ascontiguousarray(index.centres, np.float64)
+        self._dim = int(index.components.shape[1])
+        self._engine = _Engine(np.ascontiguousarray(index.mean, np.float64),
+                               np.ascontiguousarray(index.components.T, np.float64), centres,
+                               np.empty(d), np.empty(d, np.uint8), float((centres[:, -1] - centres[:, 0]).sum()),
+                               self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
+                               self.L, self.mode == "aligned", self._fast, *self._args)
 
     def push(self, descriptor: np.ndarray, return_score: bool = False) -> int | tuple[int, float] | None:
         """Add one query frame; the match of the window it completes (None until L frames), and
         its score with ``return_score``."""
-        h, err = self.index.hash_frames(np.asarray(descriptor, np.float32).reshape(1, -1))
-        match, n_r, score = self._advance(h, err, return_score)
-        if match[0] < 0:
+        x = np.asarray(descriptor, np.float32).reshape(1, -1)
+        if x.shape[1] != self._dim:
+            raise ValueError(f"a query frame of {x.shape[1]} features; this index hashes frames of {self._dim}")
+        match, n_r, score = _push(self._engine, x)
+        if match < 0:
             return None
-        self.n_r = int(n_r[0])
-        return (int(match[0]), float(score[0])) if return_score else int(match[0])
+        self.n_r = int(n_r)
+        return (int(match), float(score)) if return_score else int(match)
 
     def push_address(self, h: int) -> int | None:
         """Add one query frame given its own address (already hashed)."""
@@ -119,6 +138,44 @@ class OnlineMatcher:
     def state_bytes(self) -> int:
         """Bytes held between frames: fixed at construction, whatever the length of the stream."""
         return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots))
+
+
+@structref.register
+class _EngineType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)
+
+
+class _Engine(structref.StructRefProxy):
+    """What :func:`_push` reads, in one object: the hashing model and scratch, the matcher's state
+    (the same arrays ``push_many`` steps, so both kinds of push share one stream) and the index."""
+
+
+structref.define_proxy(_Engine, _EngineType, [
+    "mean", "w", "centres", "acc", "code_row", "span",
+    "state", "ring_h", "ring_n", "buf", "cand", "slots", "L", "aligned", "fast",
+    "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "dw", "tables",
+    "d", "k", "dmax"])
+
+
+@numba.njit(cache=True, nogil=True)
+def _push(e: _Engine, x: np.ndarray) -> tuple[np.int64, np.int64, float]:
+    """One frame (row 0 of ``x``): hashed as the batch hashes it, then the step; ``(match, N_r,
+    score)``, the score in δ_max units as the batch reports it (−1, 0 and NaN before L frames).
+    L = 1: the single best of the frame's address, scored by its quantisation error and its move
+    to the occupied address it took (:meth:`Index.single_scores`)."""
+    h, err = hash_one(x, 0, e.mean, e.w, e.centres, e.acc, e.code_row)
+    if e.L == 1:
+        one = np.empty(1, np.uint64)
+        one[0] = h
+        slots, taken = nearest_slots(e.occ, one)
+        first, last = list_span(e.starts, slots[0])
+        moved = delta(h, taken[0], e.dw, e.tables, e.d, e.k)
+        return np.int64(get_packed(e.ids, e.id_bits, first)), last - first, err / e.span + moved / float(e.dmax)
+    best, n_r, units = _step(h, e.state, e.ring_h, e.ring_n, e.buf, e.cand, e.slots, e.L, e.aligned, e.fast, e.occ,
+                             e.starts, e.ids, e.id_bits, e.codes, e.code_bits, e.n_ref, e.planes, e.gaps, e.masks,
+                             e.dw, e.tables, e.d, e.k, e.dmax)
+    return best, n_r, units / float(e.dmax) if best >= 0 else np.nan
 
 
 def _plain(value):
