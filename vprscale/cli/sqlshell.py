@@ -16,7 +16,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from vprscale.core.errors import InputError, QueryError
+from vprscale.core.errors import InputError
 from vprscale.evaluation.sql import Sandbox, format_table
 from vprscale.evaluation.sqlchild import views
 
@@ -93,11 +93,9 @@ class Shell:
             self.box.cancel()
             print("cancelled", file=sys.stderr)
             return
-        except QueryError as exc:
-            print(f"error: {exc}" + (f"\n{exc.detail}" if exc.detail else ""), file=sys.stderr)
-            return
-        except InputError as exc:
-            print(f"error: {exc}", file=sys.stderr)
+        except InputError as exc:  # a QueryError also has the engine's context lines
+            detail = getattr(exc, "detail", "")
+            print(f"error: {exc}" + (f"\n{detail}" if detail else ""), file=sys.stderr)
             return
         print(format_table(table, "table", self.max_rows, self.max_width), end="")
 

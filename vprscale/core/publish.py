@@ -170,6 +170,16 @@ class PartialOutput:
         self.sealed.unlink(missing_ok=True)
 
 
+def keep_beside(path: Path, kept: Path | None = None) -> Path:
+    """Move ``path`` aside, to ``kept`` (default ``<path>.previous``): what ``--force`` replaces is
+    kept, not deleted (an older copy kept there gives way); returns where it went."""
+    kept = path.with_name(f"{path.name}.previous") if kept is None else kept
+    if kept.exists():
+        shutil.rmtree(kept)
+    path.rename(kept)
+    return kept
+
+
 def check_writable(out: Path) -> None:
     """Fail early, naming the directory, if outputs cannot be written there."""
     try:

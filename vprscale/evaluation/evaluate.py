@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -28,7 +27,7 @@ from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive, shared
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, shared
 from vprscale.dataset.references import reference_rows
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
@@ -265,10 +264,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "provenance": record}
             (partial.path / "eval.json").write_text(json.dumps(summary, indent=1))
             if req.force and (out / "eval.json").is_file():  # the previous evaluation is kept, not replaced
-                kept = out.with_name(f"{out.name}.previous")
-                if kept.exists():
-                    shutil.rmtree(kept)
-                out.rename(kept)
+                keep_beside(out)
             partial.publish()  # the three files appear together, by one rename
     return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}

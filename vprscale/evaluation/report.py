@@ -21,7 +21,7 @@ import pandas as pd  # noqa: E402
 
 from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
-from vprscale.core.publish import exclusive  # noqa: E402
+from vprscale.core.publish import exclusive, keep_beside  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
@@ -333,10 +333,7 @@ def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] 
             shutil.rmtree(work, ignore_errors=True)
             raise
         if out.exists():
-            kept = out.with_name(f"{out.name}.previous")
-            if kept.exists():
-                shutil.rmtree(kept)
-            out.rename(kept)
+            keep_beside(out)
         work.rename(out)
     return {"report": str(out / "report.md"), "figures": [str(out / Path(f).name) for f in rep["figures"]]}
 

@@ -70,34 +70,43 @@ def format_table(table, fmt: str, max_rows: int | None = None, max_width: int | 
     if fmt == "json":
         return "".join(json.dumps(row, default=str) + "\n" for row in table.to_pylist())
     n_rows, cols = table.num_rows, list(table.column_names)
-    keep = list(range(n_rows))
-    if max_rows is not None and n_rows > max_rows:
-        head = (max_rows + 1) // 2
-        keep = keep[:head] + [-1] + keep[n_rows - (max_rows - head):]
-    shown = [table.slice(i, 1).to_pylist()[0] if i >= 0 else None for i in keep]
-    rows = [["…"] * len(cols) if r is None else ["NULL" if v is None else str(v) for v in r.values()] for r in shown]
+    cut = max_rows is not None and n_rows > max_rows
+    head = (max_rows + 1) // 2 if cut else n_rows
+    picked = table.take(list(range(head)) + list(range(n_rows - (max_rows - head), n_rows))) if cut else table
+    rows = [["NULL" if v is None else str(v) for v in r.values()] for r in picked.to_pylist()]
+    if cut:
+        rows.insert(head, ["…"] * len(cols))
     if max_width is not None:
         rows = [[v if len(v) <= MAX_CELL else v[: MAX_CELL - 1] + "…" for v in r] for r in rows]
     widths = [max([len(c)] + [len(r[i]) for r in rows]) for i, c in enumerate(cols)]
-    order = list(range(len(cols)))
-    if max_width is not None and sum(widths) + 2 * (len(widths) - 1) > max_width and len(cols) > 2:
-        left, right = [], []  # keep columns from both ends while they fit beside a "…" column
-        room = max_width - 3
-        for i in range(len(cols)):
-            j = i // 2 if i % 2 == 0 else len(cols) - 1 - i // 2
-            if j in left or j in right or widths[j] + 2 > room:
-                break
-            room -= widths[j] + 2
-            (left if i % 2 == 0 else right).append(j)
-        order = sorted(left) + [-1] + sorted(right)
-    def cell(values: list[str], i: int, w: list[int]) -> str:
-        return "…" if i < 0 else values[i].rjust(w[i])
-    line = "  ".join(cell(cols, i, widths) for i in order)
+    order = _columns_within(widths, max_width)
+    line = "  ".join(_cell(cols, i, widths) for i in order)
     rule = "  ".join("-" if i < 0 else "-" * widths[i] for i in order)
-    body = ["  ".join(cell(r, i, widths) for i in order) for r in rows]
-    footer = f"({n_rows:,} rows" + (f", {len(keep) - (len(keep) != n_rows)} shown" if len(keep) != n_rows else "")
+    body = ["  ".join(_cell(r, i, widths) for i in order) for r in rows]
+    footer = f"({n_rows:,} rows" + (f", {max_rows:,} shown" if cut else "")
     footer += (f"; {len(cols)} columns, {len(order) - 1} shown" if -1 in order else "") + ")"
     return "\n".join([line, rule, *body, footer]) + "\n"
+
+
+def _columns_within(widths: list[int], max_width: int | None) -> list[int]:
+    """The columns shown, by position: all of them, or as many from both ends as fit beside a
+    ``…`` column (-1) in ``max_width`` characters."""
+    order = list(range(len(widths)))
+    if max_width is None or sum(widths) + 2 * (len(widths) - 1) <= max_width or len(widths) <= 2:
+        return order
+    left, right = [], []
+    room = max_width - 3
+    for i in range(len(widths)):
+        j = i // 2 if i % 2 == 0 else len(widths) - 1 - i // 2
+        if j in left or j in right or widths[j] + 2 > room:
+            break
+        room -= widths[j] + 2
+        (left if i % 2 == 0 else right).append(j)
+    return sorted(left) + [-1] + sorted(right)
+
+
+def _cell(values: list[str], i: int, widths: list[int]) -> str:
+    return "…" if i < 0 else values[i].rjust(widths[i])
 
 
 UNITS = {"": 1, "B": 1, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12, "KIB": 2**10, "MIB": 2**20,

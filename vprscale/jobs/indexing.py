@@ -12,7 +12,6 @@ index only sorts the lists.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside
 from vprscale.core.zarrio import rows_of
 from vprscale.dataset.store import ATTR, load_model, open_complete_group, ref_moments, store_identity, store_layout
 from vprscale.evaluation.storage import file_bytes, index_parts, storage_table
@@ -140,10 +139,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         extra["parts"] = index_parts(partial.path)  # index.json and the manifest are counted where shown
         meta = write_meta(partial.path, hasher, n_ref, lists["layout"], extra)
         if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside
-            kept = final.with_name(f"{final.name}.previous-eval")
-            if kept.exists():
-                shutil.rmtree(kept)
-            (final / "eval").rename(kept)
+            keep_beside(final / "eval", final.with_name(f"{final.name}.previous-eval"))
         partial.publish()
     return {"index": str(final), **meta}
 
