@@ -2,9 +2,10 @@
 
 One shared evaluation of the tiny store with a FAISS method of each scoring form (product
 quantiser tables: 8-bit, bit-packed and FAISS's 4-bit fast-scan codes; Hamming tables of
-binary codes; residual tables of an IVF-PQ index), checked against FAISS itself and against
-a brute-force window score; the table forms are also checked against the decoded-vector
-form on the same codes.
+binary codes; residual tables of an IVF-PQ index; decoded vectors of RaBitQ, IVF fast-scan
+RaBitQ and a residual quantiser; an HNSW graph's own rows), checked against FAISS itself
+and against a brute-force window score; the table forms are also checked against the
+decoded-vector form on the same codes.
 """
 
 from __future__ import annotations
@@ -23,11 +24,14 @@ from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
 from vprscale.compared.codescore import REF_LEVEL_BYTES, _smallest, score_windows
-from vprscale.compared.faisscodes import ID_BYTES, FaissCodes, FrameTerms, training_rows
+from vprscale.compared.faisscodes import ENCODE_ROWS, ID_BYTES, FaissCodes, FrameTerms, training_rows
+from vprscale.core.errors import InputError
+from vprscale.method.kernels import N_BEST
 
 from .conftest import SMALL_TRAINING
 
-FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4"]
+FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4", "RaBitQ", "IVF32,RaBitQfs", "RQ3x8",
+             "HNSW32"]
 L_SEQ = 9
 
 
@@ -47,23 +51,37 @@ def compared(tiny_store, tiny_index, tmp_path_factory):
             "meta": json.loads((out / "eval.json").read_text()), "out": out}
 
 
+def faiss_own(factory: str, train: np.ndarray, ref: np.ndarray) -> faiss.Index:
+    """``factory`` built with FAISS directly on one thread: trained on ``train`` (OPQ and ITQ
+    training change with the BLAS thread count), then ``add`` of the references in blocks of
+    ``ENCODE_ROWS`` (an HNSW graph's links and LSQ's codes depend on the rows added together)."""
+    omp = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)
+    try:
+        index = faiss.index_factory(ref.shape[1], factory)
+        with threadpool_limits(limits=1, user_api="blas"):
+            index.train(train)
+        for lo in range(0, len(ref), ENCODE_ROWS):
+            index.add(ref[lo : lo + ENCODE_ROWS])
+    finally:
+        faiss.omp_set_num_threads(omp)
+    if "IVF" in factory:
+        faiss.extract_index_ivf(index).nprobe = 16
+    if "HNSW" in factory:
+        inner = faiss.downcast_index(index)
+        faiss.downcast_index(getattr(inner, "index", inner)).hnsw.efSearch = 64  # past a transform, if any
+    return index
+
+
 @pytest.fixture(scope="module")
 def direct(tiny_store, compared):
-    """Each factory built with FAISS directly: trained on the same rows (with one BLAS thread, as
-    vprscale trains: OPQ and ITQ training change with the BLAS thread count), ``add`` of every reference."""
+    """Each factory built with FAISS directly (:func:`faiss_own`), on the rows vprscale trained on."""
     group = zarr.open_group(tiny_store, mode="r")
     ref = group["ref"][:]
-    indexes = {}
-    for factory in FACTORIES:
-        index = faiss.index_factory(ref.shape[1], factory)
-        with threadpool_limits(limits=1, user_api="blas"), pytest.MonkeyPatch.context() as mp:
-            mp.setattr("vprscale.compared.faisscodes.TRAIN_ROWS", SMALL_TRAINING)  # as `compared` trained
-            index.train(ref[training_rows(len(ref))])
-        index.add(ref)
-        if "IVF" in factory:
-            faiss.extract_index_ivf(index).nprobe = 16
-        indexes[factory] = index
-    return ref, group["query_qm1"], indexes
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("vprscale.compared.faisscodes.TRAIN_ROWS", SMALL_TRAINING)  # as `compared` trained
+        train = ref[training_rows(len(ref))]
+    return ref, group["query_qm1"], {factory: faiss_own(factory, train, ref) for factory in FACTORIES}
 
 
 def _k(compared, factory: str) -> int:
@@ -90,7 +108,8 @@ def _distances(index, factory: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
     if "LSH" in factory:  # binary codes: the Hamming distance of the codes
         qc, rc = np.unpackbits(index.sa_encode(y), axis=1), np.unpackbits(index.sa_encode(x), axis=1)
         return (qc[:, None, :] != rc[None, :, :]).sum(axis=2).astype(np.float64)
-    decoded = index.sa_decode(index.sa_encode(x)).astype(np.float64)
+    decoded = x if "HNSW" in factory else index.sa_decode(index.sa_encode(x))  # a graph holds the rows
+    decoded = decoded.astype(np.float64)
     return ((y.astype(np.float64)[:, None, :] - decoded[None, :, :]) ** 2).sum(axis=2)
 
 
@@ -124,8 +143,9 @@ def test_sequence_match_is_the_brute_force_window_argmin(compared, direct, facto
     assert agree >= 0.9 * len(rows)
 
 
-def test_every_method_states_its_bytes_per_place(compared, tiny_index):
+def test_every_method_states_its_bytes_per_place(compared, tiny_store, tiny_index):
     res = compared["results"]
+    dim = zarr.open_group(tiny_store, mode="r")["ref"].shape[1]
     per_method = res.groupby("method")["bytes_per_place"].unique()
     assert set(per_method.index) == {"coarsehash", "baseline", *(f"faiss:{f}" for f in FACTORIES)}
     assert all(len(v) == 1 and v[0] > 0 for v in per_method)
@@ -133,6 +153,9 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_index):
     assert per_method["faiss:OPQ4,PQ4x6"][0] == 3 and per_method["faiss:PQ6x4fs"][0] == 3  # 24 bits
     # list entry; the code in id order with its list number and its distance term's level
     assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5 + REF_LEVEL_BYTES
+    assert per_method["faiss:RaBitQ"][0] == faiss.index_factory(dim, "RaBitQ").sa_code_size()  # bits and factors
+    assert per_method["faiss:RQ3x8"][0] == 3
+    assert per_method["faiss:HNSW32"][0] > 4 * dim + 2 * 32 * 4  # its row, and at least its bottom layer's links
     assert per_method["baseline"][0] == 4
     engine = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("codes", "ids", "occupied", "starts"))
     assert per_method["coarsehash"][0] == pytest.approx(engine / 52_500)  # codes, packed ids and directory
@@ -329,7 +352,16 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     assert f"| PQ4 {row.params} (aligned) | 4.00 | {time} | {recall} | {row.n_queries} |" in section
     # every ratio is of medians measured in the same run (one evaluation here)
     assert "different runs" not in section and "faster" in section or "slower" in section
+    section, points = section.split("### Operating points")
     assert section.count("| tiny | QM1 |") == 3 * (1 + len(FACTORIES))  # L = 1: single; L = 9: two modes
+    # operating points: per L, the best within CoarseHash's bytes and within its speed
+    assert points.count("| tiny | QM1 |") == 4 and points.count("B/place |") == 2 and points.count("q/s/core |") == 2
+    ours = res[(res.method == "coarsehash") & (res.L == L_SEQ) & (res["mode"] == "paper") & (res.part == "all")
+               & (res.radius == 20)].iloc[0]
+    within = res[(res.L == L_SEQ) & (res.part == "all") & (res.radius == 20)
+                 & (res.bytes_per_place <= ours.bytes_per_place)]
+    top = within.sort_values("recall", ascending=False).iloc[0]
+    assert f": {100 * top.recall:.1f} ({100 * top.recall_lo:.1f}–{100 * top.recall_hi:.1f}) |" in points
 
 
 def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
@@ -403,3 +435,97 @@ def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tm
         for n in (1, 4):
             assert f"| IVF32,PQ4 k={k} nprobe={n} (single) |" in text
         assert f"| PQ4 k={k} (single) |" in text
+
+
+def test_recall_at_n_ranks_at_least_n_whatever_the_operating_point(compared, direct):
+    """Recall@N reads a ranking of at least N candidates: at L = 1 a FAISS code's ``top`` is
+    FAISS's own top ``N_BEST`` though its operating point retrieves k < N_BEST (its match is
+    still its top-1 at k), the baseline's are its ``N_BEST`` nearest though its budget is one;
+    ``ranked_mean`` says how many each ranking weighed, and Recall@N never falls with N."""
+    _, query, indexes = direct
+    q, res = compared["queries"], compared["results"]
+    for factory in ("PQ4", "IVF32,PQ4", "HNSW32"):
+        assert _k(compared, factory) < N_BEST
+        rows = q[(q.method == f"faiss:{factory}") & (q.L == 1)].sort_values("t")
+        _, ids = indexes[factory].search(query.get_orthogonal_selection((rows.t.to_numpy(), slice(None))), N_BEST)
+        np.testing.assert_array_equal(np.stack(rows.top.to_numpy()), ids)
+        runs = res[(res.method == f"faiss:{factory}") & (res.L == 1) & (res.part == "all")]
+        assert (runs.ranked_mean == N_BEST).all() and (runs.nr_mean <= _k(compared, factory)).all()
+    base = q[(q.method == "baseline") & (q.L == 1)]
+    assert (base.n_r == 1).all() and (np.stack(base.top.to_numpy()) >= 0).all()
+    assert (np.stack(base.top.to_numpy())[:, 0] == base["match"]).all()
+    for _, run in res[res.part == "all"].groupby(["method", "params", "mode", "L"], dropna=False):
+        r = run.sort_values("radius")
+        for lo, hi in (("recall", "recall_at_5"), ("recall_at_5", "recall_at_10"), ("recall_at_10", "recall_at_20")):
+            assert (r[lo].to_numpy() <= r[hi].to_numpy() + 1e-12).all()
+        for name in ("recall", "recall_at_20", "recall_at_p100"):
+            assert (r[f"{name}_lo"] <= r[name] + 1e-12).all() and (r[name] <= r[f"{name}_hi"] + 1e-12).all()
+
+
+@pytest.mark.parametrize("factory", ["RaBitQfs", "IVF16,RaBitQfs", "IVF16,PQ4x4fs", "IVF16,RaBitQ", "LSQ2x8",
+                                     "PRQ2x2x6", "HNSW16", "PCA8,HNSW16"])
+def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
+    """RaBitQ (flat, IVF, fast-scan: built from a plain twin holding the standalone codes),
+    additive quantisers (LSQ's codes depend on the rows encoded together: encoded in blocks
+    at fixed offsets) and HNSW graphs (linked in such blocks on one thread), given their
+    references in uneven chunks, answer as FAISS's own index built by ``add``, and their
+    decoded vectors (a graph's: its rows) are what the window scores read."""
+    rng = np.random.default_rng(3)
+    ref = rng.standard_normal((9000, 16)).astype(np.float32)
+    query = ref[::50] + 0.2 * rng.standard_normal((180, 16)).astype(np.float32)
+    train = ref[training_rows(len(ref))]
+    codes = FaissCodes(factory, 16, k=7)
+    with threadpool_limits(limits=1, user_api="blas"):
+        codes.train(train)
+    codes.start(len(ref))
+    for lo in range(0, len(ref), 2500):
+        codes.encode(ref[lo : lo + 2500])
+    codes.finish()
+    own = faiss_own(factory, train, ref)
+    dist, ids = codes.search(query)
+    own_dist, own_ids = own.search(query, 7)
+    np.testing.assert_array_equal(ids, own_ids)
+    np.testing.assert_allclose(dist, own_dist, rtol=1e-5, atol=1e-5)
+    if "HNSW" in factory:
+        np.testing.assert_array_equal(codes.vectors, codes._transform(ref))
+        assert codes.scan_per_frame() > 0 and codes.params == "k=7 efSearch=64"
+    else:
+        assert codes.vectors.shape == (len(ref), codes.inner.d)
+
+
+@pytest.mark.parametrize("factory, message", [
+    ("HNSW32,PQ4", "not a FAISS index_factory string with standalone codes"),
+    ("NSG32", "not a FAISS index_factory string with standalone codes"),
+])
+def test_codes_without_a_comparable_form_are_refused(factory, message):
+    with pytest.raises(InputError, match=message):
+        FaissCodes(factory, 16, k=4)
+
+
+@pytest.mark.parametrize("flags", [["--best-bytes", "5"], ["--best-qps", "2000"], ["--best-bytes", "40", "--best-qps",
+                                                                                     "500"]])
+def test_best_operating_points_are_each_familys_best_within_the_budget(compared, capsys, flags):
+    """``results --best-bytes B`` / ``--best-qps Q``: per noise, L and family, the point of best
+    recall within 20 frames among those within the budget, as recomputed from the results."""
+    assert main(["results", str(compared["out"]), *flags, "--csv"]) == 0
+    from io import StringIO
+
+    got = pd.read_csv(StringIO(capsys.readouterr().out))
+    res = compared["results"]
+    res = res[(res.radius == 20) & (res.part == "all")].assign(mode=lambda r: r["mode"].fillna("single"))
+    res = res.assign(qps=1e6 / res.us_per_query)
+    budget = dict(zip(flags[::2], map(float, flags[1::2]), strict=True))
+    within = res[(res.bytes_per_place <= budget.get("--best-bytes", np.inf)) & (res.qps >= budget.get("--best-qps", 0))]
+    expected = within.groupby(["noise", "L", "method", "mode"], dropna=False).recall.max()
+    assert len(got) == len(expected) > 0
+    assert (got.bytes_per_place <= budget.get("--best-bytes", np.inf)).all()
+    assert (got.qps_per_core >= budget.get("--best-qps", 0)).all()
+    assert sorted(got.recall.round(12)) == sorted(expected.round(12))
+
+
+def test_best_needs_the_recall_table_and_a_held_radius(compared, capsys):
+    for argv, message in ((["--best-bytes", "4", "--queries"], "--best-bytes/--best-qps: operating points come"),
+                          (["--best-qps", "10", "--radius", "99"], "--radius 99: the evaluations hold radii 0 … 20")):
+        assert main(["results", str(compared["out"]), *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1

@@ -19,6 +19,13 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     fmt.add_argument("--csv", dest="format", action="store_const", const="csv", default="table",
                      help="CSV with a header row")
     fmt.add_argument("--json", dest="format", action="store_const", const="json", help="one JSON object per row")
+    best = p.add_argument_group("operating points", "each method family's best recall within a budget, as "
+                                "big-ann-benchmarks names them (docs/protocol.md, \"Operating points\")")
+    best.add_argument("--best-bytes", type=positive_float, metavar="B",
+                      help="the best recall at or under B bytes per place, per scale, noise, L and family")
+    best.add_argument("--best-qps", type=positive_float, metavar="Q",
+                      help="the best recall at or above Q queries per second per core (with --best-bytes: both)")
+    best.add_argument("--radius", type=int, default=20, help="the recall radius (frames) --best-* rank by")
     p.add_argument("--timeout", type=positive_float, default=30.0, help="seconds the --where query may run")
     p.add_argument("--memory-limit", default="2GB", help="memory cap of the --where query (default 2GB)")
     p.set_defaults(func=run)
@@ -56,6 +63,22 @@ def _shown(table, all_columns: bool, queries: bool):
     return table
 
 
+def _best(table, args: argparse.Namespace):
+    """The operating points of ``table`` within the ``--best-*`` budget, as a pyarrow table."""
+    import pyarrow as pa
+
+    from vprscale.core.errors import InputError
+    from vprscale.evaluation.operating import best_points
+
+    if args.queries:
+        raise InputError("--best-bytes/--best-qps: operating points come from the recall table, not --queries")
+    res = table.to_pandas()
+    if args.radius not in set(res.radius):
+        raise InputError(f"--radius {args.radius}: the evaluations hold radii {int(res.radius.min())} … "
+                         f"{int(res.radius.max())}")
+    return pa.Table.from_pandas(best_points(res, args.best_bytes, args.best_qps, args.radius), preserve_index=False)
+
+
 def run(args: argparse.Namespace) -> int:
     import shutil
     import sys
@@ -74,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
         query = f"SELECT * FROM {'queries' if args.queries else 'results'} WHERE {args.where}"  # in the sandbox
         with sandbox(folders, args.memory_limit, 2) as box:
             table = box.query(query, args.timeout)
+    if args.best_bytes is not None or args.best_qps is not None:
+        table = _best(table, args)
     if args.format == "table":
         width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None
         print(format_table(_shown(table, args.all_columns, args.queries), "table", max_width=width), end="")

@@ -82,7 +82,7 @@ def encoding_dir(store: Path, factory: str) -> Path:
 def write_trained(codes: FaissCodes, out: Path, n_ref: int) -> None:
     """The trained (still empty) index, and an empty code array for ``n_ref`` references."""
     faiss.write_index(codes.index, str(out / "trained.faiss"))
-    np.lib.format.open_memmap(out / "codes.npy", mode="w+", dtype=np.uint8, shape=(n_ref, codes.index.sa_code_size()))
+    np.lib.format.open_memmap(out / "codes.npy", mode="w+", dtype=np.uint8, shape=(n_ref, codes.code_bytes))
 
 
 def read_trained(out: Path, factory: str, dim: int) -> FaissCodes:

@@ -1,8 +1,10 @@
 """FAISS compact codes as a compared method (docs/protocol.md, "Compact codes").
 
-Any FAISS ``index_factory`` string (``PQ3``, ``OPQ3,PQ3``, ``ITQ24,LSH``, ``IVF4096,PQ3``, …)
-becomes a method that a user would otherwise reach for to keep millions of places in a few
-bytes each. It is trained on an evenly spaced sample of the references and holds every
+Any FAISS ``index_factory`` string with standalone codes (``PQ3``, ``OPQ3,PQ3``, ``ITQ24,LSH``,
+``IVF4096,PQ3``, ``RaBitQ``, ``IVF64,RaBitQfs``, ``RQ3x8``, ``LSQ3x8``, …) becomes a method that a
+user would otherwise reach for to keep millions of places in a few bytes each, and ``HNSW32``
+(a graph over the rows themselves, no code) the one a user reaches for when speed matters
+more than bytes. It is trained on an evenly spaced sample of the references and holds every
 reference's code; a query frame retrieves its top-k references with FAISS's own search,
 and sequences are scored over the codes by :mod:`vprscale.compared.codescore`.
 
@@ -40,8 +42,10 @@ DECODE_ROWS = 1 << 16  # codes decoded at a time
 BLOCK_ROWS = 256  # rows one thread searches at a time (fixed: the bytes must not depend on threads)
 # Rows one thread encodes at a time (fixed, as BLOCK_ROWS): an IVF's coarse assignment is a BLAS
 # product, 2.6x cheaper per row on 4096 rows than on 256 (11 against 28 us a row at 4096 lists, 96-d).
-ENCODE_ROWS = 4096
+ENCODE_ROWS = 4096  # divides every store's chunk rows (multiples of core.blocks.BLOCK)
 ID_BYTES = 8  # FAISS inverted lists hold 64-bit ids
+GRAPH_EF_SEARCH = 64  # candidates an HNSW search keeps at the bottom layer (FAISS's default, 16, is for k = 1)
+FLOAT_BYTES = 4
 # How far FAISS's float32 distances of product-quantiser codes may stray from exact ones, relative
 # to the sum of a frame's largest table entries (a few roundings of each term; generous)
 EXACT_ROUNDING = 1e-5
@@ -69,6 +73,59 @@ def training_rows(n_ref: int) -> np.ndarray:
     if n_ref <= TRAIN_ROWS:
         return np.arange(n_ref)
     return np.unique(np.linspace(0, n_ref - 1, TRAIN_ROWS).round().astype(np.int64))
+
+
+def _innermost(index: Any) -> Any:
+    """The index a factory's transforms lead to."""
+    index = faiss.downcast_index(index)
+    return faiss.downcast_index(index.index) if isinstance(index, faiss.IndexPreTransform) else index
+
+
+# FAISS's fast-scan codes are laid out in blocks of ``bbs`` places and take no standalone codes
+# (``add_sa_codes`` is refused, or for IVF ones writes them in the wrong layout): each is built
+# from a plain twin holding the standalone codes, by FAISS's own constructor from that twin.
+_FAST_SCAN = (faiss.IndexFastScan, faiss.IndexIVFFastScan)
+
+
+def _pq_twin(fast: Any) -> Any:
+    plain = faiss.IndexPQ(fast.d, fast.pq.M, fast.pq.nbits)
+    plain.pq = fast.pq
+    return plain
+
+
+def _rabitq_twin(fast: Any) -> Any:
+    plain = faiss.IndexRaBitQ(fast.d, fast.metric_type)
+    plain.rabitq, plain.center, plain.qb = fast.rabitq, fast.center, fast.qb
+    return plain
+
+
+def _ivf_pq_twin(fast: Any) -> Any:
+    plain = faiss.IndexIVFPQ(fast.quantizer, fast.d, fast.nlist, fast.pq.M, fast.pq.nbits)
+    plain.pq, plain.by_residual = fast.pq, fast.by_residual
+    return plain
+
+
+def _ivf_rabitq_twin(fast: Any) -> Any:
+    plain = faiss.IndexIVFRaBitQ(fast.quantizer, fast.d, fast.nlist)
+    plain.rabitq, plain.qb, plain.by_residual = fast.rabitq, fast.qb, fast.by_residual
+    return plain
+
+
+_TWINS: dict[type, Callable[[Any], Any]] = {faiss.IndexPQFastScan: _pq_twin, faiss.IndexRaBitQFastScan: _rabitq_twin,
+                                            faiss.IndexIVFPQFastScan: _ivf_pq_twin,
+                                            faiss.IndexIVFRaBitQFastScan: _ivf_rabitq_twin}
+
+
+def _fast_scan_of(inner: Any, codes: np.ndarray) -> Any:
+    """A populated fast-scan index like ``inner`` (trained, empty) holding ``codes`` (its
+    standalone codes, in id order), through its plain twin."""
+    plain = _TWINS[type(inner)](inner)
+    plain.is_trained = True
+    if isinstance(plain, faiss.IndexIVF):
+        plain.add_sa_codes(codes, np.arange(len(codes), dtype=np.int64))
+    else:
+        plain.add_sa_codes(codes)
+    return type(inner)(plain, inner.bbs)
 
 
 def _form(inner: Any) -> str:
@@ -122,15 +179,23 @@ class FaissCodes:
     def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE, threads: int = 1) -> None:
         try:
             index = faiss.index_factory(dim, factory)
-            index.sa_code_size()
+            if not isinstance(_innermost(index), faiss.IndexHNSWFlat):  # a graph holds rows, not codes
+                index.sa_code_size()
         except (RuntimeError, TypeError) as err:
             raise InputError(f"--compare {factory}: not a FAISS index_factory string with standalone codes for "
                              f"{dim}-d rows ({_faiss_reason(err)})") from None
         if index.metric_type != faiss.METRIC_L2:
             raise InputError(f"--compare {factory}: the index does not search by L2 distance")
+        inner = _innermost(index)
+        if isinstance(inner, _FAST_SCAN) and not isinstance(inner, tuple(_TWINS)):
+            raise InputError(f"--compare {factory}: FAISS's fast-scan form of this code cannot be built from "
+                             "standalone codes; the fast-scan forms compared are PQ…fs and RaBitQfs, flat or IVF")
+        if isinstance(inner, faiss.IndexHNSW) and not isinstance(inner, faiss.IndexHNSWFlat):
+            raise InputError(f"--compare {factory}: an HNSW graph is compared over the rows themselves (HNSW32, "
+                             "or a transform then HNSW32), not over codes")
         self.factory, self.dim, self.k, self.nprobe, self.threads = factory, dim, k, nprobe, threads
         self.bind(index)
-        self.codes = np.zeros((0, self.inner.sa_code_size()), np.uint8)
+        self.codes = np.zeros((0, self.code_bytes), np.uint8)
         self._filled = 0
         self.vectors = _NO_ROWS
         self.per_list = _NO_TABLES  # residual form: ‖ρ‖² + 2⟨c_l, ρ⟩ per list, sub-quantiser and code
@@ -139,6 +204,8 @@ class FaissCodes:
         self.centroids = _NO_ROWS  # residual form: the coarse centroids
         self.centroid_norm = 0.0  # residual form: their largest squared norm
         self._values: tuple[np.ndarray, ...] | None = None  # enumerable codes: their distinct values' lists
+        self._walked = 0.0  # a graph: distances per frame of its last search
+        self._pending = _NO_ROWS  # rows given to encode that do not yet fill a block
 
     def bind(self, index: Any) -> None:
         """Work on ``index`` (a fresh one from the factory, or a trained one read from disk)."""
@@ -147,9 +214,20 @@ class FaissCodes:
                       if isinstance(index, faiss.IndexPreTransform) else [])
         self.inner = faiss.downcast_index(index.index) if self.chain else faiss.downcast_index(index)
         self.ivf = faiss.try_extract_index_ivf(self.inner)
-        if self.ivf is not None:
-            self.ivf.nprobe = self.nprobe
+        self.graph = isinstance(self.inner, faiss.IndexHNSWFlat)
+        self.set_point(self.k, self.nprobe)
         self.form = _form(self.inner)
+
+    def set_point(self, k: int, nprobe: int) -> None:
+        """Search at operating point ``k`` and ``nprobe`` (the inverted lists an IVF frame
+        visits): on the trained index and on its searched copy (a fast-scan code's)."""
+        self.k, self.nprobe = k, nprobe
+        for index in {id(i): i for i in (self.inner, self.searched_inner)}.values():
+            ivf = faiss.try_extract_index_ivf(index)
+            if ivf is not None:
+                ivf.nprobe = nprobe
+            if isinstance(index, faiss.IndexHNSW):
+                index.hnsw.efSearch = max(GRAPH_EF_SEARCH, k)
 
     @property
     def nibbles(self) -> bool:
@@ -165,7 +243,15 @@ class FaissCodes:
 
     @property
     def params(self) -> str:
+        if self.graph:
+            return f"k={self.k} efSearch={max(GRAPH_EF_SEARCH, self.k)}"
         return f"k={self.k}" + (f" nprobe={self.nprobe}" if self.ivf is not None else "")
+
+    @property
+    def scans(self) -> bool:
+        """Whether a frame's search visits every place: a flat code's (not an IVF's lists, not
+        a graph's walk)."""
+        return self.ivf is None and not self.graph
 
     @property
     def n_ref(self) -> int:
@@ -178,15 +264,24 @@ class FaissCodes:
         A flat index: its code (whose position is the id). An IVF index: its list entry
         (code and 64-bit id), and for sequences each place's code again in id order, where
         the window scores find it (with its list number); residual IVF-PQ codes also keep
-        the level of each place's query-independent distance term there (one byte).
+        the level of each place's query-independent distance term there (one byte). A graph:
+        its row (float32) and its share of the graph, as built (FAISS's neighbour lists of
+        32-bit ids, each place's list offset and level).
         """
+        if self.graph:
+            hnsw = self.inner.hnsw
+            links = hnsw.neighbors.size() * 4 + hnsw.offsets.size() * 8 + hnsw.levels.size() * 4
+            return float(FLOAT_BYTES * self.inner.d + links / max(1, self.n_ref))
         if self.ivf is None:
             return float(self.inner.sa_code_size())
         extra = REF_LEVEL_BYTES if self.form == "residual" else 0  # a place's term level
         return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size() + extra)
 
     def scan_per_frame(self) -> float:
-        """Places (codes) a frame's search visits: all of them, or the probed lists' share."""
+        """Places (codes) a frame's search visits: all of them, the probed lists' share, or
+        the distances a graph's walk computed per frame in the last search (FAISS counts them)."""
+        if self.graph:
+            return self._walked
         if self.ivf is None:
             return float(self.n_ref)
         return self.n_ref * min(1.0, self.nprobe / self.ivf.nlist) + self.ivf.nlist
@@ -195,7 +290,7 @@ class FaissCodes:
         """Unitary operations of a frame's search (transform, distance tables or coarse step, scan)."""
         transform = sum(2.0 * t.d_in * t.d_out for t in self.chain)
         width = self.codes.shape[1]
-        tables = 0.0  # decoded vectors: none
+        tables = 0.0  # decoded vectors (a graph's rows): none
         if self.form in ("pq", "residual"):
             tables = 3.0 * self.inner.pq.ksub * self.dim  # a frame's sub-quantiser tables
             tables += 256.0 * width if self.nibbles else 0.0  # and their byte sums
@@ -204,7 +299,8 @@ class FaissCodes:
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
         # the window scores' coarse row, beside the search's, and its 8-bit levels (add, range, scale, round)
         coarse = 2 * coarse + 6.0 * self.ivf.nlist if self.form == "residual" else coarse
-        return transform + tables + coarse + width * self.scan_per_frame()
+        scan = 3.0 * self.inner.d if self.graph else width  # a walk's distance, or a scanned code's bytes
+        return transform + tables + coarse + scan * self.scan_per_frame()
 
     def pair_ops(self) -> float:
         """Operations of one (candidate, frame) term of a window score."""
@@ -230,12 +326,12 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.inner.pq.M if self.form == "pq" and not self.nibbles else self.inner.sa_code_size()
+        width = self.inner.pq.M if self.form == "pq" and not self.nibbles else self.code_bytes
         if self.form == "residual":  # a record: the sub-quantiser indices, the list number, the term's level
             width = record_width(self.inner.pq.M, self.ivf.coarse_code_size())
             self._residual_tables()
         self.codes = np.empty((n_ref, width), np.uint8)
-        self._filled = 0
+        self._filled, self._pending = 0, _NO_ROWS
         self._values = None
 
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray, rows: int = BLOCK_ROWS) -> list[Any]:
@@ -251,19 +347,39 @@ class FaissCodes:
             return list(pool.map(partial(_one_thread, fn), items))
 
     def encode(self, x: np.ndarray) -> None:
-        """Encode and add the next block of references."""
-        self.add_codes(self.encode_rows(x))
+        """Encode and add the next references, in whatever chunks they come: rows are held
+        back until they fill a block of :meth:`encode_rows` (the rest at :meth:`finish`)."""
+        rows = np.concatenate([self._pending, np.asarray(x, np.float32)]) if len(self._pending) else x
+        whole = len(rows) - (self._filled + len(rows)) % ENCODE_ROWS
+        self._pending = np.array(rows[whole:], np.float32)
+        if whole:
+            self.add_codes(self.encode_rows(rows[:whole], self._filled))
 
-    def encode_rows(self, x: np.ndarray) -> np.ndarray:
-        """FAISS's standalone codes of rows ``x``, in blocks of ``ENCODE_ROWS`` on one FAISS thread each."""
-        return np.concatenate(self._blocks(lambda b: self.inner.sa_encode(self._transform(b)), x, ENCODE_ROWS))
+    @property
+    def code_bytes(self) -> int:
+        """Bytes of a place's standalone code (a graph's: its transformed row, float32)."""
+        return FLOAT_BYTES * self.inner.d if self.graph else self.inner.sa_code_size()
+
+    def encode_rows(self, x: np.ndarray, start: int) -> np.ndarray:
+        """FAISS's standalone codes of the references ``x`` from id ``start`` on (a graph's:
+        the transformed rows' bytes), in blocks of ``ENCODE_ROWS`` at fixed offsets, on one
+        FAISS thread each: some encoders' results depend on the rows encoded together (LSQ
+        searches each block's codes with a generator seeded per call), so the blocks must not
+        depend on how the rows arrive: a caller gives whole blocks (every store's chunks are
+        multiples of ``ENCODE_ROWS``), or rows through :meth:`encode`, which holds them back."""
+        x = np.ascontiguousarray(x, np.float32)
+        cuts = np.arange(ENCODE_ROWS - start % ENCODE_ROWS, len(x), ENCODE_ROWS) if len(x) else []
+        blocks = np.split(x, cuts) if len(x) else [x]
+        if self.graph:
+            return np.concatenate(self._each(self._transform, blocks)).view(np.uint8)
+        return np.concatenate(self._each(lambda b: self.inner.sa_encode(self._transform(b)), blocks))
 
     def add_codes(self, codes: np.ndarray) -> None:
         """Add the next references by their standalone codes (:meth:`encode_rows`, or stored ones).
 
-        A fast-scan index cannot take standalone codes; its searched copy is built from them
-        all at :meth:`finish`."""
-        if not isinstance(self.inner, faiss.IndexPQFastScan):
+        A fast-scan index cannot take standalone codes, and a graph's links depend on how its
+        rows arrive: both are built from them all at :meth:`finish`."""
+        if not isinstance(self.inner, _FAST_SCAN) and not self.graph:
             self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
         if self.form == "residual":
@@ -295,33 +411,44 @@ class FaissCodes:
             self._residual_tables()
 
     def finish(self) -> None:
+        if len(self._pending):
+            rows, self._pending = self._pending, _NO_ROWS
+            self.add_codes(self.encode_rows(rows, self._filled))
         if self._filled != len(self.codes):
             raise ValueError(f"{self._filled:,} of {len(self.codes):,} references encoded")
-        if isinstance(self.inner, faiss.IndexPQFastScan):
+        if isinstance(self.inner, _FAST_SCAN):
             self._fast_scan_copy()
+        if self.graph:
+            self._link()
         self.index.ntotal = self.inner.ntotal
-        if self.form == "vectors":  # decoded once, block by block, in the space the inner index searches
+        if self.graph:  # the rows themselves, as the graph holds them
+            self.vectors = self.codes.view(np.float32)
+        elif self.form == "vectors":  # decoded once, block by block, in the space the inner index searches
             self.vectors = np.empty((len(self.codes), self.inner.d), np.float32)
             for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
 
+    def _link(self) -> None:
+        """Build the graph from every row, on one FAISS thread, in blocks of ``ENCODE_ROWS``
+        at fixed offsets: FAISS inserts a block's rows level by level, and its threads race
+        for the links, so the same blocks on one thread give the same graph however the rows
+        arrived."""
+        rows = self.codes.view(np.float32)
+        for lo in range(0, len(rows), ENCODE_ROWS):
+            _one_thread(self.inner.add, np.ascontiguousarray(rows[lo : lo + ENCODE_ROWS]))
+
     def _fast_scan_copy(self) -> None:
-        """The searched index of a fast-scan code: FAISS lays its codes out in blocks of
-        ``bbs`` places, built from a plain product-quantiser index holding the standalone
-        codes (what ``IndexPQFastScan(IndexPQ)`` does); the transforms of the chain, if any,
-        go before it. The trained index stays as it was: it encodes and transforms."""
-        pq = self.inner.pq
-        plain = faiss.IndexPQ(self.inner.d, pq.M, pq.nbits)
-        plain.pq, plain.is_trained = pq, True
-        plain.add_sa_codes(self.codes)
-        fast = faiss.IndexPQFastScan(plain, self.inner.bbs)
-        del plain
+        """The searched index of a fast-scan code (:func:`_fast_scan_of`); the transforms of
+        the chain, if any, go before it. The trained index stays as it was: it encodes and
+        transforms."""
+        fast = _fast_scan_of(self.inner, np.ascontiguousarray(self.codes))
         if not self.chain:
             self.searched = fast
-            return
-        self.searched = faiss.IndexPreTransform(fast)  # keeps a reference to ``fast``
-        for t in reversed(self.chain):  # owned by ``self.index``, which lives as long
-            self.searched.prepend_transform(t)
+        else:
+            self.searched = faiss.IndexPreTransform(fast)  # keeps a reference to ``fast``
+            for t in reversed(self.chain):  # owned by ``self.index``, which lives as long
+                self.searched.prepend_transform(t)
+        self.set_point(self.k, self.nprobe)
 
     @property
     def searched_inner(self) -> Any:
@@ -351,7 +478,11 @@ class FaissCodes:
 
     def search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
+        if self.graph:
+            faiss.cvar.hnsw_stats.reset()
         found = self._blocks(lambda b: self.searched.search(b, self.k), rows)
+        if self.graph:
+            self._walked = faiss.cvar.hnsw_stats.ndis / max(1, len(rows))
         return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
 
     @property

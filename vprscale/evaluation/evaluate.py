@@ -35,7 +35,7 @@ from vprscale.evaluation.algorithms.base import Answer
 from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit, load_baseline_map
 from vprscale.evaluation.algorithms.faisscodes import fit_codes
 from vprscale.evaluation.algorithms.plugged import load_method
-from vprscale.evaluation.metrics import RADII, recall_curve, run_metrics, wilson
+from vprscale.evaluation.metrics import RADII, recall_curve, run_metrics
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
 from vprscale.method.index import Index
 from vprscale.protocol import (
@@ -379,6 +379,7 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
     without, every query localised counts once.
     """
     match, n_r = answer.match, answer.n_r
+    ranked, weighed = answer.ranking
     error = np.abs(np.asarray(match, np.int64) - truth)
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
     held = [p for p in ("deep1b", "fas") if select[p].any()]
@@ -391,24 +392,22 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
             per_query[select[p]] = weights[p] / select[p].sum()
     for name, sel in select.items():
         w = per_query[sel] if name == "all" and per_query is not None else None
-        figures = run_metrics(error[sel], answer.top[sel], truth[sel], answer.score[sel], w)
+        figures = run_metrics(error[sel], ranked[sel], truth[sel], answer.score[sel], w)
         in_curve = recall_curve(in_list[sel], w) if in_list is not None else None
         n = int(sel.sum())
-        lo, hi = wilson(figures["recall"], n)
         nr = n_r[sel]
         stats = {"n_queries": n,
                  "nr_mean": float(nr.mean()) if len(nr) else np.nan,
+                 "ranked_mean": float(weighed[sel].mean()) if n else np.nan,
                  "nr_median": float(np.median(nr)) if len(nr) else np.nan,
                  "nr_p95": float(np.percentile(nr, 95)) if len(nr) else np.nan,
                  **timing.columns(), "ops_per_query": answer.ops_per_query}
         for r in RADII:
-            rows.append({**key, "part": name, "radius": int(r), "recall": float(figures["recall"][r]),
-                         "recall_lo": float(lo[r]), "recall_hi": float(hi[r]),
-                         **{f: float(v[r]) for f, v in figures.items() if f != "recall"},
+            rows.append({**key, "part": name, "radius": int(r), **{f: float(v[r]) for f, v in figures.items()},
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
     for i in range(len(t)):
         queries.append({**key, "t": int(t[i]), "gt": int(truth[i]), "match": int(match[i]), "error": int(error[i]),
-                        "score": float(answer.score[i]), "top": answer.top[i].tolist(),
+                        "score": float(answer.score[i]), "top": ranked[i].tolist(),
                         "n_r": int(n_r[i]), "in_list": int(in_list[i]) if in_list is not None else None,
                         "part": "deep1b" if parts[i] == 0 else "fas"})
 

@@ -6,12 +6,15 @@ stratified sample weights each part by its share of the query rows; None: every 
 counts once):
 
 - recall at radius r: share of queries whose match lies within r frames of the truth;
-- Recall@N at radius r: share with any of the N best candidates within r;
+- Recall@N at radius r: share with any of the N best of a ranking of at least N candidates
+  within r (the ranking is the method's: :class:`~vprscale.evaluation.algorithms.base.Answer`);
 - precision–recall: a match is accepted when its score ≤ θ; precision = correct accepted /
-  accepted, recall = correct accepted / queries, correct = within r; AUC-PR is the
-  trapezoid area under that curve over every distinct θ, and recall at 100 % precision
-  the largest recall before the first accepted mistake;
-- 95 % Wilson intervals for every recall.
+  accepted, recall = correct accepted / queries (as SeqSLAM and OpenSeqSLAM2 count it),
+  correct = within r; AUC-PR is the trapezoid area under that curve over every distinct
+  θ, and recall at 100 % precision the largest recall before the first accepted mistake;
+  ``auc_pr_correct`` is the same area with recall over the correct matches (VPR-Bench's
+  form: the loosest threshold reaches recall 1 whatever the share of correct matches);
+- 95 % Wilson intervals for every recall (recall, Recall@N, recall at 100 % precision).
 """
 
 from __future__ import annotations
@@ -54,9 +57,10 @@ def wilson(p: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(centre - half, 0, 1), np.clip(centre + half, 0, 1)
 
 
-def pr_curve(score: np.ndarray, correct: np.ndarray,
-             weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """``(precision, recall)`` at every distinct score threshold, ascending θ."""
+def pr_curve(score: np.ndarray, correct: np.ndarray, weights: np.ndarray | None = None,
+             over_correct: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``(precision, recall)`` at every distinct score threshold, ascending θ; recall over
+    every query, or with ``over_correct`` over the correct matches (VPR-Bench's form)."""
     score = np.asarray(score, np.float64)
     w = _weights(len(score), weights)
     order = np.argsort(score, kind="stable")
@@ -64,7 +68,7 @@ def pr_curve(score: np.ndarray, correct: np.ndarray,
     ends = np.r_[np.flatnonzero(np.diff(s) != 0), len(s) - 1] if len(s) else np.zeros(0, np.int64)
     accepted = np.cumsum(w)[ends]
     hits = np.cumsum(w * ok)[ends]
-    total = w.sum()
+    total = (w * ok).sum() if over_correct else w.sum()
     return (np.divide(hits, accepted, out=np.zeros_like(hits), where=accepted > 0),
             hits / total if total > 0 else np.zeros_like(hits))
 
@@ -85,17 +89,28 @@ def recall_at_full_precision(precision: np.ndarray, recall: np.ndarray) -> float
     return float(recall[upto - 1]) if upto > 0 else 0.0
 
 
+RECALLS = ("recall", *(f"recall_at_{n}" for n in TOP_N[1:]), "recall_at_p100")  # each with its interval
+
+
 def run_metrics(error: np.ndarray, top: np.ndarray, truth: np.ndarray, score: np.ndarray,
                 weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Every metric of one run's queries, per radius: ``recall``, ``recall_at_N`` (N of
-    ``TOP_N`` above 1), ``auc_pr`` and ``recall_at_p100`` (arrays over ``RADII``)."""
+    ``TOP_N`` above 1; ``top`` is the ranking's best, best first), ``auc_pr``,
+    ``auc_pr_correct`` and ``recall_at_p100`` (arrays over ``RADII``), and the 95 % Wilson
+    interval of every one of ``RECALLS`` (``…_lo``, ``…_hi``: a weighted run's from its
+    number of queries)."""
     out = {"recall": recall_curve(error, weights)}
     for n in TOP_N[1:]:
         out[f"recall_at_{n}"] = recall_curve(top_error(top, truth, n), weights)
-    auc, full = np.full(len(RADII), np.nan), np.full(len(RADII), np.nan)
+    auc, auc_correct, full = (np.full(len(RADII), np.nan) for _ in range(3))
     if len(error):
         for r in RADII:
-            precision, recall = pr_curve(score, np.asarray(error) <= r, weights)
+            correct = np.asarray(error) <= r
+            precision, recall = pr_curve(score, correct, weights)
             auc[r], full[r] = auc_pr(precision, recall), recall_at_full_precision(precision, recall)
-    out["auc_pr"], out["recall_at_p100"] = auc, full
+            if correct.any():
+                auc_correct[r] = auc_pr(*pr_curve(score, correct, weights, over_correct=True))
+    out["auc_pr"], out["auc_pr_correct"], out["recall_at_p100"] = auc, auc_correct, full
+    for name in RECALLS:
+        out[f"{name}_lo"], out[f"{name}_hi"] = wilson(out[name], len(error))
     return out

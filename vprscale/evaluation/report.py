@@ -24,6 +24,7 @@ from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.core.publish import exclusive, keep_beside  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
+from vprscale.evaluation.operating import operating_section
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
 from vprscale.evaluation.storage import floor_bits, index_parts  # noqa: E402
@@ -357,6 +358,7 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     has_balance = fig_balance(indexes, out, figures)
     save = lambda fig, o, name: _save(fig, o, name, figures)  # noqa: E731
     compared = compare_section(res, scales, out, save, _md_table)
+    compared += operating_section(res, scales, _md_table)
     compared += pr_section(res, list(dict.fromkeys(res.run)), scales, out, save, _md_table)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compared)
     (out / "report.md").write_text(text)

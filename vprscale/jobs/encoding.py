@@ -57,7 +57,7 @@ class _EncodeChunk:
     def __call__(self, a: int, b: int) -> None:
         if self._codes is None:  # read once per process (threads share it: encoding is read-only)
             self._codes = read_trained(Path(self.out), self.factory, self.dim)
-        codes = self._codes.encode_rows(self.read(a, b))
+        codes = self._codes.encode_rows(self.read(a, b), a)
         stored = np.load(Path(self.out) / "codes.npy", mmap_mode="r+")
         stored[a:b] = codes
         stored.flush()
@@ -153,4 +153,4 @@ def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, re
                                                                indent=1))
     partial_out.publish()
     return {"out": str(partial_out.final), "wall_s": time.perf_counter() - t_start,
-            "code_bytes": int(method.index.sa_code_size())}
+            "code_bytes": int(method.code_bytes)}

@@ -32,17 +32,33 @@ class Answer:
     ``top`` holds each centre's best candidates, best first (as many columns as asked for,
     ``N_BEST`` in the answers; −1 where there were fewer; ``top[:, 0]`` is the match),
     ``score`` the match's score in the method's own units, lower meaning more confident.
+
+    Recall@N is read from a ranking of at least N candidates, as the field reads it
+    (docs/protocol.md, "Recall@N"): a method whose operating point weighs fewer (a FAISS
+    code retrieving k = 2 per frame, the baseline's budget of one at L = 1) gives that
+    ranking apart, as ``ranked`` (the ``N_BEST`` best of it, best first) with ``n_ranked``,
+    the candidates it ranked per centre; otherwise its ``top`` is that ranking.
     """
 
     top: np.ndarray  # (centres, n_best) int64
     score: np.ndarray  # float64 per centre
     n_r: np.ndarray  # candidates scored per centre
     ops_per_query: float  # counted unitary operations per query (docs/accounting.md)
+    ranked: np.ndarray | None = None  # (centres, N_BEST) int64: the Recall@N ranking, when not ``top``
+    n_ranked: np.ndarray | None = None  # candidates that ranking weighed per centre
 
     @property
     def match(self) -> np.ndarray:
         """The matched reference id of each centre."""
         return self.top[:, 0]
+
+    @property
+    def ranking(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(best, weighed)``: the ranking Recall@N reads (its ``N_BEST`` best) and the
+        candidates it weighed per centre."""
+        if self.ranked is None:
+            return self.top, self.n_r
+        return self.ranked, self.n_r if self.n_ranked is None else self.n_ranked
 
 
 class Algorithm(ABC):

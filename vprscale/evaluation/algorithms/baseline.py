@@ -83,7 +83,11 @@ class Baseline(Algorithm):
     def localise(self, state: np.ndarray, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         nr = self.budget[L]
         top, scores, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range, n_best)
-        return Answer(top, scores[:, 0], n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
+        answer = Answer(top, scores[:, 0], n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
+        if 1 < n_best and nr < n_best:  # the Recall@N ranking weighs at least N (its budget at L = 1 is one)
+            answer.ranked, _, answer.n_ranked = baseline_batch(pos, L, n_best, self.base.x, state, self.x_range,
+                                                               n_best)
+        return answer
 
 
 def baseline_limit(requested: int | None, n_query: int) -> int | None:

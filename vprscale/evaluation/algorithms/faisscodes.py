@@ -57,7 +57,9 @@ class FaissMethod(Algorithm):
     """One FAISS index: L = 1 is its top-1, L > 1 scores the window's candidates over the codes.
 
     The frame state is each frame's top-k (FAISS's own search) and its terms of the window
-    scores. FAISS searches flat codes exhaustively (every frame visits every place). Most
+    scores; for the answers, when k < ``N_BEST``, also each frame's top ``N_BEST``, from which
+    the Recall@N ranking is drawn (the field's Recall@N ranks at least N candidates, whatever
+    the operating point's k). FAISS searches flat codes exhaustively (every frame visits every place). Most
     (product quantisers with float tables, binary codes) are *enumerable*: the evaluation
     finds the same top-k by visiting code values in order of distance
     (:mod:`vprscale.compared.codesearch`), times FAISS's own search as deployed, and checks
@@ -75,13 +77,14 @@ class FaissMethod(Algorithm):
         self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
         self.bytes_per_place = codes.bytes_per_place
         self._apply()
-        self.scans = codes.ivf is None and not codes.enumerable  # its evaluation visits every code per frame
+        self.scans = codes.scans and not codes.enumerable  # its evaluation visits every code per frame
         self.answers_apart = codes.enumerable
         if query_limit is None and self.scans:  # an IVF frame visits a few lists: every centre
             scan = codes.scan_per_frame() * max_L
             query_limit = None if n_centres * scan <= SCAN_BUDGET else max(MIN_CENTRES, int(SCAN_BUDGET // scan))
         self.query_limit = query_limit
         self.noises = flat_noise if self.scans else None
+        self._frame_ops = 0.0  # counted operations of a frame's search, at this point (a graph's walk varies)
 
     @property
     def threads(self) -> int:  # FAISS's searches run on the codes' threads
@@ -93,10 +96,7 @@ class FaissMethod(Algorithm):
 
     def _apply(self) -> None:
         """Set this operating point's k and nprobe on the codes (operating points share one trained index)."""
-        self.codes.k = self.k
-        self.codes.nprobe = self.nprobe
-        if self.codes.ivf is not None:
-            self.codes.ivf.nprobe = self.nprobe
+        self.codes.set_point(self.k, self.nprobe)
 
     def columns(self) -> dict[str, Any]:
         self._apply()
@@ -108,19 +108,31 @@ class FaissMethod(Algorithm):
     def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's top-k by FAISS's search, and its terms of the window scores."""
         self._apply()
-        return self._state(rows, *self.codes.search(rows))
+        found = self.codes.search(rows)
+        self._frame_ops = self.codes.frame_ops()
+        return self._state(rows, *found)
 
-    def _state(self, rows: np.ndarray, dist: np.ndarray, ids: np.ndarray) -> tuple:
+    def _state(self, rows: np.ndarray, dist: np.ndarray, ids: np.ndarray, ranking: tuple | None = None) -> tuple:
         """The frame state of ``rows`` whose top-k are ``(dist, ids)``."""
-        return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows)
+        return ids, dist, ranked_lists(ids), self.codes.frame_terms(rows), ranking
 
-    def answer_frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`frames`'s state; for an enumerable flat code, its top-k found without a scan
-        (:meth:`~vprscale.compared.faisscodes.FaissCodes.exact_search`)."""
-        if not self.answers_apart:
-            return self.frames(rows)
+    def _search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The answers' top-k: for an enumerable flat code found without a scan
+        (:meth:`~vprscale.compared.faisscodes.FaissCodes.exact_search`), else FAISS's search."""
+        return self.codes.exact_search(rows) if self.answers_apart else self.codes.search(rows)
+
+    def answer_frames(self, rows: np.ndarray) -> tuple:
+        """:meth:`frames`'s state by :meth:`_search`, with the frames' top ``N_BEST`` for the
+        Recall@N ranking when this point's k is smaller."""
+        ranking = None
+        if self.k < N_BEST:
+            self.codes.set_point(N_BEST, self.nprobe)
+            ids, dist = self._search(rows)[::-1]
+            ranking = ids, dist, ranked_lists(ids)
         self._apply()
-        return self._state(rows, *self.codes.exact_search(rows))
+        state = self._state(rows, *self._search(rows), ranking)
+        self._frame_ops = self.codes.frame_ops()
+        return state
 
     def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray, centres: dict[int, np.ndarray]) -> None:
         """For an enumerable flat code: check on ``CHECKED_FRAMES`` frames that its exact top-k
@@ -130,14 +142,23 @@ class FaissMethod(Algorithm):
             self.codes.check_exact(rows[spread(len(rows), CHECKED_FRAMES)])
 
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
-        self._apply()  # its counted operations depend on this point's nprobe
-        ids, dist, lists, terms = state
-        frame_ops = self.codes.frame_ops()
-        if L == 1:  # FAISS's own ranking and distances
-            return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), frame_ops)
+        self._apply()
+        ids, dist, lists, terms, ranking = state
+        answer = self._answer(ids, dist, lists, terms, pos, L, mode, n_best)
+        if ranking is not None and n_best > 1:
+            ranked = self._answer(*ranking, terms, pos, L, mode, n_best)
+            answer.ranked, answer.n_ranked = ranked.top, ranked.n_r
+        return answer
+
+    def _answer(self, ids: np.ndarray, dist: np.ndarray, lists: tuple, terms: Any, pos: np.ndarray, L: int,
+                mode: str | None, n_best: int) -> Answer:
+        """The answers from the frames' lists ``ids`` (and their ``dist``): L = 1 FAISS's own
+        ranking and distances, L > 1 the window scores of the lists' proposals."""
+        if L == 1:
+            return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), self._frame_ops)
         top, scores, n_r = self.codes.match(pos, L, mode == "aligned", lists, terms, n_best)
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
-        return Answer(top, scores[:, 0], n_r, frame_ops + L * n_r_mean * self.codes.pair_ops())
+        return Answer(top, scores[:, 0], n_r, self._frame_ops + L * n_r_mean * self.codes.pair_ops())
 
     def in_list(self, state: tuple, pos: np.ndarray, truth: np.ndarray) -> np.ndarray:
         ids = state[0][pos]

@@ -112,7 +112,26 @@ class Plugged(Algorithm):
         ids, dist = check_found(self.name, ids, dist, len(rows), self.k, self.n_ref)
         return rows, ids, dist, ranked_lists(ids)
 
+    def answer_frames(self, rows: np.ndarray) -> tuple:
+        """:meth:`frames`'s state, with the frames' top ``N_BEST`` for the Recall@N ranking
+        when this point's k is smaller (a second ``query``)."""
+        state = self.frames(rows)
+        if self.k >= N_BEST:
+            return state
+        k, self.k = self.k, N_BEST
+        try:
+            return *state, self.frames(rows)
+        finally:
+            self.k = k
+
     def localise(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
+        answer = self._answer(state[:4], pos, L, mode, n_best)
+        if len(state) > 4 and n_best > 1:
+            ranked = self._answer(state[4], pos, L, mode, n_best)
+            answer.ranked, answer.n_ranked = ranked.top, ranked.n_r
+        return answer
+
+    def _answer(self, state: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int) -> Answer:
         rows, ids, dist, lists = state
         pos = np.asarray(pos, np.int64)
         if L == 1:
