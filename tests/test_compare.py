@@ -339,8 +339,8 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     assert main(["report", str(compared["out"]), "--out", str(tmp_path / "r")]) == 0
     text = (tmp_path / "r" / "report.md").read_text()
     section = text.split("## CoarseHash against the other methods")[1].split("\n## ")[0]
-    for fig in ("fig_compare", "fig_compare_bytes", "fig_compare_trends", "fig_pr"):
-        assert (tmp_path / "r" / f"{fig}.png").stat().st_size > 10_000
+    for fig in ("fig_compare", "fig_compare_bytes", "fig_compare_trends", "fig_pr"):  # one per noise level
+        assert (tmp_path / "r" / f"{fig}_qm1.png").stat().st_size > 10_000 and f"({fig}_qm1.png)" in text
     assert "## Scores: precision–recall, AUC-PR and Recall@N" in text
     words = [line for line in section.splitlines() if line.startswith("- tiny, QM1, L = ")]
     assert len(words) == 2
@@ -375,8 +375,8 @@ def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
                             "recall": r, "recall_lo": r - 0.01, "recall_hi": r + 0.01, "bytes_per_place": 3.0,
                             "us_per_query": 10.0, "family": family_label(m, "aligned", d)} for s, m, d, r in rows])
     drawn = {}
-    fig_compare_trends(points, ["1M", "10M"], tmp_path, lambda fig, out, name: drawn.setdefault(name, fig))
-    by_scale = drawn["fig_compare_trends"].axes[2]  # a 2 × 2 grid: the first panel of the second row
+    fig_compare_trends(points, ["1M", "10M"], "qm1", tmp_path, lambda fig, out, name: drawn.setdefault(name, fig))
+    by_scale = drawn["fig_compare_trends_qm1"].axes[2]  # a 2 × 2 grid: the first panel of the second row
     lines = {line.get_label(): list(line.get_ydata()) for line in by_scale.get_lines()}
     assert lines["CoarseHash (aligned)"] == [90.0, 80.0] and lines["PQ3 (aligned)"] == [95.0, 95.0]
     assert not any("d=" in label for label in lines)
@@ -385,7 +385,7 @@ def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
 def test_a_method_keeps_its_colour_and_its_modes_their_line_styles():
     """Colours go to methods (CoarseHash one at every width), line styles to modes, so a
     report's thirty-odd families need no more colours than it has methods."""
-    from vprscale.evaluation.comparison import family_colours, family_label, family_line
+    from vprscale.evaluation.comparison import family_colours, family_label, family_line, family_marker
 
     families = [family_label(m, mode, d) for m, d in (("coarsehash", 20), ("coarsehash", 24), ("faiss:PQ3", None),
                                                       ("faiss:IVF4096,PQ3", None))
@@ -396,6 +396,31 @@ def test_a_method_keeps_its_colour_and_its_modes_their_line_styles():
     assert len(ours) == 1
     assert colours["PQ3 (aligned)"] != colours["IVF4096,PQ3 (aligned)"] != colours["CoarseHash d=20 (aligned)"]
     assert len({family_line(family_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
+    assert len({family_marker(family_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
+
+
+def test_the_legend_names_methods_and_modes_apart_and_panels_share_axes(tmp_path):
+    """Nine families (three methods in three modes) take a legend of six entries outside the
+    panels: each method in its colour, each mode by its marker and line; panels share axes."""
+    from vprscale.evaluation.comparison import family_label, fig_compare
+
+    rows = [{"scale": s, "noise": "qm2", "method": m, "mode": mode, "L": L, "d": 20 if m == "coarsehash" else None,
+             "recall": 0.5, "recall_lo": 0.4, "recall_hi": 0.6, "bytes_per_place": 3.0, "us_per_query": u}
+            for s in ("1M", "10M") for m in ("coarsehash", "faiss:PQ3", "faiss:HNSW32") for L in (1, 50)
+            for mode in (("single",) if L == 1 else ("paper", "aligned")) for u in (5.0, 50.0)]
+    points = pd.DataFrame(rows)
+    points["family"] = [family_label(m, mode, d) for m, mode, d in zip(points.method, points["mode"], points.d,
+                                                                          strict=True)]
+    points["qps"] = 1e6 / points.us_per_query
+    drawn = {}
+    assert fig_compare(points, ["1M", "10M"], "qm2", tmp_path,
+                       lambda fig, out, name: drawn.setdefault(name, fig)) == "fig_compare_qm2"
+    fig = drawn["fig_compare_qm2"]
+    labels = [t.get_text() for legend in fig.legends for t in legend.get_texts()]
+    assert labels == ["CoarseHash", "PQ3", "HNSW32", "single frame", "paper mode", "aligned mode"]
+    first = fig.axes[0]
+    assert all(ax.get_shared_x_axes().joined(first, ax) and ax.get_shared_y_axes().joined(first, ax)
+               for ax in fig.axes)
 
 
 def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():

@@ -90,7 +90,8 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert all(s["status"] == "ran" for s in summary["stages"])
     report = tmp / "report" / "report.md"
     assert report.is_file()
-    for fig in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", "fig_compare"):
+    for fig in ("fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", "fig_compare_qm1",
+                "fig_compare_qm2"):
         assert (tmp / "report" / f"{fig}.png").is_file() and (tmp / "report" / f"{fig}.pdf").is_file()
     # The synthetic sources are calibrated to the paper's regime at 20K (SPEC §1.3).
     import pandas as pd
@@ -102,9 +103,11 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert at20[(at20.L == 50) & (at20["mode"] == "paper")]["recall"].iloc[0] > 0.7
     saved = json.loads(Path(summary["summary_file"]).read_text())
     assert saved["status"] == "ok"
-    assert sorted({Path(f).stem for f in saved["figures"]}) == [
-        "fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", "fig_compare", "fig_compare_bytes",
-        "fig_compare_trends", "fig_pr"] and len(saved["figures"]) == 16  # PNG and PDF each
+    per_noise = [f"{fig}_{noise}" for noise in ("qm1", "qm2")
+                 for fig in ("fig_compare", "fig_compare_bytes", "fig_compare_trends", "fig_pr")]
+    assert sorted({Path(f).stem for f in saved["figures"]}) == sorted(
+        ["fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", *per_noise])
+    assert len(saved["figures"]) == 2 * (4 + len(per_noise))  # PNG and PDF each
     assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0
 
 

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import json
+import re
+import shutil
+import subprocess
 
 import numpy as np
 import pandas as pd
+import pytest
 
+from vprscale.cli import main
 from vprscale.evaluation.report import write_report
 
 
@@ -74,3 +79,61 @@ def test_report_opens_with_provenance_and_flags_mixed_commits(tmp_path):
                                                                                  "dirty": True}}))
     head = open(write_report([first, second], tmp_path / "two")["report"]).read().split("## Figures")[0]
     assert "**These results come from 2 different commits** (aaaaaaaaaaaa, bbbbbbbbbbbb (dirty tree))" in head
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def two_noise_report(tiny_store, tiny_index, tmp_path_factory):
+    """A report of CoarseHash, the baseline and one FAISS code on both noise levels."""
+    tmp = tmp_path_factory.mktemp("html")
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1,qm2",
+                 "--compare", "PQ4", "--repeats", "1", "--out", str(tmp / "e")]) == 0
+    assert main(["report", str(tmp / "e"), "--out", str(tmp / "r")]) == 0
+    return tmp / "e", tmp / "r"
+
+
+def _chromium(*args: str) -> subprocess.CompletedProcess:
+    """Headless Chromium on a page, its console on stderr, every host unresolvable (no network)."""
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
+             "--virtual-time-budget=10000", "--host-resolver-rules=MAP * ~NOTFOUND"]
+    return subprocess.run([CHROMIUM, *flags, *args], capture_output=True, text=True, timeout=120, check=True)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")
+def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_noise_report, tmp_path):
+    """report.html, opened by headless Chromium from the file alone (every host unresolvable):
+    no error in
+    the page or its console, every figure drawn (Plotly's points in the page, and pixels of
+    the methods' colours in a screenshot), each figure's table holding points of both noise
+    levels, and the embedded rows the results' rows over all queries."""
+    import json as _json
+
+    from PIL import Image
+
+    from vprscale.evaluation.htmlreport import FIGURES
+
+    evaluation, report = two_noise_report
+    page = report / "report.html"
+    text = page.read_text()
+    loaded = _chromium("--dump-dom", page.as_uri())
+    assert ":CONSOLE" not in loaded.stderr, loaded.stderr
+    dom = loaded.stdout
+    assert 'data-drawn="yes"' in dom and '<pre id="page-errors" hidden=""></pre>' in dom
+    for fig, *_ in FIGURES:
+        block = dom.split(f'id="{fig}"', 1)[1].split('class="figure"', 1)[0]
+        assert int(re.search(r'data-points="(\d+)"', block).group(1)) > 0
+        assert block.count('class="point"') > 0  # Plotly drew the points
+        table = dom.split(f'id="{fig}-table"', 1)[1].split("</table>", 1)[0]
+        assert 'data-noise="qm1"' in table and 'data-noise="qm2"' in table
+    rows = _json.loads(text.split('<script id="rows" type="application/json">', 1)[1].split("</script>", 1)[0])
+    res = pd.read_parquet(evaluation / "results.parquet")
+    assert len(rows) == int((res.part == "all").sum()) and {r["noise"] for r in rows} == {"qm1", "qm2"}
+    _chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri())
+    shot = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB")).reshape(-1, 3).astype(int)
+    colours = _json.loads(re.search(r"var COLOURS = (\{.*?\}), SYMBOLS", text).group(1))
+    assert set(colours) == {"CoarseHash", "baseline", "PQ4"}
+    for method, colour in colours.items():  # each method's points and lines are on the screen
+        rgb = np.array([int(colour[i : i + 2], 16) for i in (1, 3, 5)])
+        assert (np.abs(shot - rgb).max(axis=1) <= 12).sum() > 200, method

@@ -3,16 +3,20 @@ it (FAISS codes with ``--compare``, your own with ``--method``), as ann-benchmar
 big-ann-benchmarks draw it.
 
 Each method family (a method in one mode) has one point per operating point (its
-``params``: k, nprobe). The figures:
+``params``: k, nprobe). The figures, one of each per noise level (``…_qm1.png``,
+``…_qm2.png``: the levels where the methods part most must not hide behind the easiest):
 
 - ``fig_compare``: recall within 20 frames against queries per second per core (log axis),
   per scale (columns) and L (rows), with each family's Pareto front drawn and labelled;
-- ``fig_compare_bytes``: recall against bytes per place, on an axis that spans the data;
+- ``fig_compare_bytes``: recall against bytes per place, per scale and L, on an axis that
+  spans the data;
 - ``fig_compare_trends``: each family's best recall against L, and against scale.
 
-A family's colour is its method's (CoarseHash's the same at every width), its line style its
-mode's (``MODE_LINES``); every recall carries its 95 % Wilson interval.
-Everything here is read from the results; nothing is written in advance of the data.
+A family's colour is its method's (CoarseHash's the same at every width), its marker and
+line style its mode's (``MODE_MARKERS``, ``MODE_LINES``); the legend names the methods and
+the modes apart (ten methods in three modes are thirteen entries, not thirty); panels of a
+figure share their axes; every recall carries its 95 % Wilson interval. Everything here is
+read from the results; nothing is written in advance of the data.
 """
 
 from __future__ import annotations
@@ -24,15 +28,18 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from matplotlib.ticker import FuncFormatter, LogLocator
+from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator
 
 from vprscale.evaluation.accounting import time_cell
-from vprscale.evaluation.results import main_noise, noise_order
+from vprscale.evaluation.results import noise_order
 
 RADIUS = 20
 OURS = "coarsehash"
 NOT_COMPARED = {OURS, "baseline"}
 MODE_LINES = {"aligned": "-", "paper": "--", "single": ":"}  # a family's line style, by its mode
+MODE_MARKERS = {"aligned": "^", "paper": "o", "single": "s"}  # and its marker
+TITLE_SIZE = 10
 
 
 def _plain(v: float, _pos: int) -> str:
@@ -47,12 +54,19 @@ def _si(v: float, _pos: int) -> str:
 
 
 def shared_legend(fig, axes) -> None:
-    """One legend below the panels: every family any panel drew, once."""
-    handles: dict[str, Any] = {}
+    """One legend below the panels, outside the data: each method any panel drew (its colour),
+    then each mode (its marker and line style, in black)."""
+    colours: dict[str, Any] = {}
+    modes: dict[str, None] = {}
     for ax in np.ravel(axes):
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            handles.setdefault(lab, h)
-    fig.legend(list(handles.values()), list(handles), loc="outside lower center", ncol=4, fontsize=7)
+            method, mode = method_and_mode(lab)
+            colours.setdefault(method, h.get_color() if isinstance(h, Line2D) else h.get_facecolor()[0])
+            modes.setdefault(mode)
+    handles = [Line2D([], [], color=c, lw=2.5, label=m) for m, c in colours.items()]
+    handles += [Line2D([], [], color="black", marker=MODE_MARKERS[m], ls=MODE_LINES[m],
+                       label="single frame" if m == "single" else f"{m} mode") for m in modes if m in MODE_LINES]
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(6, len(handles)), fontsize=8)
 
 
 def _points(res: pd.DataFrame) -> pd.DataFrame:
@@ -100,7 +114,13 @@ def pareto_front(points: pd.DataFrame, x: str = "qps", y: str = "recall") -> pd.
     return ordered.loc[keep]
 
 
-def _method_and_mode(family: str) -> tuple[str, str]:
+def panels(rows: int, cols: int, width: float, height: float) -> tuple[Any, Any]:
+    """A figure of ``rows`` × ``cols`` panels of ``width`` × ``height`` inches sharing both axes."""
+    return plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False, sharex=True, sharey=True,
+                        layout="constrained")
+
+
+def method_and_mode(family: str) -> tuple[str, str]:
     """``("PQ3", "aligned")`` of ``PQ3 (aligned)``; CoarseHash without its width."""
     method, _, mode = family.rpartition(" (")
     return re.sub(r" d=\d+$", "", method), mode.rstrip(")")
@@ -112,16 +132,21 @@ def family_colours(families: list[str]) -> dict[str, Any]:
     mode or CoarseHash's width; :func:`family_line` tells the modes apart); no greys (the grid's
     colour). Sixteen colours before one repeats: a colour per family would repeat at a report's
     thirty-odd families (ten methods in up to three modes)."""
-    methods = sorted({_method_and_mode(f)[0] for f in families}, key=lambda m: (m != "CoarseHash", m))
+    methods = sorted({method_and_mode(f)[0] for f in families}, key=lambda m: (m != "CoarseHash", m))
     tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
     palette = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
     by_method = {m: palette[i % len(palette)] for i, m in enumerate(methods)}
-    return {f: by_method[_method_and_mode(f)[0]] for f in families}
+    return {f: by_method[method_and_mode(f)[0]] for f in families}
 
 
 def family_line(family: str) -> str:
     """A family's line style: its mode's (``MODE_LINES``)."""
-    return MODE_LINES.get(_method_and_mode(family)[1], "-")
+    return MODE_LINES.get(method_and_mode(family)[1], "-")
+
+
+def family_marker(family: str) -> str:
+    """A family's marker: its mode's (``MODE_MARKERS``)."""
+    return MODE_MARKERS.get(method_and_mode(family)[1], "o")
 
 
 def _families(points: pd.DataFrame) -> list[str]:
@@ -139,73 +164,77 @@ def _recall_axis(ax, title: str, xlabel: str, first: bool) -> None:
     """The common finish of a recall panel: 0–100 %, grid, title, labels (the y label on the first)."""
     ax.set_ylim(0, 102)
     ax.grid(alpha=0.3, which="both")
-    ax.set_title(title, fontsize=8)
+    ax.set_title(title, fontsize=TITLE_SIZE)
     ax.set_xlabel(xlabel)
     if first:
         ax.set_ylabel(f"recall within {RADIUS} frames (%)")
 
 
-def _grid(points: pd.DataFrame, scales: list[str]) -> tuple[str, list[str], list[int]]:
-    noise = main_noise(points)
-    return noise, [s for s in scales if s in set(points.scale)], sorted(points[points.noise == noise].L.unique())
+def _grid(points: pd.DataFrame, scales: list[str], noise: str) -> tuple[list[str], list[int]]:
+    """The scales and lengths a noise level's figure draws."""
+    here = points[points.noise == noise]
+    return [s for s in scales if s in set(here.scale)], sorted(here.L.unique())
 
 
-def fig_compare(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
-    """Recall against queries per second per core, each family's Pareto front drawn and labelled."""
-    noise, scales, lengths = _grid(points, scales)
+def fig_compare(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
+    """Recall against queries per second per core at one noise level, each family's Pareto front
+    drawn and labelled; returns the figure's name."""
+    scales, lengths = _grid(points, scales, noise)
     families = _families(points)
     colours = family_colours(families)
-    fig, axes = plt.subplots(len(lengths), len(scales), figsize=(5.2 * len(scales), 3.8 * len(lengths)),
-                             squeeze=False, sharey=True, layout="constrained")
+    fig, axes = panels(len(lengths), len(scales), 5.2, 3.8)
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
             ax = axes[r][c]
             sub = points[(points.noise == noise) & (points.scale == scale) & (points.L == L)]
             for fam, g in sub.groupby("family", sort=False):
                 front = pareto_front(g)
-                ax.scatter(g.qps, 100 * g.recall, s=14, color=colours[fam], alpha=0.35, lw=0)
-                ax.plot(front.qps, 100 * front.recall, marker="o", ls=family_line(fam), ms=4, lw=1.3,
+                ax.scatter(g.qps, 100 * g.recall, s=14, color=colours[fam], alpha=0.35, lw=0,
+                           marker=family_marker(fam))
+                ax.plot(front.qps, 100 * front.recall, marker=family_marker(fam), ls=family_line(fam), ms=5, lw=1.3,
                         color=colours[fam], label=fam)
                 _recall_bars(ax, front, "qps", colours[fam])
             ax.set_xscale("log")
             ax.xaxis.set_major_formatter(FuncFormatter(_si))
             _recall_axis(ax, f"{scale}, {noise.upper()}, L = {L}", "queries per second per core", c == 0)
     shared_legend(fig, axes)
-    fig.suptitle("Recall against throughput: every operating point (dots), each method's Pareto front (lines)")
-    save(fig, out, "fig_compare")
+    fig.suptitle(f"{noise.upper()}: recall against throughput, every operating point (dots), "
+                 "each method's Pareto front (lines)")
+    name = f"fig_compare_{noise}"
+    save(fig, out, name)
+    return name
 
 
-def fig_compare_bytes(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
-    """Recall against bytes per place (each family's best operating point per L), axis spanning the data."""
-    noise, scales, lengths, colours, best = _setup(points, scales)
+def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
+    """Recall against bytes per place at one noise level (each family's best operating point),
+    per scale and L, on an axis spanning the data; returns the figure's name."""
+    scales, lengths, colours, best = _setup(points, scales, noise)
     lo, hi = best.bytes_per_place.min(), best.bytes_per_place.max()
-    fig, axes = plt.subplots(1, len(scales), figsize=(5.2 * len(scales), 3.8), squeeze=False, sharey=True,
-                             layout="constrained")
-    marker = dict(zip(lengths, "osD^v<>", strict=False))
-    for c, scale in enumerate(scales):
-        ax = axes[0][c]
-        for fam, g in best[best.scale == scale].groupby("family", sort=False):
-            g = g.sort_values("L")
-            fill = "none" if _method_and_mode(fam)[1] == "paper" else colours[fam]
-            for row in g.itertuples():
-                ax.scatter(row.bytes_per_place, 100 * row.recall, marker=marker.get(row.L, "o"), s=30,
-                           edgecolors=colours[fam], facecolors=fill, label=fam if row.L == g.L.iloc[0] else None)
-            _recall_bars(ax, g, "bytes_per_place", colours[fam])
-        ax.set_xscale("log")
-        ax.set_xlim(lo / 1.4, hi * 1.4)  # aligned (and single-frame) points filled, paper mode's hollow
-        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
-        ax.xaxis.set_major_formatter(FuncFormatter(_plain))
-        ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _p: ""))
-        _recall_axis(ax, f"{scale}, {noise.upper()}: marker = L "
-                         f"({', '.join(f'{m} {L}' for L, m in marker.items())})", "bytes per place", c == 0)
+    fig, axes = panels(len(lengths), len(scales), 5.2, 3.4)
+    for r, L in enumerate(lengths):
+        for c, scale in enumerate(scales):
+            ax = axes[r][c]
+            for fam, g in best[(best.scale == scale) & (best.L == L)].groupby("family", sort=False):
+                ax.scatter(g.bytes_per_place, 100 * g.recall, marker=family_marker(fam), s=34, color=colours[fam],
+                           label=fam)
+                _recall_bars(ax, g, "bytes_per_place", colours[fam])
+            ax.set_xscale("log")
+            ax.set_xlim(lo / 1.4, hi * 1.4)
+            ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            ax.xaxis.set_major_formatter(FuncFormatter(_plain))
+            ax.xaxis.set_minor_formatter(FuncFormatter(lambda v, _p: ""))
+            _recall_axis(ax, f"{scale}, {noise.upper()}, L = {L}", "bytes per place", c == 0)
     shared_legend(fig, axes)
-    fig.suptitle("Recall against storage: each method's best operating point")
-    save(fig, out, "fig_compare_bytes")
+    fig.suptitle(f"{noise.upper()}: recall against storage, each method's best operating point")
+    name = f"fig_compare_bytes_{noise}"
+    save(fig, out, name)
+    return name
 
 
-def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save) -> None:
-    """Each family's best recall against L (one panel per scale) and against scale (one per L)."""
-    noise, scales, lengths, _, best = _setup(points, scales)
+def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
+    """Each family's best recall against L (one panel per scale) and against scale (one per L),
+    at one noise level; returns the figure's name."""
+    scales, lengths, _, best = _setup(points, scales, noise)
     # CoarseHash is compared at each scale's own width (d = ⌈log2 N_ref⌉): against scale it is
     # one line per mode, in its one colour (the tables give d)
     best = best.assign(family=[family_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)])
@@ -217,18 +246,23 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save)
         ax = axes[0][c]
         for fam, g in best[best.scale == scale].groupby("family", sort=False):
             g = g.sort_values("L")
-            ax.plot(g.L, 100 * g.recall, marker="o", ls=family_line(fam), ms=4, color=colours[fam], label=fam)
+            ax.plot(g.L, 100 * g.recall, marker=family_marker(fam), ls=family_line(fam), ms=5, color=colours[fam],
+                    label=fam)
             _recall_bars(ax, g, "L", colours[fam])
-        ax.set(xlabel="sequence length L (frames)", title=f"{scale}, {noise.upper()}: recall vs L", ylim=(0, 102))
+        ax.set(xlabel="sequence length L (frames)", ylim=(0, 102))
+        ax.set_title(f"{scale}, {noise.upper()}: recall vs L", fontsize=TITLE_SIZE)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
     for c, L in enumerate(lengths):
         ax = axes[1][c]
         for fam, g in best[best.L == L].groupby("family", sort=False):
             g = g.assign(pos=g.scale.map(order)).sort_values("pos")
-            ax.plot(g.pos, 100 * g.recall, marker="o", ls=family_line(fam), ms=4, color=colours[fam], label=fam)
+            ax.plot(g.pos, 100 * g.recall, marker=family_marker(fam), ls=family_line(fam), ms=5, color=colours[fam],
+                    label=fam)
             _recall_bars(ax, g, "pos", colours[fam])
         ax.set_xticks(range(len(scales)), scales)
-        ax.set(xlabel="scale (places)", title=f"L = {L}, {noise.upper()}: recall vs scale", ylim=(0, 102))
+        ax.set(xlabel="scale (places)", ylim=(0, 102))
+        ax.set_title(f"L = {L}, {noise.upper()}: recall vs scale", fontsize=TITLE_SIZE)
         ax.grid(alpha=0.3)
     for row in axes:
         row[0].set_ylabel(f"recall within {RADIUS} frames (%)")
@@ -236,15 +270,18 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], out: Path, save)
             if not ax.has_data():
                 ax.set_visible(False)
     shared_legend(fig, axes)
-    fig.suptitle("Each method's best operating point against sequence length and against scale")
-    save(fig, out, "fig_compare_trends")
+    fig.suptitle(f"{noise.upper()}: each method's best operating point against sequence length and against scale")
+    name = f"fig_compare_trends_{noise}"
+    save(fig, out, name)
+    return name
 
 
-def _setup(points: pd.DataFrame, scales: list[str]) -> tuple[str, list[str], list[int], dict[str, Any], pd.DataFrame]:
-    """What a best-point figure draws: the noise, scales and lengths, the colours, and each
-    family's best operating point per scale and L."""
-    noise, scales, lengths = _grid(points, scales)
-    return noise, scales, lengths, family_colours(_families(points)), _best_points(points[points.noise == noise])
+def _setup(points: pd.DataFrame, scales: list[str], noise: str
+           ) -> tuple[list[str], list[int], dict[str, Any], pd.DataFrame]:
+    """What a best-point figure of one noise level draws: the scales and lengths, the colours,
+    and each family's best operating point per scale and L."""
+    scales, lengths = _grid(points, scales, noise)
+    return scales, lengths, family_colours(_families(points)), _best_points(points[points.noise == noise])
 
 
 def _best_points(points: pd.DataFrame) -> pd.DataFrame:
@@ -304,8 +341,8 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
     points = _points(res)
     if points.empty or not points.method.ne(OURS).any():
         return []
-    for draw in (fig_compare, fig_compare_bytes, fig_compare_trends):
-        draw(points, scales, out, save)
+    figures = [draw(points, scales, noise, out, save) for noise in noise_order(points.noise)
+               for draw in (fig_compare, fig_compare_bytes, fig_compare_trends)]
     rows: list[list[Any]] = []
     for p in points.sort_values(["scale", "noise", "L", "method", "mode"], key=_scale_key(scales)).itertuples():
         rows.append([p.scale, p.noise.upper(), p.L, _label(p.method, p.mode, p.d, getattr(p, "params", None)),
@@ -324,8 +361,7 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
             "1,000 unless asked (the queries column, and the recall intervals, say how many). Lines join "
             "each method's Pareto front: the "
             "operating points no other point of the method beats on both recall and throughput.", "",
-            "![compare](fig_compare.png)", "", "![compare bytes](fig_compare_bytes.png)", "",
-            "![compare trends](fig_compare_trends.png)", "", *_words(points, scales), "",
+            *(line for name in figures for line in (f"![{name}]({name}.png)", "")), *_words(points, scales), "",
             table(["scale", "noise", "L", "method (mode)", "B/place", "µs/query", "R@20 % (95 % interval)",
                    "queries"], rows), ""]
 

@@ -54,6 +54,8 @@ def operating_section(res: pd.DataFrame, scales: list[str], table: Callable[[lis
     CoarseHash's own budgets there (its paper mode's bytes per place, and its queries per
     second per core), read from the results; empty when nothing was compared."""
     rows = res[(res.radius == RADIUS) & (res.part == "all")]
+    if {"bytes_per_place", "us_per_query"} - set(rows.columns):  # results of a vprscale before 0.3
+        return []
     if not rows.method.ne(OURS).any() or not rows.method.eq(OURS).any():
         return []
     out: list[list[Any]] = []

@@ -3,8 +3,9 @@ from every query's score, AUC-PR, recall at 100 % precision and Recall@N, as VPR
 SeqNet report them, for every method at every L.
 
 A match is correct within ``RADIUS`` frames of the truth; the curves accept matches in
-order of their score (lower is more confident). The figures are per method family at its
-first operating point; the table gives every operating point, read from the results.
+order of their score (lower is more confident). The figures, one per noise level
+(``fig_pr_qm1.png``, …), are per method family at its first operating point; the table gives
+every operating point of every noise level, read from the results.
 """
 
 from __future__ import annotations
@@ -12,22 +13,20 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import matplotlib.pyplot as plt
 import pandas as pd
 import pyarrow.parquet as pq
 
-from vprscale.evaluation.comparison import family_colours, family_label, family_line, shared_legend
+from vprscale.evaluation.comparison import TITLE_SIZE, family_colours, family_label, family_line, panels, shared_legend
 from vprscale.evaluation.metrics import pr_curve
-from vprscale.evaluation.results import main_noise
+from vprscale.evaluation.results import noise_order
 
 RADIUS = 20
 COLUMNS = ("scale", "noise", "method", "mode", "L", "d", "params", "index", "error", "score")
 
 
-def load_queries(runs: list[str], res: pd.DataFrame) -> pd.DataFrame:
-    """The scored per-query rows of the report's main query set, from each evaluation folder
-    (older evaluations, without scores, are left out)."""
-    noise = main_noise(res)
+def load_queries(runs: list[str]) -> pd.DataFrame:
+    """The scored per-query rows of every query set, from each evaluation folder (older
+    evaluations, without scores, are left out)."""
     frames = []
     for run in runs:
         file = Path(run) / "queries.parquet"
@@ -36,7 +35,7 @@ def load_queries(runs: list[str], res: pd.DataFrame) -> pd.DataFrame:
         names = set(pq.read_schema(file).names)
         if "score" not in names:
             continue
-        table = pq.read_table(file, columns=[c for c in COLUMNS if c in names], filters=[("noise", "=", noise)])
+        table = pq.read_table(file, columns=[c for c in COLUMNS if c in names])
         frames.append(table.to_pandas())
     if not frames:
         return pd.DataFrame(columns=list(COLUMNS))
@@ -54,61 +53,66 @@ def _first_points(q: pd.DataFrame) -> pd.DataFrame:
     return merged
 
 
-def fig_pr(q: pd.DataFrame, scales: list[str], out: Path, save) -> bool:
-    """Precision against recall per scale (columns) and L (rows)."""
-    q = _first_points(q)
+def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str | None:
+    """Precision against recall at one noise level, per scale (columns) and L (rows); the
+    figure's name, or None when there is nothing to draw."""
+    q = _first_points(q[q.noise == noise])
     scales = [s for s in scales if s in set(q.scale)]
     lengths = sorted(q.L.unique())
     if not scales or not lengths:
-        return False
+        return None
     families = list(dict.fromkeys(q.sort_values("method", key=lambda c: c.ne("coarsehash")).family))
     colours = family_colours(families)
-    fig, axes = plt.subplots(len(lengths), len(scales), figsize=(4.4 * len(scales), 3.5 * len(lengths)),
-                             squeeze=False, sharex=True, sharey=True, layout="constrained")
+    fig, axes = panels(len(lengths), len(scales), 4.4, 3.5)
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
             ax = axes[r][c]
             for fam, g in q[(q.scale == scale) & (q.L == L)].groupby("family", sort=False):
                 precision, recall = pr_curve(g.score.to_numpy(), g.error.to_numpy() <= RADIUS)
-                ax.plot(100 * recall, 100 * precision, lw=1.2, ls=family_line(fam), color=colours[fam], label=fam)
-            ax.set(xlim=(0, 100), ylim=(0, 102), title=f"{scale}, {main_noise(q).upper()}, L = {L}")
+                ax.plot(100 * recall, 100 * precision, lw=1.4, ls=family_line(fam), color=colours[fam], label=fam)
+            ax.set(xlim=(0, 100), ylim=(0, 102))
+            ax.set_title(f"{scale}, {noise.upper()}, L = {L}", fontsize=TITLE_SIZE)
             ax.grid(alpha=0.3)
             if r == len(lengths) - 1:
                 ax.set_xlabel(f"recall within {RADIUS} frames (%)")
             if c == 0:
                 ax.set_ylabel("precision (%)")
     shared_legend(fig, axes)
-    fig.suptitle("Precision–recall: matches accepted in order of their score")
-    save(fig, out, "fig_pr")
-    return True
+    fig.suptitle(f"{noise.upper()}: precision–recall, matches accepted in order of their score")
+    name = f"fig_pr_{noise}"
+    save(fig, out, name)
+    return name
 
 
 def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path, save, table) -> list[str]:
     """The report's section: the figure, and the table of every method and operating point."""
     if "auc_pr" not in res.columns:
         return []
-    q = load_queries(runs, res)
-    drawn = not q.empty and fig_pr(q, scales, out, save)
-    noise = main_noise(res)
-    sub = res[(res.part == "all") & (res.radius == RADIUS) & (res.noise == noise)].copy()
+    q = load_queries(runs)
+    drawn = [] if q.empty else [fig_pr(q, scales, noise, out, save) for noise in noise_order(q.noise)]
+    sub = res[(res.part == "all") & (res.radius == RADIUS)].copy()
     sub["mode"] = sub["mode"].fillna("single")
     rows: list[list[Any]] = []
     order = {s: i for i, s in enumerate(scales)}
-    sub = sub.assign(pos=sub.scale.map(order)).sort_values(["pos", "L", "method", "mode", "d"])
-    for p in sub.itertuples():
+    noises = {n: i for i, n in enumerate(noise_order(sub.noise))}
+    sub = sub.assign(pos=sub.scale.map(order), level=sub.noise.map(noises))
+    for p in sub.sort_values(["pos", "level", "L", "method", "mode", "d"]).itertuples():
         name = family_label(p.method, p.mode, p.d)
         params = getattr(p, "params", None)
-        rows.append([p.scale, p.L, name + (f" {params}" if isinstance(params, str) and params else ""),
+        rows.append([p.scale, p.noise.upper(), p.L, name + (f" {params}" if isinstance(params, str) and params else ""),
                      *(f"{100 * v:.1f}" if v == v else "–" for v in
                        (p.recall, p.recall_at_5, p.recall_at_10, p.recall_at_20, p.recall_at_p100)),
-                     f"{p.auc_pr:.3f}" if p.auc_pr == p.auc_pr else "–"])
+                     *(f"{v:.3f}" if v == v else "–" for v in (p.auc_pr, getattr(p, "auc_pr_correct", float("nan"))))])
     return ["## Scores: precision–recall, AUC-PR and Recall@N", "",
             f"Every answer carries its match's score (lower is more confident) and its 20 best candidates. "
             f"A match is correct within {RADIUS} frames of the truth (100 m on FAS); Recall@N counts a centre "
             "whose N best hold a correct one; the precision–recall curve accepts matches in order of their "
             "score, AUC-PR is its trapezoid area and R@100%P the recall reached before the first accepted "
-            f"mistake. {noise.upper()}, all queries (a stratified run weights each part by its share of the "
-            "query rows in the table; the curves count each localised centre once).", "",
-            *(["![PR](fig_pr.png)", ""] if drawn else []),
-            table(["scale", "L", "method (mode)", "R@1 %", "R@5 %", "R@10 %", "R@20 %", "R@100%P %", "AUC-PR"],
-                  rows), ""]
+            "mistake. Recall@N ranks at least N candidates whatever the operating point's own budget "
+            "(docs/protocol.md, \"Recall@N\"). AUC-PR's recall is over all queries (SeqSLAM's); "
+            "AUC-PR (VPR-Bench) is over the correct matches. All queries of every noise level (a stratified "
+            "run weights each part by its share of the query rows in the table; the curves count each "
+            "localised centre once).", "",
+            *(line for name in drawn if name for line in (f"![{name}]({name}.png)", "")),
+            table(["scale", "noise", "L", "method (mode)", "R@1 %", "R@5 %", "R@10 %", "R@20 %", "R@100%P %",
+                   "AUC-PR", "AUC-PR (VPR-Bench)"], rows), ""]

@@ -18,12 +18,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.core.publish import exclusive, keep_beside  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
+from vprscale.evaluation.htmlreport import write_html
 from vprscale.evaluation.operating import operating_section
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
@@ -115,6 +117,7 @@ def fig_recall(res, scales, mains, out, figures) -> None:
                         label=f"{_label(method, mode)}, L={L}")
             ax.set_title(f"{scale}, {noise.upper()} (d={mains[scale]})")
             ax.set_xlabel("localisation radius (frames)")
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             if c == 0:
                 ax.set_ylabel("recall (%)")
             ax.set_ylim(0, 100)
@@ -165,6 +168,7 @@ def fig_single(res, scales, mains, out, figures) -> None:
         ax.plot(g.radius, 100 * g.recall_in_list, "--", color=colour, label=f"{scale}: anywhere in list")
     ax.set(xlabel="localisation radius (frames)", ylabel="recall (%)",
            title=f"Single frame: best match vs in-list bound, {main_noise(res).upper()} (paper Fig. 4b)")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     _save(fig, out, "fig4b_single_frame", figures)
@@ -200,7 +204,7 @@ def fig_storage(indexes, out, figures) -> None:
     ax.set(xscale="log", yscale="log", xlabel="reference places N_ref", ylabel="bytes",
            title="Storage growth (paper Fig. 4c, with the lists)")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))  # beside the data, not over it
     _save(fig, out, "fig4c_storage", figures)
 
 
@@ -362,6 +366,7 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     compared += pr_section(res, list(dict.fromkeys(res.run)), scales, out, save, _md_table)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compared)
     (out / "report.md").write_text(text)
+    write_html(res, _provenance_block(evals), REPORT_TITLE.removeprefix("# "), out)
     small = res[res.radius.isin([0, 5, 10, 20])].drop(columns=["store", "index"], errors="ignore")
     small.to_csv(out / "recall_table.csv", index=False)
     return {"report": str(out / "report.md"), "figures": figures}

@@ -1,0 +1,84 @@
+"""``report.html``: the report as one self-contained page people explore, beside ``report.md``.
+
+What ann-benchmarks' site gives and what users of benchmark reports ask for most — the
+numbers behind a plot — without a server or a network: the page embeds plotly.js and every
+recall row of the results (over all queries, every radius), and draws from them in the
+browser:
+
+- recall against queries per second per core, against bytes per place, and against the
+  localisation radius, every point hoverable (method, parameters, mode, L, scale, noise,
+  recall with its 95 % interval, µs per query, bytes per place, queries);
+- filters by scale, noise level, L, mode and method, and the recall radius the first two
+  figures read (every noise level is there: none is left out);
+- under each figure the table it draws, and a button that downloads it as CSV (the rows the
+  filters leave), and the whole table likewise;
+- the provenance block of the report on top.
+
+Errors in the page are written into it (``#page-errors``), so a headless browser can tell a
+page that drew from one that failed. Colours and markers are the PNG figures' (one colour
+per method, one marker per mode: :mod:`vprscale.evaluation.comparison`).
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import re
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.colors import to_hex
+
+from vprscale.evaluation.comparison import family_colours, family_label, method_and_mode
+
+PAGE, SCRIPT = "report_page.html", "report_page.js"  # the page's template and script (package data)
+# The columns the page holds per recall row (those an evaluation has)
+COLUMNS = ("scale", "noise", "method", "family", "mode", "L", "d", "params", "radius", "recall", "recall_lo",
+           "recall_hi", "recall_at_20", "bytes_per_place", "us_per_query", "qps_per_core", "n_queries", "run")
+SYMBOLS = {"aligned": "triangle-up", "paper": "circle", "single": "square"}  # the PNG figures' MODE_MARKERS
+# The page's figures: id, title, the column on x, its label (recall on y)
+FIGURES = (("fig-qps", "Recall against queries per second per core", "qps_per_core", "queries per second per core"),
+           ("fig-bytes", "Recall against bytes per place", "bytes_per_place", "bytes per place"),
+           ("fig-radius", "Recall against the localisation radius", "radius", "radius (frames)"))
+
+
+def page_rows(res: pd.DataFrame) -> pd.DataFrame:
+    """The rows the page draws: every method's recall over all queries at every radius."""
+    rows = res[res.part == "all"].copy()
+    rows["mode"] = rows["mode"].fillna("single")
+    rows["family"] = [family_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
+    rows["method"] = [method_and_mode(f)[0] for f in rows.family]  # CoarseHash one method at every width
+    for missing in {"bytes_per_place", "us_per_query"} - set(rows.columns):  # results of a vprscale before 0.3
+        rows[missing] = np.nan
+    rows["qps_per_core"] = 1e6 / rows.us_per_query.clip(lower=1e-9)
+    return rows[[c for c in COLUMNS if c in rows.columns]].reset_index(drop=True)
+
+
+def _json(rows: pd.DataFrame) -> str:
+    """The rows as JSON records (NaN as null), safe inside a ``<script>`` element."""
+    clean = rows.astype(object).where(rows.notna(), None)
+    records = [{k: (v.item() if isinstance(v, np.generic) else v) for k, v in r.items()}
+               for r in clean.to_dict("records")]
+    return json.dumps(records, separators=(",", ":")).replace("</", "<\\/")
+
+
+def write_html(res: pd.DataFrame, provenance_lines: list[str], title: str, out: Path) -> Path:
+    """Write ``out/report.html`` from the results ``res`` and the report's provenance lines."""
+    from plotly.offline import get_plotlyjs
+
+    here = resources.files(__package__)
+    template, script = (here / PAGE).read_text("utf-8"), (here / SCRIPT).read_text("utf-8")
+    rows = page_rows(res)
+    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in family_colours(list(rows.family.unique())).items()}
+    provenance = "".join(f"<li>{html.escape(line.removeprefix('- '))}</li>" for line in provenance_lines
+                         if line.startswith("- "))
+    script = (script.replace("@COLOURS@", json.dumps(colours)).replace("@SYMBOLS@", json.dumps(SYMBOLS))
+              .replace("@FIGURES@", json.dumps(FIGURES)))
+    values = {"TITLE": html.escape(title), "PROVENANCE": provenance, "SCRIPT": script, "ROWS": _json(rows),
+              "PLOTLY": get_plotlyjs().replace("</script", "<\\/script")}
+    page = re.sub(r"@([A-Z]+)@", lambda m: values[m.group(1)], template)  # one pass: inserted text is not rescanned
+    path = out / "report.html"
+    path.write_text(page, encoding="utf-8")
+    return path

@@ -1,0 +1,109 @@
+(function () {
+  var ROWS = JSON.parse(document.getElementById("rows").textContent);
+  var COLOURS = @COLOURS@, SYMBOLS = @SYMBOLS@;
+  var FIGURES = @FIGURES@;
+  var FILTERS = [["scale", "scale"], ["noise", "noise"], ["L", "L"], ["mode", "mode"], ["method", "method"],
+                 ["radius", "radius (first two figures)"]];
+  var TABLE = ["scale", "noise", "L", "family", "params", "radius", "recall", "recall_lo", "recall_hi",
+               "bytes_per_place", "us_per_query", "qps_per_core", "n_queries"];
+
+  function values(key) {
+    var seen = [];
+    ROWS.forEach(function (r) { if (r[key] !== null && seen.indexOf(r[key]) < 0) { seen.push(r[key]); } });
+    return key === "L" || key === "radius" ? seen.sort(function (a, b) { return a - b; }) : seen;
+  }
+  var bar = document.getElementById("filters");
+  FILTERS.forEach(function (f) {
+    var label = document.createElement("label"), sel = document.createElement("select");
+    label.textContent = f[1];
+    sel.id = "filter-" + f[0];
+    var opts = f[0] === "radius" ? values("radius") : ["all"].concat(values(f[0]));
+    opts.forEach(function (v) { var o = document.createElement("option"); o.value = v; o.textContent = v; sel.appendChild(o); });
+    if (f[0] === "radius") { sel.value = opts.indexOf(20) >= 0 ? "20" : String(opts[opts.length - 1]); }
+    sel.addEventListener("change", draw);
+    label.appendChild(sel);
+    bar.appendChild(label);
+  });
+  function chosen(key) { return document.getElementById("filter-" + key).value; }
+  function kept(r, withRadius) {
+    for (var i = 0; i < FILTERS.length - 1; i++) {
+      var k = FILTERS[i][0], v = chosen(k);
+      if (v !== "all" && String(r[k]) !== v) { return false; }
+    }
+    return !withRadius || String(r.radius) === chosen("radius");
+  }
+  function pct(v) { return v === null ? "–" : (100 * v).toFixed(1); }
+  function hover(r) {
+    return r.family + (r.params ? " " + r.params : "") + "<br>" + r.scale + ", " + String(r.noise).toUpperCase() +
+      ", L = " + r.L + ", radius " + r.radius + "<br>recall " + pct(r.recall) + " % (" + pct(r.recall_lo) + "–" +
+      pct(r.recall_hi) + ")<br>" + (r.us_per_query === null ? "–" : r.us_per_query.toFixed(2)) + " µs/query, " +
+      (r.bytes_per_place === null ? "–" : r.bytes_per_place.toFixed(2)) + " B/place, " + r.n_queries + " queries";
+  }
+  function csv(rows) {
+    var cols = Object.keys(ROWS[0] || {});
+    var quote = function (v) { v = v === null ? "" : String(v); return /[",\n]/.test(v) ? '"' + v.replace(/"/g, '""') + '"' : v; };
+    return [cols.join(",")].concat(rows.map(function (r) { return cols.map(function (c) { return quote(r[c]); }).join(","); })).join("\n") + "\n";
+  }
+  function download(name, rows) {
+    var a = document.createElement("a");
+    a.href = URL.createObjectURL(new Blob([csv(rows)], {type: "text/csv"}));
+    a.download = name;
+    document.body.appendChild(a); a.click(); a.remove();
+  }
+  var holder = document.getElementById("figures"), drawn = {};
+  FIGURES.forEach(function (f) {
+    var h = document.createElement("h2"); h.textContent = f[1]; holder.appendChild(h);
+    var div = document.createElement("div"); div.id = f[0]; div.className = "figure"; holder.appendChild(div);
+    var btn = document.createElement("button"); btn.textContent = "Download this figure's table (CSV)";
+    btn.id = f[0] + "-csv"; btn.addEventListener("click", function () { download(f[0] + ".csv", drawn[f[0]] || []); });
+    holder.appendChild(btn);
+    var det = document.createElement("details"), sum = document.createElement("summary");
+    sum.textContent = "The table behind this figure"; det.appendChild(sum);
+    var tab = document.createElement("table"); tab.id = f[0] + "-table"; det.appendChild(tab); holder.appendChild(det);
+  });
+  document.getElementById("download-all").addEventListener("click", function () { download("recall_rows.csv", ROWS); });
+
+  function table(id, rows) {
+    var tab = document.getElementById(id + "-table"), head = "<tr>" + TABLE.map(function (c) { return "<th>" + c + "</th>"; }).join("") + "</tr>";
+    tab.innerHTML = head + rows.map(function (r) {
+      return '<tr data-noise="' + r.noise + '" data-family="' + r.family + '">' + TABLE.map(function (c) {
+        var v = r[c]; return "<td>" + (v === null ? "–" : typeof v === "number" && !Number.isInteger(v) ? v.toPrecision(4) : v) + "</td>";
+      }).join("") + "</tr>";
+    }).join("");
+  }
+  function traces(rows, x, lines) {
+    var groups = {};
+    rows.forEach(function (r) {
+      var key = r.family + (lines ? " " + (r.params || "") + " L=" + r.L + " " + r.scale + " " + r.noise : "");
+      (groups[key] = groups[key] || []).push(r);
+    });
+    return Object.keys(groups).map(function (key) {
+      var g = groups[key].slice().sort(function (a, b) { return a[x] - b[x]; }), r0 = g[0];
+      return {x: g.map(function (r) { return r[x]; }), y: g.map(function (r) { return 100 * r.recall; }),
+              error_y: {type: "data", symmetric: false, visible: !lines, thickness: 1,
+                        array: g.map(function (r) { return r.recall_hi === null ? 0 : 100 * (r.recall_hi - r.recall); }),
+                        arrayminus: g.map(function (r) { return r.recall_lo === null ? 0 : 100 * (r.recall - r.recall_lo); })},
+              mode: lines ? "lines+markers" : "markers", name: key, text: g.map(hover), hoverinfo: "text",
+              marker: {color: COLOURS[r0.method] || "#444", symbol: SYMBOLS[r0.mode] || "circle", size: lines ? 5 : 9},
+              line: {color: COLOURS[r0.method] || "#444", dash: r0.mode === "paper" ? "dash" : r0.mode === "single" ? "dot" : "solid"}};
+    });
+  }
+  function draw() {
+    FIGURES.forEach(function (f) {
+      var radiusFigure = f[2] === "radius";
+      var rows = ROWS.filter(function (r) { return kept(r, !radiusFigure) && r[f[2]] !== null; });
+      drawn[f[0]] = rows;
+      var layout = {margin: {t: 20}, hovermode: "closest", legend: {orientation: "h", y: -0.2},
+                    xaxis: {title: {text: f[3]}, type: radiusFigure ? "linear" : "log", dtick: radiusFigure ? 1 : undefined},
+                    yaxis: {title: {text: "recall" + (radiusFigure ? "" : " within " + chosen("radius") + " frames") + " (%)"},
+                            range: [0, 102]}};
+      var drawnTraces = traces(rows, f[2], radiusFigure);
+      layout.showlegend = drawnTraces.length <= 30;  // beyond, the legend would hide the plot: hover names each line
+      Plotly.react(f[0], drawnTraces, layout, {responsive: true, displaylogo: false});
+      table(f[0], rows);
+      document.getElementById(f[0]).dataset.points = String(rows.length);
+    });
+    document.body.dataset.drawn = "yes";
+  }
+  draw();
+})();
