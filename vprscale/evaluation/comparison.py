@@ -114,9 +114,10 @@ def pareto_front(points: pd.DataFrame, x: str = "qps", y: str = "recall") -> pd.
     return ordered.loc[keep]
 
 
-def panels(rows: int, cols: int, width: float, height: float) -> tuple[Any, Any]:
-    """A figure of ``rows`` × ``cols`` panels of ``width`` × ``height`` inches sharing both axes."""
-    return plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False, sharex=True, sharey=True,
+def panels(rows: int, cols: int, width: float, height: float, sharey: bool | str = True) -> tuple[Any, Any]:
+    """A figure of ``rows`` × ``cols`` panels of ``width`` × ``height`` inches sharing their x
+    axis, and their y axis (or, with ``sharey="row"``, each row its own)."""
+    return plt.subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False, sharex=True, sharey=sharey,
                         layout="constrained")
 
 
