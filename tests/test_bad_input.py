@@ -135,6 +135,13 @@ def test_reindexing_keeps_evaluations(tiny_store, tmp_path, capsys):
     kept = tmp_path / "x.index.previous-eval"
     assert (kept / "results.parquet").is_file() and not (index / "eval").exists()
     assert json.loads((index / "index.json").read_text())["complete"]
+    # a second --force keeps the first one's copy too: the latest in .previous-eval, the earlier one numbered
+    first = (kept / "results.parquet").read_bytes()
+    assert main(["eval", str(tiny_store), str(index), "--L", "1", "--noise", "qm2", "--no-baseline"]) == 0
+    second = (index / "eval" / "results.parquet").read_bytes()
+    assert main(["index", str(tiny_store), "--d", "8", "--out", str(index), "--force"]) == 0
+    assert (kept / "results.parquet").read_bytes() == second
+    assert (tmp_path / "x.index.previous-eval.1" / "results.parquet").read_bytes() == first
 
 
 def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys):

@@ -156,6 +156,14 @@ def test_report_is_not_replaced_without_force_and_is_kept_with_it(evaluated, tmp
     assert {p.name: p.read_bytes() for p in (tmp_path / "rep.previous").iterdir()} == first
     assert (out / "report.md").is_file()
     assert not any(p.name.startswith(".rep.partial") for p in tmp_path.iterdir())
+    # every later --force keeps every earlier copy: rep.previous the latest, rep.previous.1, .2 … before it
+    second = {p.name: p.read_bytes() for p in out.iterdir()}
+    for _ in range(2):
+        assert main(["report", str(evaluated / "eval"), "--out", str(out), "--force", "--quiet"]) == 0
+    assert {p.name: p.read_bytes() for p in (tmp_path / "rep.previous.1").iterdir()} == first
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("rep.")) == [
+        "rep.previous", "rep.previous.1", "rep.previous.2"]
+    assert {p.name for p in (tmp_path / "rep.previous.2").iterdir()} == set(second)
 
 
 def test_report_refuses_a_folder_of_other_files(evaluated, tmp_path):

@@ -172,10 +172,15 @@ class PartialOutput:
 
 def keep_beside(path: Path, kept: Path | None = None) -> Path:
     """Move ``path`` aside, to ``kept`` (default ``<path>.previous``): what ``--force`` replaces is
-    kept, not deleted (an older copy kept there gives way); returns where it went."""
+    kept, not deleted; returns where it went. Nothing kept before is deleted either: a copy
+    already at ``kept`` moves on to ``<kept>.1`` (then ``.2``, …: the higher, the later), so
+    ``kept`` always holds the latest and a run of ``--force`` keeps every earlier copy. A kill
+    between the two moves leaves both copies where a later ``--force`` still finds them."""
     kept = path.with_name(f"{path.name}.previous") if kept is None else kept
     if kept.exists():
-        shutil.rmtree(kept)
+        taken = [int(p.name.rpartition(".")[2]) for p in kept.parent.glob(f"{kept.name}.*")
+                 if p.name.rpartition(".")[2].isdigit()]
+        kept.rename(kept.with_name(f"{kept.name}.{max(taken, default=0) + 1}"))
     path.rename(kept)
     return kept
 
