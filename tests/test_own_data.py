@@ -68,6 +68,7 @@ def test_own_descriptors_build_index_evaluate_and_query(own_files, tmp_path, cap
     ("nan", "night.npy: row 700 holds NaN or Inf"),
     ("gt-length", "gt.npy: 1,499 ground truth values for 1,500 query rows"),
     ("gt-range", "gt.npy: row 3 holds 6000, not a reference row"),
+    ("gt-unsigned", "gt.npy: row 5 holds 18446744073709551615, beyond any row number"),
     ("part-order", "part.npy: parts must be 0 for the first query rows, then 1"),
     ("dims", "day.fbin: query rows have 23 dimensions, the references 24"),
 ])
@@ -81,6 +82,10 @@ def test_bad_own_input_is_one_line_and_writes_nothing(own_files, tmp_path, capsy
     elif damage == "gt-range":
         gt = np.load(own_files["gt"])
         gt[3] = 6_000
+        np.save(own_files["gt"], gt)
+    elif damage == "gt-unsigned":  # 2^64 − 1 wrapped to −1 ("no truth"): truths vanished with exit 0
+        gt = np.maximum(np.load(own_files["gt"]), 0).astype(np.uint64)
+        gt[5] = np.iinfo(np.uint64).max
         np.save(own_files["gt"], gt)
     elif damage == "part-order":
         np.save(own_files["part"], np.load(own_files["part"])[::-1])

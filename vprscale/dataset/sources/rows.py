@@ -61,4 +61,8 @@ def read_labels(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
         raise InputError(f"{p}: {what} must be a 1-D integer array, not {a.ndim}-D {a.dtype}")
     if len(a) != n:
         raise InputError(f"{p}: {len(a):,} {what} values for {n:,} query rows")
+    if a.dtype.kind == "u" and a.size and a.max() > np.iinfo(np.int64).max:  # would wrap to a negative label
+        row = int(np.argmax(a > np.iinfo(np.int64).max))
+        raise InputError(f"{p}: row {row:,} holds {int(a[row])}, beyond any row number (an unsigned −1? "
+                         "write −1, no truth, as a signed integer)")
     return np.asarray(a, np.int64)
