@@ -38,6 +38,11 @@ BASE = 'name = "t"\nout = "{out}"\n'
      'store = "a"\nL = [1, "fifty"]\n', "stage 'e': key 'L' must be a list of integers"),
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\ncolour = "red"\n', "unknown key 'colour'"),
     ('[[stages]]\nname = 5\nkind = "build"\nscale = "20K"\n', "'name' and 'kind' must be non-empty strings, got 5"),
+    # a stage's name names its files under out: never a path out of it
+    ('[[stages]]\nname = "/../../x"\nkind = "build"\nscale = "20K"\n', "stage name '/../../x' must be letters"),
+    ('[[stages]]\nname = ".."\nkind = "build"\nscale = "20K"\n', "stage name '..' must be letters"),
+    ('[[stages]]\nname = "a/b"\nkind = "build"\nscale = "20K"\n', "stage name 'a/b' must be letters"),
+    (f'[[stages]]\nname = "{"x" * 101}"\nkind = "build"\nscale = "20K"\n', "at most 100 characters"),
 ])
 def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
     out = tmp_path / "out"

@@ -20,6 +20,7 @@ import importlib.util
 import io
 import json
 import logging
+import re
 import shlex
 import subprocess
 import sys
@@ -38,6 +39,8 @@ from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml, shipped
 from vprscale.evaluation.algorithms.registry import BUILTIN
 
+STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
+MAX_STAGE_NAME = 100
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
 SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
@@ -132,6 +135,9 @@ def load_pipeline(path: str | Path) -> Pipeline:
         name, kind = raw["name"], raw["kind"]
         if not isinstance(name, str) or not name or not isinstance(kind, str):
             raise InputError(f"{where}: 'name' and 'kind' must be non-empty strings, got {name!r} and {kind!r}")
+        if not STAGE_NAME.fullmatch(name) or len(name) > MAX_STAGE_NAME:  # it names files under the pipeline's out
+            raise InputError(f"{where}: stage name {name!r} must be letters, digits, '.', '_' or '-', starting "
+                             f"with a letter or digit, at most {MAX_STAGE_NAME} characters (it names files)")
         where = f"{path}: stage '{name}'"
         if kind not in SCHEMA:
             raise InputError(f"{where}: unknown stage kind '{kind}' (known: {', '.join(SCHEMA)})")
