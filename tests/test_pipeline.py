@@ -291,3 +291,18 @@ repeats = 1
     assert [s["status"] for s in run_pipeline(path)["stages"]] == ["skipped"] * 4
     shutil.rmtree(encoding)  # a deleted encoding: its stage and the evaluation reading it re-run
     assert [s["status"] for s in run_pipeline(path)["stages"]] == ["skipped", "ran", "skipped", "ran"]
+
+
+def test_stages_import_this_vprscale_not_a_folder_of_the_current_directory(tmp_path):
+    """A stage's process is ``vprscale_argv``: run from a directory holding a ``vprscale/`` folder
+    (the parent of a clone, an untrusted directory), it imports the vprscale that spawned it."""
+    import subprocess
+
+    from vprscale.jobs.child import vprscale_argv
+
+    trap = tmp_path / "vprscale"
+    trap.mkdir()
+    (trap / "__init__.py").write_text(f"open({str(tmp_path / 'ran')!r}, 'w').write('x')\nraise SystemExit(7)\n")
+    done = subprocess.run(vprscale_argv("methods"), cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "coarsehash" in done.stdout
+    assert not (tmp_path / "ran").exists()

@@ -16,14 +16,15 @@ from typing import Any
 
 import numpy as np
 
+from vprscale.jobs.child import vprscale_argv
+
 
 def run_child(argv: list[str]) -> dict[str, Any]:
     """Run ``vprscale ARGV`` in a child process; its summary, wall time and peak RSS."""
     with tempfile.TemporaryDirectory() as tmp:
         summary = Path(tmp) / "summary.json"
         t0 = time.perf_counter()
-        pid = os.spawnv(os.P_NOWAIT, sys.executable,
-                        [sys.executable, "-m", "vprscale.cli", *argv, "--summary", str(summary)])
+        pid = os.spawnv(os.P_NOWAIT, sys.executable, vprscale_argv(*argv, "--summary", str(summary)))
         _, status, usage = os.wait4(pid, 0)
         wall = time.perf_counter() - t0
         if os.waitstatus_to_exitcode(status) != 0:

@@ -38,6 +38,7 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml, shipped
 from vprscale.evaluation.algorithms.registry import BUILTIN
+from vprscale.jobs.child import vprscale_argv
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
@@ -480,7 +481,7 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
     summary_file = pipe.out / "runs" / f".{stage.name}.summary.json"
     summary_file.unlink(missing_ok=True)
     print("$ vprscale " + " ".join(shlex.quote(a) for a in argv), file=console)
-    proc = subprocess.Popen([sys.executable, "-m", "vprscale.cli", *argv, "--summary", str(summary_file)],
+    proc = subprocess.Popen(vprscale_argv(*argv, "--summary", str(summary_file)),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
     for line in proc.stdout:
         console.write(line)

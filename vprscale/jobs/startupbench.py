@@ -11,9 +11,10 @@ from __future__ import annotations
 import os
 import statistics
 import subprocess
-import sys
 import time
 from pathlib import Path
+
+from vprscale.jobs.child import vprscale_argv
 
 SAMPLE_S = 0.01
 
@@ -60,7 +61,7 @@ def bench_startup(index: str, repeats: int = 5) -> str:
     lines = [f"one-shot commands on {index}: CPU time of the process tree, start to exit, {repeats} runs",
              f"{'command':<10}{'median s':>10}{'min s':>8}{'max s':>8}{'wall s':>8}"]
     for name, argv in _commands(index).items():
-        runs = [tree_cpu([sys.executable, "-m", "vprscale.cli", *argv]) for _ in range(repeats)]
+        runs = [tree_cpu(vprscale_argv(*argv)) for _ in range(repeats)]
         failed = [r for r in runs if r[2] != 0]
         if failed:
             lines.append(f"{name:<10} failed (exit {failed[0][2]})")
