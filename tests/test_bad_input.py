@@ -161,3 +161,14 @@ def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys
     with exclusive(index):  # what `vprscale index --out y.index` holds while it writes
         _fails(capsys, ["eval", str(tiny_store), str(index), "--L", "1", "--no-baseline"], "another vprscale job")
     assert (index / "ids.npy").read_bytes() == before
+
+
+def test_an_output_name_too_long_for_its_companions_is_one_line(tiny_store, tiny_index, tmp_path, capsys):
+    """A 250-byte output name leaves no room for ``.<name>.partial`` and its lock: refused with
+    one line before any work, nothing written."""
+    name = "x" * 250
+    for argv in (["index", str(tiny_store), "--d", "8", "--out", str(tmp_path / name)],
+                 ["eval", str(tiny_store), str(tiny_index), "--L", "1", "--out", str(tmp_path / name)],
+                 ["report", str(tiny_index / "eval"), "--out", str(tmp_path / name)]):
+        _fails(capsys, argv, "the output's name is 250 bytes; at most 241 leave room")
+    assert list(tmp_path.iterdir()) == []

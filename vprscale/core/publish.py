@@ -22,9 +22,24 @@ from filelock import FileLock, Timeout
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import write_manifest
 
+NAME_BYTES = 255  # the longest file name POSIX filesystems take
+MARKS = (".partial", ".sealed", ".lock", ".old", ".previous.999")  # what publishing adds to a name, at most
+
+
+def check_name(path: Path) -> None:
+    """Refuse an output whose name leaves no room for the files publishing puts beside it
+    (``.<name>.partial``, ``.lock``, a kept copy's ``.previous.N``): they would fail midway,
+    as a traceback, after the work."""
+    longest = len(f".{path.name}".encode()) + max(len(m) for m in MARKS)
+    if longest > NAME_BYTES:
+        room = NAME_BYTES - 1 - max(len(m) for m in MARKS)
+        raise InputError(f"{path}: the output's name is {len(path.name.encode())} bytes; at most {room} leave room "
+                         "for the files written beside it (file names are at most 255 bytes)")
+
 
 def _lock_file(path: Path) -> Path:
     """The lock of ``path``: ``.<name>.lock`` beside it, taken by :func:`exclusive` and :func:`shared`."""
+    check_name(path)
     return path.with_name(f".{path.name}.lock")
 
 
@@ -83,6 +98,7 @@ class PartialOutput:
     """
 
     def __init__(self, final: Path, key: dict[str, Any]) -> None:
+        check_name(final)
         self.final = final
         self.path = final.with_name(f".{final.name}.partial")
         self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
