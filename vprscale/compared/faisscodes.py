@@ -212,7 +212,7 @@ class FaissCodes:
         self.index = self.searched = index
         self.chain = ([faiss.downcast_VectorTransform(index.chain.at(i)) for i in range(index.chain.size())]
                       if isinstance(index, faiss.IndexPreTransform) else [])
-        self.inner = faiss.downcast_index(index.index) if self.chain else faiss.downcast_index(index)
+        self.inner = _innermost(index)
         self.ivf = faiss.try_extract_index_ivf(self.inner)
         self.graph = isinstance(self.inner, faiss.IndexHNSWFlat)
         self.set_point(self.k, self.nprobe)
@@ -227,7 +227,7 @@ class FaissCodes:
             if ivf is not None:
                 ivf.nprobe = nprobe
             if isinstance(index, faiss.IndexHNSW):
-                index.hnsw.efSearch = max(GRAPH_EF_SEARCH, k)
+                index.hnsw.efSearch = self.ef_search
 
     @property
     def nibbles(self) -> bool:
@@ -244,8 +244,13 @@ class FaissCodes:
     @property
     def params(self) -> str:
         if self.graph:
-            return f"k={self.k} efSearch={max(GRAPH_EF_SEARCH, self.k)}"
+            return f"k={self.k} efSearch={self.ef_search}"
         return f"k={self.k}" + (f" nprobe={self.nprobe}" if self.ivf is not None else "")
+
+    @property
+    def ef_search(self) -> int:
+        """Candidates a graph's search keeps at the bottom layer at this point's k."""
+        return max(GRAPH_EF_SEARCH, self.k)
 
     @property
     def scans(self) -> bool:

@@ -83,10 +83,22 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
     cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries",
             *(c for c in ("us_per_query_lo", "us_per_query_hi", "recall_lo", "recall_hi", "run", "params")
               if c in res.columns)]
-    out = sub[cols].assign(mode=sub["mode"].fillna("single")).reset_index(drop=True)
-    out["family"] = [family_label(m, mode, d) for m, mode, d in zip(out.method, out["mode"], out.d, strict=True)]
+    out = with_family(sub[cols].reset_index(drop=True))
     out["qps"] = 1e6 / out.us_per_query.clip(lower=1e-9)
     return out
+
+
+def with_family(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` with ``mode`` named for single frames (``single``, where it is null) and each
+    row's ``family`` (:func:`family_label`), as every figure and table groups them."""
+    rows = rows.assign(mode=rows["mode"].fillna("single"))
+    rows["family"] = [family_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
+    return rows
+
+
+def best_first(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` from the best operating point down: highest recall, then fewer bytes, then faster."""
+    return rows.sort_values(["recall", "bytes_per_place", "us_per_query"], ascending=[False, True, True])
 
 
 def family_label(method: str, mode: str, d: Any) -> str:
@@ -287,13 +299,12 @@ def _setup(points: pd.DataFrame, scales: list[str], noise: str
 
 def _best_points(points: pd.DataFrame) -> pd.DataFrame:
     """Per (scale, L, family): the operating point of highest recall (ties: fewer bytes, then faster)."""
-    ordered = points.sort_values(["recall", "bytes_per_place", "us_per_query"], ascending=[False, True, True])
-    return ordered.groupby(["scale", "L", "family"], sort=False).head(1)
+    return best_first(points).groupby(["scale", "L", "family"], sort=False).head(1)
 
 
 def _best(sub: pd.DataFrame) -> pd.Series:
     """The row with the highest recall (ties: fewer bytes, then less time)."""
-    return sub.sort_values(["recall", "bytes_per_place", "us_per_query"], ascending=[False, True, True]).iloc[0]
+    return best_first(sub).iloc[0]
 
 
 def _words(points: pd.DataFrame, scales: list[str]) -> list[str]:

@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.colors import to_hex
 
-from vprscale.evaluation.comparison import family_colours, family_label, method_and_mode
+from vprscale.evaluation.comparison import family_colours, method_and_mode, with_family
 
 PAGE, SCRIPT = "report_page.html", "report_page.js"  # the page's template and script (package data)
 # The columns the page holds per recall row (those an evaluation has)
@@ -46,9 +46,7 @@ FIGURES = (("fig-qps", "Recall against queries per second per core", "qps_per_co
 
 def page_rows(res: pd.DataFrame) -> pd.DataFrame:
     """The rows the page draws: every method's recall over all queries at every radius."""
-    rows = res[res.part == "all"].copy()
-    rows["mode"] = rows["mode"].fillna("single")
-    rows["family"] = [family_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
+    rows = with_family(res[res.part == "all"])
     rows["method"] = [method_and_mode(f)[0] for f in rows.family]  # CoarseHash one method at every width
     for missing in {"bytes_per_place", "us_per_query"} - set(rows.columns):  # results of a vprscale before 0.3
         rows[missing] = np.nan

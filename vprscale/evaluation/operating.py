@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from vprscale.evaluation.comparison import OURS, family_label
+from vprscale.evaluation.comparison import OURS, best_first, with_family
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -28,18 +28,15 @@ def best_points(res: pd.DataFrame, max_bytes: float | None = None, min_qps: floa
     """Per scale, noise, L and family, the operating point of best recall at ``radius`` within
     the budget (ties: fewer bytes, then more queries per second); families with no point
     within it are left out. ``scale`` is absent from evaluations of your own data: one scale."""
-    rows = res[(res.radius == radius) & (res.part == part)].copy()
+    rows = with_family(res[(res.radius == radius) & (res.part == part)])
     if "scale" not in rows.columns:
         rows["scale"] = ""
-    rows["mode"] = rows["mode"].fillna("single")
-    rows["family"] = [family_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
     rows["qps_per_core"] = 1e6 / rows.us_per_query
     if max_bytes is not None:
         rows = rows[rows.bytes_per_place <= max_bytes]
     if min_qps is not None:
         rows = rows[rows.qps_per_core >= min_qps]
-    order = rows.sort_values(["recall", "bytes_per_place", "qps_per_core"], ascending=[False, True, False])
-    best = order.groupby(["scale", "noise", "L", "family"], sort=False, dropna=False).head(1)
+    best = best_first(rows).groupby(["scale", "noise", "L", "family"], sort=False, dropna=False).head(1)
     return best.sort_values(["scale", "noise", "L", "recall"], ascending=[True, True, True, False])[
         [c for c in SHOWN if c in best.columns]].reset_index(drop=True)
 

@@ -16,7 +16,15 @@ from typing import Any
 import pandas as pd
 import pyarrow.parquet as pq
 
-from vprscale.evaluation.comparison import TITLE_SIZE, family_colours, family_label, family_line, panels, shared_legend
+from vprscale.evaluation.comparison import (
+    TITLE_SIZE,
+    family_colours,
+    family_label,
+    family_line,
+    panels,
+    shared_legend,
+    with_family,
+)
 from vprscale.evaluation.metrics import pr_curve
 from vprscale.evaluation.results import noise_order
 
@@ -40,9 +48,7 @@ def load_queries(runs: list[str]) -> pd.DataFrame:
     if not frames:
         return pd.DataFrame(columns=list(COLUMNS))
     q = pd.concat(frames, ignore_index=True)
-    q["mode"] = q["mode"].fillna("single")
-    q["family"] = [family_label(m, mode, d) for m, mode, d in zip(q.method, q["mode"], q.d, strict=True)]
-    return q
+    return with_family(q)
 
 
 def _first_points(q: pd.DataFrame) -> pd.DataFrame:
