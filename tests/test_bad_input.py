@@ -86,8 +86,13 @@ def test_report_inputs(tiny_index, tmp_path, capsys):
     _fails(capsys, ["report", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r")], "results.parquet")
     other = tmp_path / "other.parquet"
     shutil.copy(tiny_index / "buckets.parquet", other)
-    _fails(capsys, ["report", str(other), "--out", str(tmp_path / "r")], "not a vprscale results file")
-    cut = tmp_path / "results.parquet"
+    _fails(capsys, ["report", str(other), "--out", str(tmp_path / "r")], "no evaluation here")
+    old = tmp_path / "old"  # an evaluation of before manifests: its files are read as they are
+    old.mkdir()
+    (old / "eval.json").write_text("{}")
+    shutil.copy(tiny_index / "buckets.parquet", old / "results.parquet")
+    _fails(capsys, ["report", str(old), "--out", str(tmp_path / "r")], "not a vprscale results file")
+    cut = old / "results.parquet"
     cut.write_bytes((tiny_index / "buckets.parquet").read_bytes()[:500])
     _fails(capsys, ["report", str(cut), "--out", str(tmp_path / "r")], "Parquet")
     afile = tmp_path / "afile"

@@ -240,12 +240,44 @@ def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, mon
     later = deep.stat().st_mtime_ns + 1_000_000_000
     os.utime(deep, ns=(later, later))
     assert status() == "ran" and status() == "skipped"
+    kept = deep.stat()
+    with deep.open("r+b") as f:  # changed in the middle again, its size and times put back as they were
+        f.seek(8 + 4 * 96 * 40_000)
+        f.write(b"\x00\x00\x00\x40")
+    os.utime(deep, ns=(kept.st_atime_ns, kept.st_mtime_ns))
+    assert deep.stat().st_size == kept.st_size and deep.stat().st_mtime_ns == kept.st_mtime_ns
+    decided = run_pipeline(path, dry_run=True)["stages"][0]
+    assert decided["run"] and decided["reasons"] == ["input deep1b changed"]
+    assert status() == "ran" and status() == "skipped"
     real = pl.stage_code
     monkeypatch.setattr(pl, "stage_code", lambda kind, graph: {**real(kind, graph), "vprscale.dataset.build": "new"})
     assert status() == "ran" and status() == "skipped"
     (tmp_path / "store" / "chunk").write_text("a file the build did not write")
     assert status() == "ran" and status() == "skipped"
-    assert ran == ["b"] * 5
+    assert ran == ["b"] * 6
+
+
+def test_an_input_digest_is_computed_once_while_the_file_is_untouched(tmp_path, monkeypatch):
+    """The cache serves a file's digest until its identity (ctime included) changes."""
+    from vprscale.core import digests as dg
+
+    data = tmp_path / "data.bin"
+    data.write_bytes(bytes(range(256)) * 1000)
+    reads = []
+    real = dg.hashlib.file_digest
+    monkeypatch.setattr(dg.hashlib, "file_digest", lambda fh, name: reads.append(1) or real(fh, name))
+    first = dg.DigestCache(tmp_path / "c.json")
+    sha = first.digest(data)
+    first.save()
+    assert dg.DigestCache(tmp_path / "c.json").digest(data) == sha and len(reads) == 1
+    kept = data.stat()
+    with data.open("r+b") as f:
+        f.seek(1000)
+        f.write(b"x")
+    os.utime(data, ns=(kept.st_atime_ns, kept.st_mtime_ns))
+    again = dg.DigestCache(tmp_path / "c.json").digest(data)
+    assert again != sha and len(reads) == 2
+    assert again == __import__("hashlib").sha256(data.read_bytes()).hexdigest()
 
 
 @pytest.mark.slow

@@ -12,7 +12,14 @@ import pandas as pd
 import pytest
 
 from vprscale.cli import main
+from vprscale.core.manifest import write_manifest
 from vprscale.evaluation.report import write_report
+
+
+def _publish(folder, summary):
+    """An evaluation's summary and, as publishing writes last, its manifest."""
+    (folder / "eval.json").write_text(json.dumps(summary))
+    write_manifest(folder)
 
 
 def _results(tmp_path):
@@ -33,6 +40,7 @@ def _results(tmp_path):
                                  "store_identity": "x"})
     (tmp_path / "ev").mkdir()
     pd.DataFrame(rows).to_parquet(tmp_path / "ev" / "results.parquet")
+    _publish(tmp_path / "ev", {})
     idx = tmp_path / "i.index"
     idx.mkdir()
     storage = {p: {"paper": 8 * v, "packed": 4 * v, "disk": 5 * v} for p, v in
@@ -66,7 +74,7 @@ def test_report_opens_with_provenance_and_flags_mixed_commits(tmp_path):
     first = _results(tmp_path)
     record = {"vprscale": "0.3.0", "commit": "a" * 40, "dirty": False, "command": "vprscale eval s i",
               "cpu": "Test CPU", "cores": 2, "load_average": [0.1, 0.2, 0.3], "time": "2026-11-30T00:00:00+00:00"}
-    (first / "eval.json").write_text(json.dumps({"wall_s": 1.0, "provenance": record}))
+    _publish(first, {"wall_s": 1.0, "provenance": record})
     text = write_report([first], tmp_path / "one")["report"]
     head = open(text).read().split("## Figures")[0]
     assert "## Provenance" in head and "commit aaaaaaaaaaaa" in head and "Test CPU (2 cores" in head
@@ -75,8 +83,7 @@ def test_report_opens_with_provenance_and_flags_mixed_commits(tmp_path):
     second.mkdir()
     res = pd.read_parquet(first / "results.parquet")
     res.assign(scale="1M").to_parquet(second / "results.parquet")
-    (second / "eval.json").write_text(json.dumps({"wall_s": 1.0, "provenance": {**record, "commit": "b" * 40,
-                                                                                 "dirty": True}}))
+    _publish(second, {"wall_s": 1.0, "provenance": {**record, "commit": "b" * 40, "dirty": True}})
     head = open(write_report([first, second], tmp_path / "two")["report"]).read().split("## Figures")[0]
     assert "**These results come from 2 different commits** (aaaaaaaaaaaa, bbbbbbbbbbbb (dirty tree))" in head
 

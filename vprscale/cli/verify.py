@@ -1,4 +1,5 @@
-"""``vprscale verify``: checks a store, index or evaluation against its manifest."""
+"""``vprscale verify``: checks a store, index, evaluation or encoding against its manifest, and
+an index's evaluation (``INDEX/eval``) with it."""
 
 from __future__ import annotations
 
@@ -7,24 +8,66 @@ from pathlib import Path
 
 from vprscale.core.errors import InputError
 
+KINDS = {"zarr.json": "dataset store", "index.json": "index", "eval.json": "evaluation", "encoding.json": "encoding"}
+
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
         summary: argparse.ArgumentParser) -> None:
-    p = sub.add_parser("verify", help="check a store, index or evaluation against its manifest (sizes and checksums)")
-    p.add_argument("path", help="a dataset store, an index or an evaluation folder")
+    p = sub.add_parser("verify", help="check a store, index, evaluation or encoding against its manifest (sizes and "
+                                      "checksums); an index's evaluation is checked with it")
+    p.add_argument("path", help="a dataset store, an index, an evaluation folder or an encoding "
+                                "(<store>.faiss/<method>)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from vprscale.core.manifest import check_manifest, read_manifest
-
     path = Path(args.path)
-    kinds = {"zarr.json": "dataset store", "index.json": "index", "eval.json": "evaluation"}
-    kind = next((k for f, k in kinds.items() if (path / f).is_file()), None)
+    kind = next((k for f, k in KINDS.items() if (path / f).is_file()), None)
     if kind is None:
-        raise InputError(f"{path}: not a vprscale store, index or evaluation")
-    if read_manifest(path) is None:
-        raise InputError(f"{path}: this {kind} has no manifest (written before vprscale 0.3); rebuild it to verify")
-    n = check_manifest(path, full=True)
-    print(f"{path}: {kind} verified, {n:,} files with their sizes and checksums")
+        raise InputError(f"{path}: not a vprscale store, index, evaluation or encoding")
+    found = [(path, kind)]
+    if kind == "index" and (path / "eval" / "results.parquet").is_file():  # as sql and results find it
+        found.append((path / "eval", "evaluation"))
+    for root, what in found:
+        n = _verify(root, what)
+        print(f"{root}: {what} verified, {n:,} files with their sizes and checksums")
     return 0
+
+
+def _verify(root: Path, kind: str) -> int:
+    """Every checksum of one output, through the reader of its kind where that is light (an index's
+    metadata, an evaluation's folder), which refuses one published without its manifest; a store
+    or encoding by its recorded provenance and version. Returns the files checked."""
+    from vprscale.core.manifest import check_manifest, made_since_manifests, read_manifest, remake
+
+    if kind == "index":
+        from vprscale.method.indexmeta import load_index_meta
+
+        load_index_meta(root, upgradable=True, full=True)
+    elif kind == "evaluation":
+        from vprscale.evaluation.results import eval_folder
+
+        eval_folder(root, full=True)
+    else:
+        usual = f"re-run the vprscale command that made this {kind}, with --force"
+        if kind == "dataset store":  # its provenance is in build.json; zarr.json records the version that built it
+            attrs = _json(root / "zarr.json").get("attributes", {}).get("vprscale", {})
+            how = remake(_json(root / "build.json"), usual,
+                         made_since_manifests(attrs.get("versions", {}).get("vprscale", "0.3")))
+        else:  # every encoding of the format read today had a manifest from birth
+            how = remake(_json(root / "encoding.json"), usual, published=True)
+        check_manifest(root, full=True, remake=how)
+    if read_manifest(root) is None:
+        raise InputError(f"{root}: this {kind} has no manifest (written before vprscale 0.3); rebuild it to verify")
+    return len(read_manifest(root)["files"])
+
+
+def _json(path: Path) -> dict:
+    """A metadata file as a dict ({} where it is missing or not a JSON object: the manifest says why)."""
+    import json
+
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}

@@ -42,6 +42,7 @@ from faiss.contrib.ondisk import merge_ondisk
 
 from vprscale.compared.faisscodes import FaissCodes
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import check_manifest, remake
 
 # 2: residual IVF-PQ encodings hold their on-disk inverted lists and window arrays; 3: one window record per place
 ENCODING_FORMAT = 3
@@ -104,13 +105,17 @@ def stored_encoding(store: Path, factory: str, identity: str) -> Path | None:
     meta_file = out / "encoding.json"
     if not meta_file.is_file():
         return None
-    meta = json.loads(meta_file.read_text())
-    if meta.get("format") != ENCODING_FORMAT or meta.get("factory") != factory:
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{meta_file}: not readable JSON ({exc}); re-run vprscale encode with --force") from None
+    if not isinstance(meta, dict) or meta.get("format") != ENCODING_FORMAT or meta.get("factory") != factory:
         raise InputError(f"{out}: not an encoding of {factory} in this version's format; re-run vprscale encode "
                          "with --force")
     if meta.get("store_identity") != identity:
         raise InputError(f"{out}: encodes another store than {store} (rebuilt since?); re-run vprscale encode "
                          "with --force")
+    check_manifest(out, remake=remake(meta, f"vprscale encode {store} --compare {factory} --force", published=True))
     return out
 
 

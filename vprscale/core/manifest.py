@@ -8,12 +8,17 @@ that size: a 20K store or index, a 1B index's model and directory arrays), so a 
 truncated, permuted or overwritten file is an error naming it, never zeros or a wrong answer;
 ``vprscale verify`` checks every checksum (CRC32C runs at several GB/s, so a full check costs
 about one read of the output). Outputs written before manifests existed have
-none and are opened as before.
+none and are opened as before; one whose own metadata says it was written since (a reader
+passes ``remake``) is refused without its manifest, which would otherwise turn every check
+off. A listed file or folder that is a symbolic link is refused: nothing is read from outside
+a published output through it.
 """
 
 from __future__ import annotations
 
 import json
+import re
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -63,39 +68,83 @@ def read_manifest(root: Path) -> dict[str, Any] | None:
         raise InputError(f"{path}: unreadable manifest ({exc}); the output is damaged, rebuild it") from None
     if not isinstance(files, dict):
         raise InputError(f"{path}: unreadable manifest (no file list); the output is damaged, rebuild it")
+    for rel, entry in files.items():
+        if rel.startswith("/") or ".." in rel.split("/") or not isinstance(entry, dict) or not {
+                "bytes", "crc32c"} <= entry.keys():
+            raise InputError(f"{path}: lists {rel!r}, not a file of the output; the output is damaged, rebuild it")
     return manifest
+
+
+def remake(record: Any, usual: str, published: bool = False) -> str | None:
+    """How to re-create an output whose metadata ``record`` (``build.json``, ``index.json``,
+    ``eval.json``, ``encoding.json``) carries a provenance record, or that its format says was
+    ``published`` with a manifest: every vprscale that writes either publishes a manifest too, so
+    such an output without its manifest is refused, saying this: the command line its provenance
+    records (a command's), else ``usual``. None for an output older than both (opened as before)."""
+    provenance = record.get("provenance") if isinstance(record, dict) else None
+    if not isinstance(provenance, dict) and not published:
+        return None
+    command = provenance.get("command") if isinstance(provenance, dict) else None
+    return f"{command} --force" if isinstance(command, str) and command.startswith("vprscale ") else usual
+
+
+def made_since_manifests(version: Any) -> bool:
+    """Whether a vprscale version (as recorded in an output) publishes manifests (0.3 and later)."""
+    numbers = [int(x) for x in re.findall(r"\d+", str(version))[:2]]
+    return len(numbers) == 2 and tuple(numbers) >= (0, 3)
 
 
 CHEAP_BYTES = 1 << 30  # checksummed on every open: reading this much costs well under a second from the page cache
 
 
-def check_manifest(root: Path, full: bool = False, only: str | None = None, budget: int = CHEAP_BYTES) -> int:
+def check_manifest(root: Path, full: bool = False, only: str | None = None, budget: int = CHEAP_BYTES,
+                   remake: str | None = None) -> int:
     """Check the files ``root``'s manifest lists (those under ``only``, if given): present with their
-    size, and their checksum, smallest files first while their bytes stay within ``budget`` (all
-    of them with ``full``). Returns the number checked; an error names the first bad file."""
+    size, none a symbolic link or inside one, and their checksum, smallest files first while their
+    bytes stay within ``budget`` (all of them with ``full``). Returns the number checked; an error
+    names the first bad file. ``remake`` (the command that re-creates the output) says the output
+    was published with a manifest, so its absence is an error rather than an older output."""
     root = Path(root)
     manifest = read_manifest(root)
     if manifest is None:
+        if remake is not None:
+            raise InputError(f"{root}: no {NAME}, though it was written by a vprscale that publishes one (deleted?): "
+                             f"its files cannot be checked; re-create it: {remake}")
         return 0
-    checked, summed = 0, 0
+    checked, summed, folders = 0, 0, set()
     for rel, entry in sorted(manifest["files"].items(), key=lambda item: (item[1]["bytes"], item[0])):
         if only is not None and not rel.startswith(only):
             continue
         path = root / rel
+        _no_link_within(root, path.parent, folders)
         try:
-            size = path.stat().st_size
+            info = path.lstat()
         except FileNotFoundError:
             raise InputError(f"{path}: missing from a complete output (its manifest lists it); "
                              "the output is damaged, rebuild it") from None
-        if size != entry["bytes"]:
-            raise InputError(f"{path}: {size:,} bytes, its manifest says {entry['bytes']:,}; "
+        if stat.S_ISLNK(info.st_mode):
+            raise InputError(f"{path}: a symbolic link where its manifest lists a file; vprscale reads nothing "
+                             "from outside a published output: the output is damaged, rebuild it")
+        if info.st_size != entry["bytes"]:
+            raise InputError(f"{path}: {info.st_size:,} bytes, its manifest says {entry['bytes']:,}; "
                              "the output is damaged, rebuild it")
-        summed += size
+        summed += info.st_size
         if (full or summed <= budget) and _crc(path) != entry["crc32c"]:
             raise InputError(f"{path}: its content changed since it was published (checksum differs); "
                              "the output is damaged, rebuild it")
         checked += 1
     return checked
+
+
+def _no_link_within(root: Path, folder: Path, seen: set[Path]) -> None:
+    """Refuse a symbolic link among the folders from ``root`` (exclusive) down to ``folder``; each
+    folder is looked at once per check (a store lists tens of thousands of chunks in a few folders)."""
+    while folder != root and folder not in seen:
+        if folder.is_symlink():
+            raise InputError(f"{folder}: a symbolic link inside a published output; vprscale reads nothing from "
+                             "outside an output through one: the output is damaged, rebuild it")
+        seen.add(folder)
+        folder = folder.parent
 
 
 def listed(root: Path, prefix: str) -> set[str] | None:

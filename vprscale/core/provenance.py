@@ -65,7 +65,7 @@ def provenance(command: str | None = None, **extra: Any) -> dict[str, Any]:
     """The provenance record of an output made now, by ``command`` (default: this process's command line)."""
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     if command is None:
-        command = shlex.join(_command or ["vprscale", *sys.argv[1:]])
+        command = shlex.join(_command or sys.argv)  # outside the CLI: the process's own command line
     return {**code_state(), "command": command,
             "cpu": cpu_model(), "cores": os.cpu_count(), "load_average": [round(x, 2) for x in load],
             "host": platform.node(), "python": sys.version.split()[0],

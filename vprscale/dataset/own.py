@@ -18,6 +18,7 @@ import hashlib
 import json
 import logging
 import re
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +41,9 @@ from vprscale.dataset.store import ATTR
 
 log = logging.getLogger(__name__)
 
-CHUNK_ROWS = 16 * BLOCK  # rows per Zarr chunk and per task
+CHUNK_ROWS = 16 * BLOCK  # rows per Zarr chunk and per task, at most
+CHUNK_BYTES = 32 << 20  # bytes of one chunk (and of what one task holds), at most, unless one row is larger
+MAX_ROW_BYTES = 1 << 30  # a single descriptor this large is no descriptor
 NAME = re.compile(r"[a-z][a-z0-9_]{0,30}")
 
 
@@ -104,11 +107,29 @@ def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource], np.n
     return ref, queries, gt, part
 
 
-def chunk_rows(n_rows: int) -> int:
-    """Rows per Zarr chunk (and task) of an array of ``n_rows``: ``CHUNK_ROWS``, or the whole array
-    when it is smaller. Chunks are stored uncompressed and whole, so a small store's chunks must
-    fit its data (6,000 rows take 6,000 rows of bytes, not 262,144)."""
-    return max(1, min(CHUNK_ROWS, n_rows))
+def chunk_rows(n_rows: int, row_bytes: int) -> int:
+    """Rows per Zarr chunk (and task) of an array of ``n_rows`` rows of ``row_bytes``: as many as
+    fit in ``CHUNK_BYTES`` (a power of two, so that every block of ``BLOCK`` rows, which FAISS
+    encodes together, starts on a chunk), at most ``CHUNK_ROWS``, and at most the whole array.
+    Chunks are stored uncompressed and whole, and a task holds one, so a store costs what its
+    data costs: 3 rows of 50,000 dimensions take 600 KB, a million of 4,096 take 2,048-row chunks
+    of 32 MiB, never 4 GB a task."""
+    fit = 1 << max(0, (CHUNK_BYTES // max(1, row_bytes)).bit_length() - 1)
+    return max(1, min(CHUNK_ROWS, fit, n_rows))
+
+
+def check_room(ref: RowSource, queries: dict[str, RowSource], out: Path) -> None:
+    """Refuse, before any work, a store that cannot be written: a row beyond ``MAX_ROW_BYTES``, or
+    more bytes than the disk under ``out`` has free."""
+    row_bytes = ref.dim * 4
+    if row_bytes > MAX_ROW_BYTES:
+        raise InputError(f"{ref.name}: rows of {ref.dim:,} dimensions ({row_bytes / 2**30:.1f} GiB each as float32); "
+                         f"vprscale stores descriptors of at most {MAX_ROW_BYTES // 4:,} dimensions")
+    need = row_bytes * (ref.n_rows + sum(q.n_rows for q in queries.values()))
+    free = shutil.disk_usage(out).free
+    if need > free:
+        raise InputError(f"--out {out}: the store needs {need / 2**30:,.1f} GiB and the disk there has "
+                         f"{free / 2**30:,.1f} GiB free")
 
 
 def build_own(req: OwnRequest) -> dict[str, Any]:
@@ -127,6 +148,7 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
                             "gt": _digest(gt), "part": _digest(part)},
                 "rescale": None, "seed": None}
     check_writable(out)
+    check_room(ref, queries, out)
     t0 = time.perf_counter()
     with exclusive(final):
         PartialOutput(final, {}).recover()
@@ -141,18 +163,19 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
         group = zarr.open_group(str(partial.path), mode="a", zarr_format=3)
         if not partial.done("arrays"):
             for array, rows in (("ref", ref.n_rows), *((f"query_{n}", len(gt)) for n in queries)):
-                group.create_array(array, shape=(rows, ref.dim), chunks=(chunk_rows(rows), ref.dim), dtype="f4",
+                group.create_array(array, shape=(rows, ref.dim), chunks=(chunk_rows(rows, 4 * ref.dim), ref.dim),
+                                   dtype="f4",
                                    overwrite=True, **codecs("descriptors"))
             for array, data, dtype in (("gt", gt, "i8"), ("query_part", part, "u1"),
                                        ("ref_part", np.zeros(ref.n_rows), "u1")):
-                group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data)),), dtype=dtype,
+                group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data), 8),), dtype=dtype,
                                    overwrite=True, **codecs("labels"))
                 group[array][:] = data.astype(dtype)
             partial.mark("arrays")
         sources = {"ref": ref, **{f"query_{n}": q for n, q in queries.items()}}
         tasks = [dask.delayed(_copy_chunk)(str(partial.path), array, src, a, b, partial, f"{array}-{c}")
                  for array, src in sources.items()
-                 for c, (a, b) in enumerate(chunk_bounds(src.n_rows, chunk_rows(src.n_rows)))
+                 for c, (a, b) in enumerate(chunk_bounds(src.n_rows, chunk_rows(src.n_rows, 4 * src.dim)))
                  if not partial.done(f"{array}-{c}")]
         with dask_client(req.scheduler, req.workers) as client, timings.stage(f"copy {len(tasks)} chunks"):
             run_tasks(tasks, "copy chunks")

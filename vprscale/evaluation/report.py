@@ -28,8 +28,9 @@ from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
 from vprscale.evaluation.operating import operating_section
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
-from vprscale.evaluation.results import main_noise, noise_order  # noqa: E402
+from vprscale.evaluation.results import eval_folder, main_noise, noise_order  # noqa: E402
 from vprscale.evaluation.storage import floor_bits, index_parts  # noqa: E402
+from vprscale.method.indexmeta import checked, read_index_meta  # noqa: E402
 
 PAPER = {"nr_L50": {"20K": 74, "1M": 57, "10M": 32}, "storage_mb": {"20K": 0.2, "1M": 8.4, "10M": 80.4},
          "ops_10M": 37_400, "baseline_ratio": 1300, "fas20K": (1, 98, 267)}
@@ -46,10 +47,7 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
     """Concatenated results, the eval summaries, and the index metadata they refer to."""
     frames, evals, indexes = [], [], {}
     for p in paths:
-        p = Path(p)
-        f = p / "results.parquet" if p.is_dir() else p
-        if not f.is_file():
-            raise InputError(f"{p}: no results.parquet (run vprscale eval first)")
+        f = eval_folder(p) / "results.parquet"
         try:
             df = pd.read_parquet(f)
         except (OSError, ValueError) as exc:  # pyarrow's errors for a truncated or foreign file
@@ -58,14 +56,13 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
         if missing:
             raise InputError(f"{f}: not a vprscale results file (no column {', '.join(sorted(missing))})")
         frames.append(df.assign(run=str(f.parent.resolve())))
-        ej = f.parent / "eval.json"
-        if ej.is_file():  # tied to the indexes its results name (absolute paths)
-            evals.append({**json.loads(ej.read_text()), "_indexes": [str(x) for x in df["index"].dropna().unique()],
-                          "_run": str(f.parent.resolve())})
+        # each summary tied to the indexes its results name (absolute paths)
+        evals.append({**json.loads((f.parent / "eval.json").read_text()),
+                      "_indexes": [str(x) for x in df["index"].dropna().unique()], "_run": str(f.parent.resolve())})
         for idx in df["index"].dropna().unique():
-            meta_file = Path(idx) / "index.json"
-            if meta_file.is_file():
-                indexes[idx] = {**json.loads(meta_file.read_text()), "path": idx}
+            if (Path(idx) / "index.json").is_file():  # an index moved or removed since is left out
+                path = Path(idx)
+                indexes[idx] = {**checked(path, read_index_meta(path)), "path": idx}
     res = pd.concat(frames, ignore_index=True)
     # A d sweep re-evaluates the main index width too: keep one row per key.
     # (Operating points of one method differ in their params: each is kept.)

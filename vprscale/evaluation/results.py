@@ -12,28 +12,46 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import pyarrow.parquet as pq
-
 from vprscale.core.errors import InputError
-from vprscale.core.manifest import check_manifest
+from vprscale.core.manifest import check_manifest, remake
 from vprscale.core.provenance import PARQUET_KEY
 
 if TYPE_CHECKING:  # pandas is imported by what returns a DataFrame, not by ``vprscale results``
     import pandas as pd
 
 
-def eval_folder(path: str | Path) -> Path:
-    """The evaluation folder a path names: itself, or an index's ``eval/``."""
+def eval_folder(path: str | Path, full: bool = False) -> Path:
+    """The evaluation folder a path names (itself, an index's ``eval/``, or the folder of its
+    ``results.parquet``), checked against its manifest (every checksum with ``full``): what every
+    reader of results opens."""
     p = Path(path)
-    folder = p / "eval" if (p / "index.json").is_file() else p
+    folder = p / "eval" if (p / "index.json").is_file() else p.parent if p.name == "results.parquet" else p
     if not (folder / "results.parquet").is_file():
         raise InputError(f"{path}: no evaluation here (no results.parquet); run vprscale eval first")
-    check_manifest(folder)
+    summary = folder / "eval.json"
+    try:
+        record = json.loads(summary.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{folder}: not a published evaluation (no eval.json beside results.parquet); "
+                         "vprscale reads the folders vprscale eval writes") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{summary}: not readable JSON ({exc})") from None
+    if not isinstance(record, dict):
+        raise InputError(f"{summary}: not an evaluation's summary (a JSON object)")
+    for name in ("results.parquet", "queries.parquet", "eval.json"):
+        if (folder / name).is_symlink():
+            raise InputError(f"{folder / name}: a symbolic link; vprscale reads nothing from outside a published "
+                             "evaluation through one")
+    indexes = " ".join(map(str, record.get("indexes") or ["INDEX"]))
+    usual = f"vprscale eval {record.get('store', 'STORE')} {indexes} --out {folder}"
+    check_manifest(folder, full=full, remake=remake(record, f"{usual} --force"))
     return folder
 
 
 def load_tables(*paths: str | Path, queries: bool = False) -> list[tuple[Any, Path, dict[str, Any]]]:
     """``(pyarrow table, evaluation folder, provenance record)`` of every evaluation given."""
+    import pyarrow.parquet as pq  # here: eval_folder serves commands that never read Parquet in this process
+
     if not paths:
         raise InputError("results: give at least one evaluation folder or index")
     found = []

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from vprscale.core.errors import InputError, QueryError
-from vprscale.core.manifest import check_manifest
+from vprscale.evaluation.results import eval_folder
 from vprscale.method.indexmeta import load_index_meta
 
 
@@ -130,9 +130,11 @@ def check_sources(paths: list[Path]) -> None:
     for p in paths:
         if (p / "index.json").is_file():
             load_index_meta(p)
+            if (p / "eval" / "results.parquet").is_file():  # its evaluation, published apart
+                eval_folder(p)
             indexes += 1
         elif (p / "results.parquet").is_file():
-            check_manifest(p)
+            eval_folder(p)
         else:
             raise InputError(f"{p}: neither a vprscale index nor an evaluation folder (no index.json or "
                              "results.parquet)")

@@ -27,6 +27,7 @@ import zarr
 
 from vprscale.core.errors import InputError
 from vprscale.core.progress import ChunkProgress
+from vprscale.dataset.store import open_complete_group
 from vprscale.method.index import Index
 from vprscale.method.indexfile import load_index_meta
 from vprscale.method.online import OnlineMatcher
@@ -40,10 +41,15 @@ READ_ROWS = 4096
 def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
     """``(rows, width, blocks of rows)`` of a query source."""
     if (path / "zarr.json").is_file():
-        try:
-            arr = zarr.open_array(path, mode="r")
-        except Exception as exc:  # noqa: BLE001 - zarr's errors for a group or a damaged array vary
-            raise InputError(f"{path}: not a readable Zarr array ({exc})") from None
+        if (path.parent / "zarr.json").is_file():  # an array of a store: read only once the store checks out
+            arr = open_complete_group(path.parent).get(path.name)
+            if not isinstance(arr, zarr.Array):
+                raise InputError(f"{path}: not an array of the store {path.parent}")
+        else:
+            try:
+                arr = zarr.open_array(path, mode="r")
+            except Exception as exc:  # noqa: BLE001 - zarr's errors for a group or a damaged array vary
+                raise InputError(f"{path}: not a readable Zarr array ({exc})") from None
         if arr.ndim != 2:
             raise InputError(f"{path}: a {arr.ndim}-D array, not rows of descriptors")
         return arr.shape[0], arr.shape[1], (arr[a : a + READ_ROWS] for a in range(0, arr.shape[0], READ_ROWS))

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import vprscale
+from vprscale.core.digests import DigestCache
 from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.manifest import check_manifest, read_manifest
 from vprscale.core.provenance import provenance
@@ -42,6 +43,7 @@ from vprscale.jobs.child import vprscale_argv
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
+DIGESTS = ".input-digests.json"  # under out: the content digests of the pipeline's input files (core/digests)
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
 SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
@@ -189,14 +191,17 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
     state_file = pipe.out / "pipeline-state.json"
     state = _read_state(state_file)
     graph = _import_graph()
+    digests = DigestCache(pipe.out / DIGESTS)
     if dry_run:
         decisions = []
         for stage in pipe.stages:
-            parts = _parts(stage, {d["name"]: d["fingerprint"] for d in decisions}, graph)
+            parts = _parts(stage, {d["name"]: d["fingerprint"] for d in decisions}, graph, digests)
             reasons = _reasons(stage, parts, state.get(stage.name, {}), {d["name"] for d in decisions if d["run"]},
                                force)
             decisions.append({"name": stage.name, "kind": stage.kind, "fingerprint": _digest(parts),
                               "run": bool(reasons), "reasons": reasons})
+        if pipe.out.is_dir():  # a cache, not an output: the next run need not hash the sources again
+            digests.save()
         return {"name": pipe.name, "dry_run": True, "stages": decisions}
     pipe.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -215,7 +220,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         tee_err = _Tee(*([sys.stderr] if logging.getLogger(__name__).isEnabledFor(logging.INFO) else []), log)
         try:
             for stage in pipe.stages:
-                parts = _parts(stage, fingerprints, graph)
+                parts = _parts(stage, fingerprints, graph, digests)
+                digests.save()
                 fp = fingerprints[stage.name] = _digest(parts)
                 prev = state.get(stage.name, {})
                 reasons = _reasons(stage, parts, prev, ran, force)
@@ -318,9 +324,10 @@ def _method_source(spec: str) -> str:
     return hashlib.sha256(Path(found.origin).read_bytes()).hexdigest()
 
 
-def _inputs(stage: Stage) -> dict[str, Any]:
-    """What a stage reads besides its parameters: a build's recipe file and source files, an
-    evaluation's own methods' source files."""
+def _inputs(stage: Stage, digests: DigestCache) -> dict[str, Any]:
+    """What a stage reads besides its parameters: a build's recipe file and source files (each
+    source file's fingerprint with the SHA-256 of its bytes), an evaluation's own methods' source
+    files."""
     if stage.kind == "eval":
         return {f"method:{m}": _method_source(m) for m in stage.params.get("methods", [])}
     if stage.kind != "build":
@@ -332,13 +339,26 @@ def _inputs(stage: Stage) -> dict[str, Any]:
     recipe = recipe_path(stage.params["scale"])
     found: dict[str, Any] = {"recipe": hashlib.sha256(recipe.read_bytes()).hexdigest()}
     if stage.params.get("deep1b"):
-        found["deep1b"] = open_deep1b(stage.params["deep1b"]).fingerprint()
+        found["deep1b"] = _with_digests(open_deep1b(stage.params["deep1b"]).fingerprint(), digests)
     if stage.params.get("fas"):
-        found["fas"] = open_fas(stage.params["fas"]).fingerprint()
+        found["fas"] = _with_digests(open_fas(stage.params["fas"]).fingerprint(), digests)
     return found
 
 
-def _parts(stage: Stage, upstream: dict[str, str], graph: Any) -> dict[str, Any]:
+def _with_digests(fingerprint: Any, digests: DigestCache) -> Any:
+    """A source's fingerprint with every file in it (a dict with ``path`` and ``bytes``) given its
+    content digest: any changed byte changes it, whatever the file's size and times say."""
+    if isinstance(fingerprint, list):
+        return [_with_digests(x, digests) for x in fingerprint]
+    if not isinstance(fingerprint, dict):
+        return fingerprint
+    found = {k: _with_digests(v, digests) for k, v in fingerprint.items()}
+    if {"path", "bytes"} <= found.keys() and Path(found["path"]).is_file():
+        found["sha256"] = digests.digest(found["path"])
+    return found
+
+
+def _parts(stage: Stage, upstream: dict[str, str], graph: Any, digests: DigestCache) -> dict[str, Any]:
     """What a stage depends on: its kind and parameters, what it reads, the fingerprints of the
     stages it reads from, and the code its job runs (module by module)."""
     refs = {}
@@ -347,7 +367,7 @@ def _parts(stage: Stage, upstream: dict[str, str], graph: Any) -> dict[str, Any]
             if isinstance(ref, str) and ref in upstream:
                 refs[f"{key}:{ref}"] = upstream[ref]
     return json.loads(json.dumps({"kind": stage.kind, "params": stage.params, "upstream": refs,
-                                  "inputs": _inputs(stage), "code": stage_code(stage.kind, graph)},
+                                  "inputs": _inputs(stage, digests), "code": stage_code(stage.kind, graph)},
                                  sort_keys=True, default=str))
 
 

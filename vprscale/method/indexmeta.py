@@ -10,28 +10,21 @@ from pathlib import Path
 from typing import Any
 
 from vprscale.core.errors import InputError
-from vprscale.core.manifest import check_manifest
+from vprscale.core.manifest import check_manifest, remake
 
 KIND = "coarsehash-index"
 INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
 
 
-def load_index_meta(index: str | Path, upgradable: bool = False) -> dict[str, Any]:
+def load_index_meta(index: str | Path, upgradable: bool = False, full: bool = False) -> dict[str, Any]:
     """``index.json`` of a complete index, or an error naming the directory.
 
     An index of an older format is refused with what to run; with ``upgradable`` a format-2
-    index (which ``vprscale index --upgrade`` converts) is returned as it is.
+    index (which ``vprscale index --upgrade`` converts) is returned as it is. ``full`` checks every
+    checksum of the manifest (``vprscale verify``), not only the cheap ones.
     """
     p = Path(index)
-    meta_file = p / "index.json"
-    if not meta_file.is_file():
-        raise InputError(f"{p}: not a vprscale index (no index.json)")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
-    if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != KIND:
-        raise InputError(f"{p}: the index is incomplete or of another kind")
+    meta = read_index_meta(p)
     fmt = meta.get("format", 1)
     if fmt < 2:
         raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")
@@ -41,5 +34,29 @@ def load_index_meta(index: str | Path, upgradable: bool = False) -> dict[str, An
     if fmt > INDEX_FORMAT:
         raise InputError(f"{p}: index format {fmt} is newer than this vprscale reads ({INDEX_FORMAT}); "
                          "upgrade vprscale")
-    check_manifest(p)
+    return checked(p, meta, full)
+
+
+def read_index_meta(p: Path) -> dict[str, Any]:
+    """``index.json`` of a complete index of any format, not yet checked against the manifest."""
+    meta_file = p / "index.json"
+    if not meta_file.is_file():
+        raise InputError(f"{p}: not a vprscale index (no index.json)")
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != KIND:
+        raise InputError(f"{p}: the index is incomplete or of another kind")
+    return meta
+
+
+def checked(p: Path, meta: dict[str, Any], full: bool = False) -> dict[str, Any]:
+    """``meta`` once the index checks out against its manifest. Every index of format 3 was
+    published with one: without it, it has lost its checks and is refused (an older one, which
+    may predate manifests, is read as it is)."""
+    fmt = meta.get("format", 1)
+    store = meta.get("store", {}).get("path", "STORE") if isinstance(meta.get("store"), dict) else "STORE"
+    check_manifest(p, full=full, remake=remake(meta if fmt >= 3 else None, f"vprscale index {store} --out {p} --force",
+                                               published=fmt >= 3))
     return meta
