@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -95,3 +96,26 @@ def tiny_index(tiny_store, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("index") / "tiny.index"
     build_index(tiny_store, d=12, out=out, quiet=True)
     return out
+
+
+@pytest.fixture
+def small_filesystem(tmp_path):
+    """A 300 KB tmpfs (skipped where this test may not mount one)."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(mnt)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small filesystem here ({done.stderr.decode().strip()[:80]})")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+@pytest.fixture
+def read_only_folder(small_filesystem):
+    """A folder on a filesystem remounted read-only (what root cannot write either)."""
+    done = subprocess.run(["mount", "-o", "remount,ro", str(small_filesystem)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot remount read-only here ({done.stderr.decode().strip()[:80]})")
+    return small_filesystem

@@ -106,3 +106,34 @@ def test_an_existing_own_store_is_kept_without_force(own_files, tmp_path, capsys
     assert "already holds a store; --force replaces it" in capsys.readouterr().err
     assert (out / "walk.zarr" / "manifest.json").read_bytes() == before
     assert _build(own_files, out, "--force") == 0
+
+
+@pytest.mark.parametrize(("rows", "dim"), [(3, 50_000), (300, 40_000), (70_000, 96)])
+def test_own_chunks_are_sized_by_bytes_not_rows(rows, dim, tmp_path, capsys):
+    """Chunks of at most 32 MiB whatever the width, a power of two of rows (blocks start on chunks),
+    and the rows as given."""
+    from vprscale.dataset.own import CHUNK_BYTES
+
+    rng = np.random.default_rng(1)
+    ref = rng.standard_normal((rows, dim), dtype=np.float32)
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "q.npy", ref[::-1].copy())
+    np.save(tmp_path / "gt.npy", np.arange(rows)[::-1].copy())
+    assert main(["build", "--ref", str(tmp_path / "ref.npy"), "--query", f"day={tmp_path / 'q.npy'}", "--gt",
+                 str(tmp_path / "gt.npy"), "--name", "w", "--out", str(tmp_path / "data"), "-q"]) == 0
+    store = zarr.open_group(tmp_path / "data" / "w.zarr", mode="r")
+    chunk = store["ref"].chunks[0]
+    assert chunk * dim * 4 <= CHUNK_BYTES and chunk & (chunk - 1) == 0 or chunk == rows
+    assert chunk == min(rows, 1 << (CHUNK_BYTES // (4 * dim)).bit_length() - 1)
+    assert np.array_equal(store["ref"][:], ref) and np.array_equal(store["query_day"][:], ref[::-1])
+    on_disk = sum(f.stat().st_size for f in (tmp_path / "data" / "w.zarr").rglob("*") if f.is_file())
+    assert on_disk <= 2 * (ref.nbytes + chunk * dim * 4) + (1 << 20)  # the data, and at most a chunk's padding
+
+
+def test_an_own_store_larger_than_the_free_disk_is_refused_before_work(own_files, small_filesystem, capsys):
+    from .test_reliability import fails
+
+    argv = ["build", "--ref", str(own_files["ref"]), "--query", f"day={own_files['day']}", "--gt",
+            str(own_files["gt"]), "--out", str(small_filesystem / "data")]
+    fails(capsys, argv, "--out", "GiB free")
+    assert not any((small_filesystem / "data").iterdir())

@@ -253,20 +253,6 @@ def test_one_line_where_a_traceback_was(tiny_store, tiny_index, tmp_path, capsys
     assert capsys.readouterr().out.splitlines()[1] == '"[1, 2]","[[1, 2]]",3'
 
 
-@pytest.fixture
-def small_filesystem(tmp_path):
-    """A 300 KB tmpfs (skipped where this test may not mount one)."""
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=300k", "tmpfs", str(mnt)], capture_output=True)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a small filesystem here ({done.stderr.decode().strip()[:80]})")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
-
-
 def test_a_full_disk_is_one_line_and_the_rerun_finishes(small_filesystem, tiny_store, capsys):
     out = small_filesystem / "t.index"
     fails(capsys, ["index", str(tiny_store), "--d", "12", "--out", str(out)], "the disk is full", "run the same")
@@ -279,3 +265,26 @@ def test_a_full_disk_is_one_line_and_the_rerun_finishes(small_filesystem, tiny_s
 def test_a_broken_zarr_json_is_one_line(store_copy, tmp_path, capsys):
     (store_copy / "zarr.json").write_text('{"zarr_format": 3, "node_type": "gro')
     fails(capsys, ["index", str(store_copy), "--out", str(tmp_path / "i")], "zarr.json")
+
+
+def test_a_read_only_folder_is_refused_before_any_work(read_only_folder, tiny_store, tiny_index, capsys):
+    ro = read_only_folder
+    for argv in (["synth", "--out", str(ro / "s"), "--deep1b-rows", "100"],
+                 ["report", str(tiny_index), "--out", str(ro / "r")],
+                 ["localise", str(tiny_index), str(tiny_store / "query_qm1"), "--out", str(ro / "m.csv")],
+                 ["index", str(tiny_store), "--out", str(ro / "a" / "i")],
+                 ["eval", str(tiny_store), str(tiny_index), "--L", "1", "--out", str(ro / "e")],
+                 ["index", str(tiny_store), "--out", str(ro.parent / "i"), "--summary", str(ro / "s.json")]):
+        fails(capsys, argv, str(ro), "not writable", "nothing was written")
+    assert not any(ro.iterdir()) and not (ro.parent / "i").exists()
+
+
+def test_a_zarr_array_declaring_more_rows_than_it_holds_is_one_line(tiny_index, tmp_path, capsys):
+    """10^11 declared rows with one chunk written: refused at once, not a 2 TB allocation or hours
+    of fill values matched as frames."""
+    import zarr
+
+    arr = zarr.create_array(tmp_path / "huge.zarr", shape=(10**11, 96), chunks=(4096, 96), dtype="f4")
+    arr[:10] = np.ones((10, 96), np.float32)
+    fails(capsys, ["localise", str(tiny_index), str(tmp_path / "huge.zarr"), "--L", "5"],
+          "declares 100,000,000,000 rows", "1 are written")

@@ -144,11 +144,25 @@ def check_outputs(args: argparse.Namespace) -> None:
             raise InputError(f"--summary {summary}: is a directory; give a file name")
         if not path.parent.is_dir():
             raise InputError(f"--summary {summary}: the folder {path.parent} does not exist")
-        if not os.access(path.parent, os.W_OK | os.X_OK):
-            raise InputError(f"--summary {summary}: the folder {path.parent} is not writable")
     out = getattr(args, "out", None)
     if out and getattr(args, "out_is_dir", False) and Path(out).exists() and not Path(out).is_dir():
         raise InputError(f"--out {out}: is a file, not a directory")
+    for flag, path in _flag_paths(args, OUTPUT_FLAGS):
+        if str(path) != "-":  # standard output
+            _check_writable_beside(flag, path)
+
+
+def _check_writable_beside(flag: str, path: Path) -> None:
+    """Refuse, before any work, an output whose folder cannot be written: every output is made
+    beside its final path (a hidden work copy, a lock) and renamed into place, so the folder that
+    holds it, or the nearest one that exists, must take new files (a read-only filesystem, an
+    immutable folder and missing permissions all say no to ``access``, even for root)."""
+    folder = path.absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"--{flag} {path}: the folder {folder} is not writable (read-only, or not yours); "
+                         "nothing was written")
 
 
 def disk_full(exc: OSError, args: argparse.Namespace) -> bool:

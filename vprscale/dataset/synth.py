@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from vprscale.core.errors import InputError
+from vprscale.core.publish import check_writable
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.sources.writers import write_fas_npz, write_fbin, write_fvecs
 
@@ -18,6 +19,7 @@ def write_synthetic(out: Path, deep1b_rows: int, fas_dim: int, seed: int,
     These are the real datasets' own names, so a folder that already holds any of them (the real
     Deep1B, say) is refused unless ``force``: synthetic rows never silently replace real ones.
     """
+    check_writable(out)
     held = [out / name for name in LAYOUT if (out / name).exists() and not _empty_dir(out / name)]
     if held and not force:
         raise InputError(f"--out {out}: already holds {held[0]}; --force replaces the synthetic files there "

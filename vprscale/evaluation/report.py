@@ -22,7 +22,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
-from vprscale.core.publish import exclusive, keep_beside  # noqa: E402
+from vprscale.core.publish import check_writable, exclusive, keep_beside  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
@@ -323,6 +323,7 @@ def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] 
     then kept beside as ``<out>.previous``.
     """
     out = Path(out)
+    check_writable(out.parent)  # before any work: the report is drawn beside out and renamed into place
     with exclusive(out):
         _check_replaceable(out, force)
         work = out.with_name(f".{out.name}.partial")

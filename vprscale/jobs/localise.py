@@ -50,6 +50,9 @@ def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
                 arr = zarr.open_array(path, mode="r")
             except Exception as exc:  # noqa: BLE001 - zarr's errors for a group or a damaged array vary
                 raise InputError(f"{path}: not a readable Zarr array ({exc})") from None
+            if arr.ndim == 2 and arr.nchunks_initialized < arr.nchunks:  # Zarr reads an unwritten chunk as fill
+                raise InputError(f"{path}: declares {arr.shape[0]:,} rows in {arr.nchunks:,} chunks, of which "
+                                 f"{arr.nchunks_initialized:,} are written: the others are no frames")
         if arr.ndim != 2:
             raise InputError(f"{path}: a {arr.ndim}-D array, not rows of descriptors")
         return arr.shape[0], arr.shape[1], (arr[a : a + READ_ROWS] for a in range(0, arr.shape[0], READ_ROWS))
@@ -70,16 +73,29 @@ def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
 OUT_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
 
 
-def write_matches(table: pa.Table, where: Any, fmt: str) -> None:
-    """One row per frame as Parquet or CSV: ``frame``, ``centre``, ``match``, ``n_r`` and ``score``
-    (the matched window's, in δ_max units as the batch reports it; lower is more confident). The
-    first L − 1 frames complete no window: their columns are null (empty in CSV), and pandas reads
-    the Parquet file's integer columns as nullable integers (``Int64``), not floats with NaN."""
-    if fmt == "csv":
-        pacsv.write_csv(table, where)
-        return
-    frame = table.to_pandas(types_mapper={pa.int64(): pd.Int64Dtype()}.get)
-    pq.write_table(pa.Table.from_pandas(frame, preserve_index=False), where)
+class MatchWriter:
+    """One row per frame as Parquet or CSV, a block of frames at a time (memory stays a block's,
+    whatever the traverse's length): ``frame``, ``centre``, ``match``, ``n_r`` and ``score`` (the
+    matched window's, in δ_max units as the batch reports it; lower is more confident). The first
+    L − 1 frames complete no window: their columns are null (empty in CSV), and pandas reads the
+    Parquet file's integer columns as nullable integers (``Int64``), not floats with NaN."""
+
+    def __init__(self, where: Any, fmt: str) -> None:
+        self.where, self.fmt, self.writer = where, fmt, None
+
+    def write(self, table: pa.Table) -> None:
+        if self.fmt == "parquet":  # through pandas' nullable integers, whose metadata the file keeps
+            frame = table.to_pandas(types_mapper={pa.int64(): pd.Int64Dtype()}.get)
+            table = pa.Table.from_pandas(frame, preserve_index=False)
+            if self.writer is None:
+                self.writer = pq.ParquetWriter(self.where, table.schema)
+        elif self.writer is None:
+            self.writer = pacsv.CSVWriter(self.where, table.schema)
+        self.writer.write_table(table)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
 
 
 def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper", out: str | Path | None = None,
@@ -111,37 +127,39 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     except ValueError as exc:
         raise InputError(str(exc)) from None
     lag = centre_lag(L)
-    match = np.full(rows, -1, np.int64)
-    n_r = np.zeros(rows, np.int64)
-    score = np.full(rows, np.nan)
     progress = None if quiet else ChunkProgress("localise", (rows + READ_ROWS - 1) // READ_ROWS)
-    t0 = time.perf_counter()
-    u = 0
-    for block in blocks:
-        bad = np.flatnonzero(~np.isfinite(block).all(axis=1))
-        if len(bad):  # a NaN frame would hash to an arbitrary address and be matched
-            raise InputError(f"{path}: frame {u + int(bad[0]):,} holds NaN or Inf")
-        got, got_n_r, got_score = matcher.push_many(block, return_score=True)  # frame by frame, one call a block
-        done = got >= 0
-        at = slice(u, u + len(block))
-        match[at][done], n_r[at][done], score[at][done] = got[done], got_n_r[done], got_score[done]
-        u += len(block)
-        if progress:
-            progress.update(1)
-    secs = time.perf_counter() - t0
-    frames = np.arange(rows)
-    done = match >= 0
-    table = pa.table({"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
-                      "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done),
-                      "score": pa.array(score, mask=~done)})
+    tmp = None if out is None or to_stdout else out.with_name(f".{out.name}.partial")
     if to_stdout:
         sys.stdout.flush()
-        write_matches(table, sys.stdout.buffer, "csv")
-    elif out is not None:
-        tmp = out.with_name(f".{out.name}.partial")
-        write_matches(table, tmp, OUT_FORMATS[out.suffix.lower()])
+    writer = None if out is None else MatchWriter(sys.stdout.buffer if to_stdout else tmp,
+                                                  "csv" if to_stdout else OUT_FORMATS[out.suffix.lower()])
+    secs, u = 0.0, 0  # the matcher's time, not the reading's or the writing's
+    try:
+        for block in blocks:
+            bad = np.flatnonzero(~np.isfinite(block).all(axis=1))
+            if len(bad):  # a NaN frame would hash to an arbitrary address and be matched
+                raise InputError(f"{path}: frame {u + int(bad[0]):,} holds NaN or Inf")
+            t1 = time.perf_counter()
+            match, n_r, score = matcher.push_many(block, return_score=True)  # frame by frame, one call a block
+            secs += time.perf_counter() - t1
+            if writer is not None:
+                frames = np.arange(u, u + len(block))
+                done = match >= 0
+                writer.write(pa.table({"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
+                                       "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done),
+                                       "score": pa.array(score, mask=~done)}))
+            u += len(block)
+            if progress:
+                progress.update(1)
+        if writer is not None:
+            writer.close()
+    except BaseException:
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)  # never a partial file left to look like matches
+        raise
+    if tmp is not None:
         tmp.replace(out)
     if not quiet:
-        log.info(f"localised {rows:,} frames in {secs:.1f} s ({secs / max(1, rows) * 1e6:.1f} µs per frame)")
+        log.info(f"localised {rows:,} frames: {secs:.1f} s of matching ({secs / max(1, rows) * 1e6:.1f} µs a frame)")
     return {"frames": rows, "L": L, "mode": mode, "seconds": secs, "us_per_frame": secs / max(1, rows) * 1e6,
             "out": str(out) if out else None, "state_bytes": matcher.state_bytes}
