@@ -217,7 +217,9 @@ def test_an_old_index_is_refused_then_upgraded_without_refitting(tiny_index, tin
     for name in ("codes.npy", "ids.npy", "occupied.npy", "starts.npy", "buckets.parquet"):
         assert (old / name).read_bytes() == (tiny_index / name).read_bytes(), name  # what a fresh index writes
     assert not (old / "best.npy").exists() and (old / "eval" / "eval.json").read_text() == '{"mine": 1}'
-    assert main(["verify", str(old)]) == 0
+    capsys.readouterr()
+    assert main(["verify", str(old)]) == 2  # the index verifies; its evaluation, of before manifests, cannot be
+    assert "index verified" in capsys.readouterr().out
     assert main(["index", "--upgrade", str(old)]) == 0
     assert "format 3 already" in capsys.readouterr().out
     assert main(["index", "--upgrade", str(tmp_path / "nowhere")]) == 2

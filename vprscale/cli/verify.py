@@ -26,8 +26,8 @@ def run(args: argparse.Namespace) -> int:
     if kind is None:
         raise InputError(f"{path}: not a vprscale store, index, evaluation or encoding")
     found = [(path, kind)]
-    if kind == "index" and (path / "eval" / "results.parquet").is_file():  # as sql and results find it
-        found.append((path / "eval", "evaluation"))
+    if kind == "index" and any((path / "eval" / f).exists() for f in ("eval.json", "results.parquet", "manifest.json")):
+        found.append((path / "eval", "evaluation"))  # its evaluation, published apart
     for root, what in found:
         n = _verify(root, what)
         print(f"{root}: {what} verified, {n:,} files with their sizes and checksums")
