@@ -281,3 +281,10 @@ def test_synth_does_not_write_over_a_dataset_without_force(tmp_path, capsys):
     assert real.read_bytes() == b"the real one" and not (tmp_path / "FAS").exists()
     assert main([*argv, "--force", "--quiet"]) == 0
     assert real.stat().st_size == 8 + 4 * 100 * 96
+    kept = real.with_name("base.fbin.previous")
+    assert kept.read_bytes() == b"the real one"  # what synth did not write is kept beside, not replaced
+    ours = {f: f.read_bytes() for f in tmp_path.rglob("*") if f.is_file() and ".previous" not in f.name
+            and f.name != ".synth.json"}
+    assert main([*argv, "--force", "--quiet"]) == 0  # its own files are replaced: nothing more kept
+    assert sorted(p.name for p in tmp_path.rglob("*.previous*")) == ["base.fbin.previous"]
+    assert {f: f.read_bytes() for f in ours} == ours

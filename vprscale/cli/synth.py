@@ -20,7 +20,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--rows-per-file", type=positive_int, default=None,
                    help="split the fvecs output into base_NN files of this many rows")
     p.add_argument("--force", action="store_true",
-                   help="write over Deep1B/… and FAS/… files already in --out (refused without it)")
+                   help="write where Deep1B/… or FAS/… files already are in --out (refused without it): synth's "
+                        "own earlier files are replaced, any other is kept beside as <name>.previous")
     p.set_defaults(func=run, out_is_dir=True)
 
 
