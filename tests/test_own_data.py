@@ -137,3 +137,89 @@ def test_an_own_store_larger_than_the_free_disk_is_refused_before_work(own_files
             str(own_files["gt"]), "--out", str(small_filesystem / "data")]
     fails(capsys, argv, "--out", "GiB free")
     assert not any((small_filesystem / "data").iterdir())
+
+
+def test_positions_count_every_reference_within_a_radius_in_metres(own_files, tmp_path, capsys):
+    """``--ref-pos`` (.npy) and ``--query-pos`` (@UTM@ image names), then ``eval --radius-m``: a
+    match is correct when its reference lies within R metres of the query (VPR-methods-evaluation's
+    positives); every figure recomputed here from the per-query rows and the positions."""
+    rng = np.random.default_rng(4)
+    n_ref = np.load(own_files["ref"]).shape[0]
+    steps = rng.uniform(1.0, 3.0, n_ref)  # a road: 1-3 m between places, east then north
+    ref_pos = np.c_[500_000 + np.cumsum(steps), 4_100_000 + 0.3 * np.cumsum(steps)]
+    truth = np.arange(1_000, 2_500)  # own_files' query rows show these places
+    query_pos = ref_pos[truth] + rng.normal(scale=2.0, size=(len(truth), 2))
+    np.save(tmp_path / "ref_pos.npy", ref_pos)
+    names = [f"queries/@{e:.2f}@{n:.2f}@17@S@037@.jpg" for e, n in query_pos]
+    (tmp_path / "query_names.txt").write_text("\n".join(names) + "\n")
+    query_pos = np.round(query_pos, 2)
+    out = tmp_path / "data"
+    argv = ["build", "--ref", str(own_files["ref"]), "--query", f"night={own_files['night']}", "--gt",
+            str(own_files["gt"]), "--ref-pos", str(tmp_path / "ref_pos.npy"), "--query-pos",
+            str(tmp_path / "query_names.txt"), "--out", str(out), "-q"]
+    assert main(argv) == 0
+    store, index = out / "ref.zarr", tmp_path / "walk.index"
+    np.testing.assert_array_equal(zarr.open_group(store, mode="r")["query_pos"][:], query_pos)
+    assert main(["index", str(store), "--out", str(index), "-q"]) == 0
+    assert main(["eval", str(store), str(index), "--L", "1,20", "--radius-m", "5,25", "--repeats", "1",
+                 "--no-baseline", "-q"]) == 0
+    res = pd.read_parquet(index / "eval" / "results_m.parquet")
+    q = pd.read_parquet(index / "eval" / "queries.parquet")
+    assert sorted(set(res.radius_m)) == [5.0, 25.0] and "radius" not in res.columns
+    for (L, mode), runs in q.groupby(["L", q["mode"].fillna("-")]):
+        distance = np.linalg.norm(ref_pos[runs.match] - query_pos[runs.t], axis=1)
+        np.testing.assert_allclose(runs.error_m, distance)
+        top5 = np.array([np.linalg.norm(ref_pos[[i for i in t[:5] if i >= 0]] - query_pos[c], axis=1)
+                         .min(initial=np.inf) for t, c in zip(runs["top"], runs.t, strict=True)])
+        for radius in (5.0, 25.0):
+            row = res[(res.L == L) & (res["mode"].fillna("-") == mode) & (res.radius_m == radius)
+                      & (res.part == "all")].iloc[0]
+            assert row.recall == pytest.approx((distance <= radius).mean())
+            assert row.recall_at_5 == pytest.approx((top5 <= radius).mean())
+            assert row.recall_lo <= row.recall <= row.recall_hi
+    assert res[(res.radius_m == 25.0)].recall.max() > 0.5  # the walk is found again, within 25 m
+    capsys.readouterr()
+    assert main(["results", str(index), "--metres", "--where", "radius_m = 25 AND L = 20", "--csv"]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 3  # the header and the paper and aligned rows
+    assert main(["sql", str(index), "SELECT count(*) AS n FROM results_m", "--csv"]) == 0
+    assert capsys.readouterr().out.split()[1] == str(len(res))
+
+
+@pytest.mark.parametrize(("case", "message"), [
+    ("one side", "--query-pos missing"),
+    ("rows", "ref_pos.npy: 5,999 reference positions for 6,000 rows"),
+    ("columns", "ref_pos.npy: reference positions must be numbers in 2 or 3 columns"),
+    ("name", "names.txt: line 2 ('b.jpg') has no @UTM_east@UTM_north@"),
+    ("nan", "ref_pos.npy: row 7 of the reference positions is not a finite number"),
+])
+def test_bad_positions_are_one_line_and_write_nothing(own_files, tmp_path, capsys, case, message):
+    from .test_reliability import fails
+
+    ref_pos = np.zeros((6_000, 2))
+    if case == "rows":
+        ref_pos = ref_pos[1:]
+    elif case == "columns":
+        ref_pos = np.zeros((6_000, 4))
+    elif case == "nan":
+        ref_pos[7, 1] = np.nan
+    np.save(tmp_path / "ref_pos.npy", ref_pos)
+    (tmp_path / "names.txt").write_text("x/@1@2@.jpg\nb.jpg\n")
+    argv = ["build", "--ref", str(own_files["ref"]), "--query", f"day={own_files['day']}", "--gt",
+            str(own_files["gt"]), "--ref-pos", str(tmp_path / "ref_pos.npy"), "--out", str(tmp_path / "data")]
+    if case != "one side":
+        argv += ["--query-pos", str(tmp_path / ("names.txt" if case == "name" else "q.npy"))]
+        np.save(tmp_path / "q.npy", np.zeros((1_500, 2)))
+    if case == "name":
+        argv[argv.index("--ref-pos") + 1] = str(tmp_path / "names.txt")
+    fails(capsys, argv, message)
+    assert not (tmp_path / "data").exists() or not any((tmp_path / "data").iterdir())
+
+
+def test_radius_in_metres_needs_a_store_with_positions(own_files, tmp_path, capsys):
+    from .test_reliability import fails
+
+    out = tmp_path / "data"
+    assert _build(own_files, out) == 0
+    assert main(["index", str(out / "walk.zarr"), "--out", str(tmp_path / "i"), "-q"]) == 0
+    fails(capsys, ["eval", str(out / "walk.zarr"), str(tmp_path / "i"), "--radius-m", "25"], "holds no positions")
+    fails(capsys, ["eval", str(out / "walk.zarr"), str(tmp_path / "i"), "--radius-m", "25,-1"], "above 0")

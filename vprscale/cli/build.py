@@ -8,7 +8,8 @@ from pathlib import Path
 from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_int, write_summary
 from vprscale.core.errors import InputError
 
-INPUTS = ('deep1b', 'fas', 'scale', 'ref', 'query', 'gt', 'part')  # what it reads: no output may be written over them
+# what it reads: no output may be written over them
+INPUTS = ('deep1b', 'fas', 'scale', 'ref', 'query', 'gt', 'part', 'ref_pos', 'query_pos')
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
@@ -23,6 +24,10 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                      help="a query set (rows aligned with the other sets'), evaluated as --noise NAME; repeatable")
     own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth")
     own.add_argument("--part", help=".npy of 0/1 per query row (0s first): two parts reported apart (optional)")
+    own.add_argument("--ref-pos", metavar="PATH",
+                     help="positions of the references in metres, for eval --radius-m: an .npy of (east, north) or "
+                          "(x, y, z) per row, or a text file of image names with @UTM_east@UTM_north@ (optional)")
+    own.add_argument("--query-pos", metavar="PATH", help="positions of the query rows, as --ref-pos (with it)")
     own.add_argument("--name", help="the store's name, <out>/<name>.zarr (default: the --ref file's stem)")
     own.add_argument("--stride", type=positive_int, default=1,
                      help="the evaluation's default query stride z (default 1: every centre)")
@@ -44,7 +49,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.dataset.build import BuildRequest, build, format_summary
 
-    if args.ref or args.query or args.gt:
+    if args.ref or args.query or args.gt or args.ref_pos or args.query_pos:
         return _build_own(args)
     if not args.scale:
         raise InputError("build: give --scale (a recipe), or --ref, --query and --gt (your own descriptors)")
@@ -75,7 +80,7 @@ def _build_own(args: argparse.Namespace) -> int:
         raise InputError("--query: a name is given twice")
     summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=args.gt, part=args.part, out=Path(args.out),
                                    name=args.name, stride=args.stride, force=args.force, workers=args.workers,
-                                   scheduler=args.scheduler))
+                                   scheduler=args.scheduler, ref_pos=args.ref_pos, query_pos=args.query_pos))
     print(format_summary(summary))
     write_summary(args, summary)
     return 0

@@ -57,6 +57,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--fas", metavar="PATH", help="a compact store built from files: its FAS file (as --deep1b)")
     p.add_argument("--force", action="store_true",
                    help="replace an evaluation already in the output; the old one is kept beside, as <out>.previous")
+    p.add_argument("--radius-m", type=csv_of(float), default=None, metavar="R",
+                   help="also count a match correct within these radii in metres of the query's position, e.g. "
+                        "10,25,50 (a store with positions: build --ref-pos --query-pos); rows in results_m.parquet")
     p.add_argument("--repeats", type=positive_int, default=3,
                    help="timing repeats of every timed kernel, on one thread (default 3; docs/accounting.md)")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
                       flat_noise=args.flat_noise,
                       deep1b=args.deep1b, fas=args.fas, out=Path(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
-                      force=args.force)
+                      force=args.force, radii_m=args.radius_m)
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
         if args.compare or args.methods:
             flag = "--compare" if args.compare else "--method"
@@ -88,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
-          f"({summary['queries']:,} rows); z = {summary['z']}")
+          f"({summary['queries']:,} rows)" + (f", results_m.parquet (radii {','.join(f'{r:g}' for r in args.radius_m)}"
+                                            " m)" if args.radius_m else "") + f"; z = {summary['z']}")
     write_summary(args, summary)
     return 0

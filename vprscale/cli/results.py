@@ -12,7 +12,11 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p = sub.add_parser("results", help="any number of evaluations as one table (filter with --where SQL)")
     p.add_argument("paths", nargs="+", help="evaluation folders (INDEX/eval, eval --out) or indexes")
     p.add_argument("--where", help="an SQL condition on the columns, e.g. \"method = 'coarsehash' AND radius = 20\"")
-    p.add_argument("--queries", action="store_true", help="the per-query rows instead of the recall table")
+    table = p.add_mutually_exclusive_group()
+    table.add_argument("--queries", action="store_true", help="the per-query rows instead of the recall table")
+    table.add_argument("--metres", action="store_true",
+                       help="recall within radii in metres of each query's position (eval --radius-m) instead of "
+                            "radii in frames")
     p.add_argument("--all-columns", action="store_true",
                    help="every column in the table (--csv and --json always have every column)")
     fmt = p.add_mutually_exclusive_group()
@@ -34,10 +38,11 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 # What a reader asks of a recall row first: which method, configured how, at which point, how well.
 TABLE_COLUMNS = ("run", "scale", "noise", "method", "params", "mode", "L", "part", "radius", "recall", "recall_lo",
                  "recall_hi", "recall_at_20", "n_queries", "nr_mean", "bytes_per_place", "us_per_query")
+METRE_COLUMNS = tuple("radius_m" if c == "radius" else c for c in TABLE_COLUMNS)
 QUERY_COLUMNS = ("run", "noise", "method", "params", "mode", "L", "centre", "gt", "match", "score", "n_r")
 
 
-def _shown(table, all_columns: bool, queries: bool):
+def _shown(table, all_columns: bool, queries: bool, metres: bool = False):
     """The table's columns for the eye: the chosen few (``run`` only when several runs are shown,
     as a path relative to here), or every one."""
     import os
@@ -54,7 +59,8 @@ def _shown(table, all_columns: bool, queries: bool):
             table = table.drop_columns(["run"])
     if all_columns:
         return table
-    keep = [c for c in (QUERY_COLUMNS if queries else TABLE_COLUMNS) if c in table.column_names]
+    keep = [c for c in (QUERY_COLUMNS if queries else METRE_COLUMNS if metres else TABLE_COLUMNS)
+            if c in table.column_names]
     table = table.select(keep)
     for name in ("recall", "recall_lo", "recall_hi", "recall_at_20", "nr_mean", "bytes_per_place", "us_per_query"):
         if name in table.column_names:  # three decimals (one for µs) read at a glance
@@ -72,6 +78,8 @@ def _best(table, args: argparse.Namespace):
 
     if args.queries:
         raise InputError("--best-bytes/--best-qps: operating points come from the recall table, not --queries")
+    if args.metres:
+        raise InputError("--best-bytes/--best-qps: operating points rank by a radius in frames, not --metres")
     res = table.to_pandas()
     if args.radius not in set(res.radius):
         raise InputError(f"--radius {args.radius}: the evaluations hold radii {int(res.radius.min())} … "
@@ -90,18 +98,20 @@ def run(args: argparse.Namespace) -> int:
         import pyarrow as pa
 
         parts = [t.append_column("run", pa.array([str(folder)] * t.num_rows, pa.string()))
-                 for t, folder, _ in load_tables(*args.paths, queries=args.queries)]
+                 for t, folder, _ in load_tables(*args.paths, queries=args.queries, metres=args.metres)]
         table = pa.concat_tables(parts, promote_options="permissive")
     else:
         folders = [eval_folder(p) for p in args.paths]
-        query = f"SELECT * FROM {'queries' if args.queries else 'results'} WHERE {args.where}"  # in the sandbox
+        view = "queries" if args.queries else "results_m" if args.metres else "results"
+        query = f"SELECT * FROM {view} WHERE {args.where}"  # in the sandbox
         with sandbox(folders, args.memory_limit, 2) as box:
             table = box.query(query, args.timeout)
     if args.best_bytes is not None or args.best_qps is not None:
         table = _best(table, args)
     if args.format == "table":
         width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None
-        print(format_table(_shown(table, args.all_columns, args.queries), "table", max_width=width), end="")
+        print(format_table(_shown(table, args.all_columns, args.queries, args.metres), "table", max_width=width),
+              end="")
     else:
         print(format_table(table, args.format), end="")
     return 0

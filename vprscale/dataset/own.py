@@ -36,7 +36,7 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.dataset.layout import codecs
 from vprscale.dataset.sources.base import RowSource
-from vprscale.dataset.sources.rows import open_rows, read_labels
+from vprscale.dataset.sources.rows import open_rows, read_labels, read_positions
 from vprscale.dataset.store import ATTR
 
 log = logging.getLogger(__name__)
@@ -57,6 +57,8 @@ class OwnRequest:
     out: Path
     part: str | None = None
     name: str | None = None  # the store's (and results' scale column's) name; default: the ref file's stem
+    ref_pos: str | None = None  # positions in metres of the references and of the query rows (both or neither)
+    query_pos: str | None = None
     stride: int = 1  # the evaluation's default query stride z
     force: bool = False
     workers: int = 2
@@ -107,6 +109,22 @@ def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource], np.n
     return ref, queries, gt, part
 
 
+def check_positions(req: OwnRequest, n_ref: int, n_query: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The references' and query rows' positions (``--ref-pos``, ``--query-pos``), read and checked;
+    None without them. Both or neither: a radius in metres needs both ends."""
+    if (req.ref_pos is None) != (req.query_pos is None):
+        raise InputError(f"--{'query' if req.query_pos is None else 'ref'}-pos missing: positions in metres need "
+                         "both the references' (--ref-pos) and the query rows' (--query-pos)")
+    if req.ref_pos is None:
+        return None
+    ref_pos = read_positions(req.ref_pos, n_ref, "reference positions")
+    query_pos = read_positions(req.query_pos, n_query, "query positions")
+    if ref_pos.shape[1] != query_pos.shape[1]:
+        raise InputError(f"{req.query_pos}: {query_pos.shape[1]} coordinates a row, the reference positions have "
+                         f"{ref_pos.shape[1]}")
+    return ref_pos, query_pos
+
+
 def chunk_rows(n_rows: int, row_bytes: int) -> int:
     """Rows per Zarr chunk (and task) of an array of ``n_rows`` rows of ``row_bytes``: as many as
     fit in ``CHUNK_BYTES`` (a power of two, so that every block of ``BLOCK`` rows, which FAISS
@@ -135,6 +153,7 @@ def check_room(ref: RowSource, queries: dict[str, RowSource], out: Path) -> None
 def build_own(req: OwnRequest) -> dict[str, Any]:
     """Write the store ``<out>/<name>.zarr``; returns the summary the CLI prints."""
     ref, queries, gt, part = check_inputs(req)
+    positions = check_positions(req, ref.n_rows, len(gt))
     name = req.name or Path(req.ref).stem
     if not NAME.fullmatch(name.lower()) or name != name.lower():
         raise InputError(f"--name {name}: lower-case letters, digits and _, starting with a letter")
@@ -145,7 +164,9 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
     n_deep = int((part == 0).sum())
     identity = {"recipe": {"scale": name, "dim": ref.dim, "query_stride": req.stride, "own": True},
                 "sources": {"ref": ref.fingerprint(), **{f"query_{n}": q.fingerprint() for n, q in queries.items()},
-                            "gt": _digest(gt), "part": _digest(part)},
+                            "gt": _digest(gt), "part": _digest(part),
+                            **({"ref_pos": _digest(positions[0]), "query_pos": _digest(positions[1])}
+                               if positions else {})},
                 "rescale": None, "seed": None}
     check_writable(out)
     check_room(ref, queries, out)
@@ -171,6 +192,11 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
                 group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data), 8),), dtype=dtype,
                                    overwrite=True, **codecs("labels"))
                 group[array][:] = data.astype(dtype)
+            for array, data in zip(("ref_pos", "query_pos"), positions, strict=True) if positions else ():
+                group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data), 8 * data.shape[1]),
+                                                                    data.shape[1]),
+                                   dtype="f8", overwrite=True, **codecs("labels"))
+                group[array][:] = data
             partial.mark("arrays")
         sources = {"ref": ref, **{f"query_{n}": q for n, q in queries.items()}}
         tasks = [dask.delayed(_copy_chunk)(str(partial.path), array, src, a, b, partial, f"{array}-{c}")
@@ -181,7 +207,7 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
             run_tasks(tasks, "copy chunks")
             peak = cluster_peak_rss(client)
         layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(gt) - n_deep,
-                  "noises": sorted(queries)}
+                  "noises": sorted(queries), **({"positions": int(positions[0].shape[1])} if positions else {})}
         summary = {"store": str(final), "scale": name, "layout": "full", "ref_rows": ref.n_rows,
                    "query_rows": len(gt), "resumed": resumed, "stages_s": timings.stages,
                    "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,

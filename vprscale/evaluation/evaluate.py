@@ -35,7 +35,7 @@ from vprscale.evaluation.algorithms.base import Answer
 from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit, load_baseline_map
 from vprscale.evaluation.algorithms.faisscodes import fit_codes
 from vprscale.evaluation.algorithms.plugged import load_method
-from vprscale.evaluation.metrics import RADII, recall_curve, run_metrics
+from vprscale.evaluation.metrics import RADII, TOP_N, metrics_at, recall_curve, run_metrics, top_distance
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
 from vprscale.method.index import Index
 from vprscale.protocol import (
@@ -77,6 +77,7 @@ class EvalRequest:
     flat_noise: list[str] | None = None  # noise levels flat (exhaustive-scan) FAISS codes run on (None: all)
     deep1b: str | None = None  # a compact store's sources, to recompute its references (synthetic: not needed)
     fas: str | None = None
+    radii_m: list[float] | None = None  # radii in metres (a store with positions): results_m.parquet
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
     out: Path | None = None
@@ -107,6 +108,7 @@ class QuerySet:
         self.noises = list(layout.get("noises", DEFAULT_NOISES))
         self._gt = group["gt"][:]
         self._part = group["query_part"][:]
+        self.positions = (group["ref_pos"][:], group["query_pos"][:]) if "query_pos" in group else None
 
     def _pos(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, np.int64)
@@ -118,6 +120,11 @@ class QuerySet:
     def gt_at(self, t: np.ndarray) -> np.ndarray:
         pos, held = self._pos(t)
         return np.where(held, self._gt[pos], -1)
+
+    def pos_at(self, t: np.ndarray) -> np.ndarray:
+        """The query frames' positions in metres (the store must hold positions)."""
+        pos, _ = self._pos(t)
+        return self.positions[1][pos]
 
     def part_at(self, t: np.ndarray) -> np.ndarray:
         pos, held = self._pos(t)
@@ -161,6 +168,9 @@ def check_request(req: EvalRequest) -> None:
                 raise InputError(f"{flag} {value}: must be at least 1")
         if values is not None and len(set(values)) != len(values):
             raise InputError(f"{flag}: a value is given twice")
+    if req.radii_m is not None and (not req.radii_m or any(not (r > 0 and np.isfinite(r)) for r in req.radii_m)
+                                    or len(set(req.radii_m)) != len(req.radii_m)):
+        raise InputError(f"--radius-m {','.join(map(str, req.radii_m))}: give distinct radii in metres above 0")
     if req.faiss_nprobe is not None and not req.faiss_nprobe:
         raise InputError("--faiss-nprobe: the list is empty")
     for flag, given in (("--compare", req.compare), ("--method", req.methods)):
@@ -182,6 +192,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     layout = store_layout(group)
     identity = store_identity(group)
     qs = QuerySet(group, layout)
+    if req.radii_m and qs.positions is None:
+        raise InputError(f"--radius-m: {req.store} holds no positions; build it with --ref-pos and --query-pos "
+                         "(docs/bring-your-own.md)")
     unknown = [n for n in req.noises or [] if n not in qs.noises]
     if unknown:
         raise InputError(f"--noise {','.join(unknown)}: {req.store} holds no such query set; choose from "
@@ -242,7 +255,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             fit_codes(to_fit, ref, req.quiet) if to_fit else None
             fit_s = time.perf_counter() - t_fit
             method_fit_s = _fit_methods(plugged, ref, req.quiet) if plugged else {}
-            rows, queries = _grid(req, qs, z, dim, indexes, base, compared, plugged)
+            rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, plugged)
             columns = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
                        "store_identity": identity}
             record = provenance(inputs={"store_identity": identity, "indexes": [
@@ -250,8 +263,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 for p, i in indexes]}, workers=req.workers, repeats=req.repeats)
             _write_parquet(partial.path / "results.parquet", rows, columns, record)
             _write_parquet(partial.path / "queries.parquet", queries, columns, record)
+            if rows_m:
+                _write_parquet(partial.path / "results_m.parquet", rows_m, columns, record)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
-                       "noises": req.noises, "flat_noise": req.flat_noise, "lengths": req.lengths, "modes": req.modes,
+                       "noises": req.noises, "flat_noise": req.flat_noise,
+                       "radii_m": req.radii_m, "lengths": req.lengths, "modes": req.modes,
                        "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": [str(Path(p).resolve()) for p in index_paths],
@@ -329,6 +345,7 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
     """Every method of every index on every noise, L and mode; the methods come from the registry."""
     rows: list[dict] = []
     queries: list[dict] = []
+    rows_m: list[dict] = []
     centres = {L: qs.centres(z, L) for L in req.lengths}
     frames = window_frames([centres[L].t for L in req.lengths], req.lengths)
     weights = part_weights(qs.n_query, qs.n_deep)
@@ -364,15 +381,20 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                         bar.step(f"{noise} {alg.name} L = {L}" + (f", {mode} mode" if mode else ""))
                         answer, timing = runner.localise(alg, state, pos, L, mode, frame_cost)
                         in_list = alg.in_list(state, pos, truth) if L == 1 else None
+                        metres = (rows_m, req.radii_m, qs.positions[0], qs.pos_at(t)) if req.radii_m else None
                         _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, answer, timing, in_list,
-                              weights if c.fas_stride is not None else None)
+                              weights if c.fas_stride is not None else None, metres)
     bar.close()
-    return rows, queries
+    return rows, queries, rows_m
 
 
 def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray, parts: np.ndarray,
-          answer: Answer, timing: Timing, in_list: np.ndarray | None, weights: dict[str, float] | None) -> None:
-    """Rows of ``results`` and ``queries`` for one run of one method.
+          answer: Answer, timing: Timing, in_list: np.ndarray | None, weights: dict[str, float] | None,
+          metres: tuple[list, list[float], np.ndarray, np.ndarray] | None = None) -> None:
+    """Rows of ``results`` and ``queries`` for one run of one method, and with ``metres``
+    (``(rows_m, radii, ref_pos, query_pos)``) the rows of ``results_m``: the same figures with a
+    match correct when the matched reference lies within a radius in metres of the query's
+    position (VPR-methods-evaluation's positives), each query's distance in ``queries.error_m``.
 
     With ``weights`` (a stratified sample) the overall figures weight each part by its
     share of the query rows (each query by its part's share over its part's queries);
@@ -381,6 +403,10 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
     match, n_r = answer.match, answer.n_r
     ranked, weighed = answer.ranking
     error = np.abs(np.asarray(match, np.int64) - truth)
+    if metres is not None:
+        rows_m, radii, ref_pos, query_pos = metres
+        error_m = top_distance(np.asarray(match, np.int64)[:, None], query_pos, ref_pos, 1)
+        near_m = {n: top_distance(ranked, query_pos, ref_pos, n) for n in TOP_N[1:]}
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
     held = [p for p in ("deep1b", "fas") if select[p].any()]
     if len(held) < 2:  # one part (a store of your own without --part): its rows are the "all" rows
@@ -405,8 +431,15 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
         for r in RADII:
             rows.append({**key, "part": name, "radius": int(r), **{f: float(v[r]) for f, v in figures.items()},
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
+        if metres is not None:
+            at = metrics_at(error_m[sel], {n: e[sel] for n, e in near_m.items()}, answer.score[sel], w,
+                            np.asarray(radii, np.float64))
+            for i, r in enumerate(radii):
+                rows_m.append({**key, "part": name, "radius_m": float(r), **{f: float(v[i]) for f, v in at.items()},
+                               **stats})
     for i in range(len(t)):
         queries.append({**key, "t": int(t[i]), "gt": int(truth[i]), "match": int(match[i]), "error": int(error[i]),
+                        **({"error_m": float(error_m[i])} if metres is not None else {}),
                         "score": float(answer.score[i]), "top": ranked[i].tolist(),
                         "n_r": int(n_r[i]), "in_list": int(in_list[i]) if in_list is not None else None,
                         "part": "deep1b" if parts[i] == 0 else "fas"})

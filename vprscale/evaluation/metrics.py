@@ -30,12 +30,23 @@ def _weights(n: int, weights: np.ndarray | None) -> np.ndarray:
     return np.ones(n) if weights is None else np.asarray(weights, np.float64)
 
 
-def recall_curve(error: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Recall at r = 0 … 20 from each query's ``|match − truth|`` (NaN without queries)."""
+def recall_curve(error: np.ndarray, weights: np.ndarray | None = None, radii: np.ndarray = RADII) -> np.ndarray:
+    """Recall at each radius (frames: r = 0 … 20) from each query's error (``|match − truth|``
+    in frames, or the match's distance in metres); NaN without queries."""
     if len(error) == 0:
-        return np.full(len(RADII), np.nan)
+        return np.full(len(radii), np.nan)
     w = _weights(len(error), weights)
-    return (w[:, None] * (np.asarray(error)[:, None] <= RADII[None, :])).sum(axis=0) / w.sum()
+    return (w[:, None] * (np.asarray(error)[:, None] <= np.asarray(radii)[None, :])).sum(axis=0) / w.sum()
+
+
+def top_distance(top: np.ndarray, query_pos: np.ndarray, ref_pos: np.ndarray, n: int) -> np.ndarray:
+    """Each query's smallest distance in metres from its position to one of its ``n`` best
+    candidates' (−1 places never count: infinite)."""
+    top = np.asarray(top, np.int64)[:, :n]
+    if not top.shape[1]:
+        return np.full(len(top), np.inf)
+    d = np.linalg.norm(ref_pos[np.maximum(top, 0)] - np.asarray(query_pos)[:, None, :], axis=2)
+    return np.where(top >= 0, d, np.inf).min(axis=1)
 
 
 def top_error(top: np.ndarray, truth: np.ndarray, n: int) -> np.ndarray:
@@ -94,22 +105,29 @@ RECALLS = ("recall", *(f"recall_at_{n}" for n in TOP_N[1:]), "recall_at_p100")  
 
 def run_metrics(error: np.ndarray, top: np.ndarray, truth: np.ndarray, score: np.ndarray,
                 weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Every metric of one run's queries, per radius: ``recall``, ``recall_at_N`` (N of
+    """Every metric of one run's queries, per radius in frames: ``recall``, ``recall_at_N`` (N of
     ``TOP_N`` above 1; ``top`` is the ranking's best, best first), ``auc_pr``,
     ``auc_pr_correct`` and ``recall_at_p100`` (arrays over ``RADII``), and the 95 % Wilson
     interval of every one of ``RECALLS`` (``…_lo``, ``…_hi``: a weighted run's from its
     number of queries)."""
-    out = {"recall": recall_curve(error, weights)}
+    return metrics_at(error, {n: top_error(top, truth, n) for n in TOP_N[1:]}, score, weights, RADII)
+
+
+def metrics_at(error: np.ndarray, nearest: dict[int, np.ndarray], score: np.ndarray, weights: np.ndarray | None,
+               radii: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`run_metrics` for any error and radii (frames, or metres with positions): ``nearest``
+    holds, for each N of ``TOP_N`` above 1, each query's smallest error over its N best."""
+    out = {"recall": recall_curve(error, weights, radii)}
     for n in TOP_N[1:]:
-        out[f"recall_at_{n}"] = recall_curve(top_error(top, truth, n), weights)
-    auc, auc_correct, full = (np.full(len(RADII), np.nan) for _ in range(3))
+        out[f"recall_at_{n}"] = recall_curve(nearest[n], weights, radii)
+    auc, auc_correct, full = (np.full(len(radii), np.nan) for _ in range(3))
     if len(error):
-        for r in RADII:
+        for i, r in enumerate(radii):
             correct = np.asarray(error) <= r
             precision, recall = pr_curve(score, correct, weights)
-            auc[r], full[r] = auc_pr(precision, recall), recall_at_full_precision(precision, recall)
+            auc[i], full[i] = auc_pr(precision, recall), recall_at_full_precision(precision, recall)
             if correct.any():
-                auc_correct[r] = auc_pr(*pr_curve(score, correct, weights, over_correct=True))
+                auc_correct[i] = auc_pr(*pr_curve(score, correct, weights, over_correct=True))
     out["auc_pr"], out["auc_pr_correct"], out["recall_at_p100"] = auc, auc_correct, full
     for name in RECALLS:
         out[f"{name}_lo"], out[f"{name}_hi"] = wilson(out[name], len(error))

@@ -48,15 +48,21 @@ def eval_folder(path: str | Path, full: bool = False) -> Path:
     return folder
 
 
-def load_tables(*paths: str | Path, queries: bool = False) -> list[tuple[Any, Path, dict[str, Any]]]:
-    """``(pyarrow table, evaluation folder, provenance record)`` of every evaluation given."""
+def load_tables(*paths: str | Path, queries: bool = False,
+                metres: bool = False) -> list[tuple[Any, Path, dict[str, Any]]]:
+    """``(pyarrow table, evaluation folder, provenance record)`` of every evaluation given: its
+    recall table, per-query rows (``queries``) or recall within radii in metres (``metres``)."""
     import pyarrow.parquet as pq  # here: eval_folder serves commands that never read Parquet in this process
 
     if not paths:
         raise InputError("results: give at least one evaluation folder or index")
     found = []
     for path in paths:
-        file = eval_folder(path) / ("queries.parquet" if queries else "results.parquet")
+        file = eval_folder(path) / ("queries.parquet" if queries else "results_m.parquet" if metres else
+                                    "results.parquet")
+        if metres and not file.is_file():
+            raise InputError(f"{file.parent}: no recall in metres here (results_m.parquet); evaluate a store with "
+                             "positions with eval --radius-m")
         try:
             table = pq.read_table(file)
         except (OSError, ValueError) as exc:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -66,3 +67,37 @@ def read_labels(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
         raise InputError(f"{p}: row {row:,} holds {int(a[row])}, beyond any row number (an unsigned −1? "
                          "write −1, no truth, as a signed integer)")
     return np.asarray(a, np.int64)
+
+
+UTM = re.compile(r"@(-?[0-9.]+(?:[eE][-+]?[0-9]+)?)@(-?[0-9.]+(?:[eE][-+]?[0-9]+)?)@")
+
+
+def read_positions(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
+    """Positions in metres, one row per image, as float64 ``(n, 2)`` or ``(n, 3)``: an ``.npy``
+    of UTM easting and northing (or x, y, z), or a text file of image names, one per line, in
+    the ``…@UTM_east@UTM_north@…`` form of VPR-methods-evaluation's exports (pitts30k, msls, …)."""
+    p = Path(path)
+    if p.suffix == ".npy":
+        a = _open_npy(p)
+        if a.ndim != 2 or a.shape[1] not in (2, 3) or not (np.issubdtype(a.dtype, np.floating)
+                                                          or np.issubdtype(a.dtype, np.integer)):
+            raise InputError(f"{p}: {what} must be numbers in 2 or 3 columns (UTM east, north; or x, y, z), not "
+                             f"{a.ndim}-D {a.dtype} {a.shape}")
+        pos = np.asarray(a, np.float64)
+    else:
+        try:
+            lines = p.read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(f"{p}: {what}: not a readable text file of image names ({exc})") from None
+        pos = np.empty((len(lines), 2))
+        for i, line in enumerate(lines):
+            found = UTM.search(Path(line.strip()).name)
+            if not found:
+                raise InputError(f"{p}: line {i + 1:,} ({line.strip()[:80]!r}) has no @UTM_east@UTM_north@ in its name")
+            pos[i] = float(found.group(1)), float(found.group(2))
+    if len(pos) != n:
+        raise InputError(f"{p}: {len(pos):,} {what} for {n:,} rows")
+    bad = np.flatnonzero(~np.isfinite(pos).all(axis=1))
+    if len(bad):
+        raise InputError(f"{p}: row {bad[0]:,} of the {what} is not a finite number")
+    return pos
