@@ -90,6 +90,17 @@ def nearest_slots(occ: tuple, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def nearest_slot(occ: tuple, h: np.uint64) -> tuple[np.int64, np.uint64]:
+    """:func:`nearest_slots` of one address, with no array made (a live frame's look-up)."""
+    kind, high, low, lb, ones, zeros, n, size = occ
+    if kind == 1:
+        slot, taken = rb_nearest(high, zeros, ones, n, size, h)
+    else:
+        slot, taken = ef_nearest(high, low, lb, ones, zeros, n, size, h)
+    return np.int64(slot), np.uint64(taken)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def list_span(starts: tuple, slot: np.int64) -> tuple[np.int64, np.int64]:
     """``(start, stop)`` of a slot's list among the ids."""
     high, low, lb, ones = starts

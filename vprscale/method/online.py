@@ -13,9 +13,12 @@ of the stream.
 
 A frame pushed alone costs what a batched query costs only if the call itself is cheap: numba
 types and unboxes every argument of every call (about 0.1 µs an array, more for a tuple), and a
-step reads some twenty arrays. So the matcher holds them in one struct (:class:`_Engine`, a
-numba ``StructRef``, unboxed as one pointer), and :func:`_push` hashes the frame (the batch's
-own kernel, row by row: the same bits) and steps in a single compiled call.
+step reads some twenty arrays. So the matcher holds them, and the frame's own buffer, in one
+struct (:class:`_Engine`, a numba ``StructRef``, unboxed as one pointer), and :func:`_push`
+hashes the frame (the batch's own kernel, row by row: the same bits) and steps in a single
+compiled call. That call goes straight to the compiled entry point of the struct's type, found
+once when the matcher is made: the dispatcher would otherwise work out the struct's type again
+on every call, which costs more than a whole L = 50 step's window.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from numba.experimental import structref
 
 from vprscale.method.hashkernels import hash_one
 from vprscale.method.index import Index
-from vprscale.method.invlists import heads, list_span, nearest_slots
+from vprscale.method.invlists import heads, list_span, nearest_slot
 from vprscale.method.kernels import (
     delta,
     score_planes,
@@ -79,19 +82,24 @@ class OnlineMatcher:
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
         centres = np.ascontiguousarray(index.centres, np.float64)
         self._dim = int(index.components.shape[1])
-        self._engine = _Engine(np.ascontiguousarray(index.mean, np.float64),
+        self._frame = np.zeros((1, self._dim), np.float32)  # push copies each frame here: one type, one call
+        self._engine = _Engine(self._frame, np.ascontiguousarray(index.mean, np.float64),
                                np.ascontiguousarray(index.components.T, np.float64), centres,
                                np.empty(d), np.empty(d, np.uint8), float((centres[:, -1] - centres[:, 0]).sum()),
                                self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
                                self.L, self.mode == "aligned", self._fast, *self._args)
+        self._push = _push.compile((numba.typeof(self._engine),))  # compiled, or loaded from numba's cache
 
     def push(self, descriptor: np.ndarray, return_score: bool = False) -> int | tuple[int, float] | None:
         """Add one query frame; the match of the window it completes (None until L frames), and
         its score with ``return_score``."""
-        x = np.asarray(descriptor, np.float32).reshape(1, -1)
-        if x.shape[1] != self._dim:
-            raise ValueError(f"a query frame of {x.shape[1]} features; this index hashes frames of {self._dim}")
-        match, n_r, score = _push(self._engine, x)
+        try:
+            self._frame[0] = descriptor  # cast to float32 as the batch reads frames
+        except (ValueError, TypeError):
+            shape = np.shape(descriptor)
+            raise ValueError(f"a query frame of shape {shape}; this index hashes frames of {self._dim} features") \
+                from None
+        match, n_r, score = self._push(self._engine)
         if match < 0:
             return None
         self.n_r = int(n_r)
@@ -152,25 +160,23 @@ class _Engine(structref.StructRefProxy):
 
 
 structref.define_proxy(_Engine, _EngineType, [
-    "mean", "w", "centres", "acc", "code_row", "span",
+    "frame", "mean", "w", "centres", "acc", "code_row", "span",
     "state", "ring_h", "ring_n", "buf", "cand", "slots", "L", "aligned", "fast",
     "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "dw", "tables",
     "d", "k", "dmax"])
 
 
 @numba.njit(cache=True, nogil=True)
-def _push(e: _Engine, x: np.ndarray) -> tuple[np.int64, np.int64, float]:
-    """One frame (row 0 of ``x``): hashed as the batch hashes it, then the step; ``(match, N_r,
+def _push(e: _Engine) -> tuple[np.int64, np.int64, float]:
+    """One frame (``e.frame``): hashed as the batch hashes it, then the step; ``(match, N_r,
     score)``, the score in δ_max units as the batch reports it (−1, 0 and NaN before L frames).
     L = 1: the single best of the frame's address, scored by its quantisation error and its move
     to the occupied address it took (:meth:`Index.single_scores`)."""
-    h, err = hash_one(x, 0, e.mean, e.w, e.centres, e.acc, e.code_row)
+    h, err = hash_one(e.frame, 0, e.mean, e.w, e.centres, e.acc, e.code_row)
     if e.L == 1:
-        one = np.empty(1, np.uint64)
-        one[0] = h
-        slots, taken = nearest_slots(e.occ, one)
-        first, last = list_span(e.starts, slots[0])
-        moved = delta(h, taken[0], e.dw, e.tables, e.d, e.k)
+        slot, taken = nearest_slot(e.occ, h)
+        first, last = list_span(e.starts, slot)
+        moved = delta(h, taken, e.dw, e.tables, e.d, e.k)
         return np.int64(get_packed(e.ids, e.id_bits, first)), last - first, err / e.span + moved / float(e.dmax)
     best, n_r, units = _step(h, e.state, e.ring_h, e.ring_n, e.buf, e.cand, e.slots, e.L, e.aligned, e.fast, e.occ,
                              e.starts, e.ids, e.id_bits, e.codes, e.code_bits, e.n_ref, e.planes, e.gaps, e.masks,
@@ -214,9 +220,7 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
           k: int, dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
     """One frame: its list into the window, then the window's match (−1 until L frames), its N_r
     and its score (fixed point)."""
-    one = np.empty(1, np.uint64)
-    one[0] = h
-    a = nearest_slots(occ, one)[0][0]
+    a, _ = nearest_slot(occ, h)
     slot = st[3]
     if st[0] >= L:  # the oldest frame leaves the window
         st[1] += ring_n[slot]
