@@ -168,10 +168,12 @@ def test_a_method_that_cannot_be_loaded_or_lacks_the_contract_is_one_line(exact_
 
 
 def test_a_pipeline_stage_re_runs_when_its_methods_source_changes(exact_l2, tmp_path):
+    from vprscale.core.digests import DigestCache
     from vprscale.jobs.pipeline import Stage, _inputs
 
     stage = Stage("eval-mine", "eval", {"store": "build", "methods": ["exact_l2:ExactL2"]})
-    before = _inputs(stage)
+    digests = DigestCache(tmp_path / "digests.json")
+    before = _inputs(stage, digests)
     path = tmp_path / "exact_l2.py"
     path.write_text(path.read_text() + "\n# tuned\n")
-    assert _inputs(stage) != before and set(before) == {"method:exact_l2:ExactL2"}
+    assert _inputs(stage, digests) != before and set(before) == {"method:exact_l2:ExactL2"}

@@ -96,9 +96,8 @@ class OnlineMatcher:
         try:
             self._frame[0] = descriptor  # cast to float32 as the batch reads frames
         except (ValueError, TypeError):
-            shape = np.shape(descriptor)
-            raise ValueError(f"a query frame of shape {shape}; this index hashes frames of {self._dim} features") \
-                from None
+            raise ValueError(f"a query frame of {np.size(descriptor)} features; this index hashes frames of "
+                             f"{self._dim}") from None
         match, n_r, score = self._push(self._engine)
         if match < 0:
             return None
