@@ -434,11 +434,13 @@ def test_localise_command_streams_a_store_array_and_an_npy(tiny_store, tiny_inde
     x = zarr.open_group(tiny_store, mode="r")["query_qm1"][48_000:49_000]
     np.save(tmp_path / "q.npy", x)
     assert main(["localise", str(tiny_index), str(tmp_path / "q.npy"), "--L", "50", "--mode", "aligned",
-                 "--out", str(tmp_path / "m.parquet")]) == 0
+                 "--out", str(tmp_path / "m.parquet"), "--top", "4"]) == 0
     t = pq.read_table(tmp_path / "m.parquet").to_pandas()
     assert len(t) == 1000 and t["match"].isna().sum() == 49
-    found = Index.load(tiny_index).match(x, 50, mode="aligned")
+    found = Index.load(tiny_index).match(x, 50, mode="aligned", n_best=4)
     match = found.match
+    top = t[[f"top_{j}" for j in range(1, 5)]].dropna(how="all").fillna(-1).to_numpy(np.int64)
+    np.testing.assert_array_equal(top, found.top)  # the batch's ranking, best first
     np.testing.assert_array_equal(found.centres, np.arange(25, 1000 - 24))
     np.testing.assert_array_equal(t["match"].dropna().to_numpy(np.int64), match)
     np.testing.assert_array_equal(t["centre"].dropna().to_numpy(np.int64), np.arange(25, 1000 - 24))
@@ -463,3 +465,30 @@ def test_nearest_occupied_through_the_directory_equals_brute_force(d, n):
     dist_below = np.where(below <= h, h - below, np.uint64(2**63))
     dist_above = np.where(above >= h, above - h, np.uint64(2**63))
     np.testing.assert_array_equal(got, np.where(dist_below <= dist_above, below, above))  # ties: the smaller
+
+
+@pytest.mark.parametrize(("L", "mode"), [(1, "paper"), (30, "paper"), (30, "aligned")])
+def test_online_best_candidates_are_the_batch_ranking(tiny_store, tiny_index, L, mode):
+    """A matcher keeping its 6 best candidates a window gives the batch's ``top`` frame by frame and
+    in blocks, pushes of both kinds interleaved; the first of them is the match."""
+    import zarr
+
+    idx = Index.load(tiny_index)
+    x = zarr.open_group(tiny_store, mode="r")["query_qm1"][46_000:46_500]
+    batch = idx.match(x, L, mode=mode, n_best=6)
+    online = OnlineMatcher(idx, L=L, mode=mode, n_best=6)
+    got = []
+    for a in range(0, len(x), 40):
+        if a % 80:
+            match, _, top = online.push_many(x[a : a + 40], return_top=True)
+            got += [t for m, t in zip(match, top, strict=True) if m >= 0]
+            assert (top[match < 0] == -1).all()
+        else:
+            for row in x[a : a + 40]:
+                if online.push(row) is not None:
+                    got.append(online.top)
+    np.testing.assert_array_equal(np.array(got), batch.top)
+    np.testing.assert_array_equal(batch.top[:, 0], batch.match)
+    assert (batch.top[:, 1] >= 0).any()  # lists with a second candidate: the ranking is exercised
+    with pytest.raises(ValueError, match="n_best 0"):
+        OnlineMatcher(idx, L=L, mode=mode, n_best=0)

@@ -27,6 +27,7 @@ DEEP1B, FAS = 0, 1  # part codes of ``ref_part`` / ``query_part``
 PARTS = {"all": None, "deep1b": DEEP1B, "fas": FAS}  # the parts results are reported for (None: every row)
 EVAL_LENGTHS = (1, 50, 100)  # the paper's sequence lengths: the default grid, and the windows a compact store keeps
 SEQUENCE_MODES = ("paper", "aligned")
+MAX_BEST = 1 << 10  # candidates a window's best-first list may keep online (localise --top)
 
 
 def check_window(L: int, mode: str) -> None:

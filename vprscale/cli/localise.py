@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from vprscale.cli.common import positive_int, write_summary
+from vprscale.cli.common import bounded_int, positive_int, write_summary
+from vprscale.protocol import MAX_BEST
 
 INPUTS = ('index', 'queries')  # the flags naming what it reads: no output may be written over them
 
@@ -17,6 +18,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
     p.add_argument("--L", type=positive_int, default=100, help="sequence length (default 100)")
     p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
+    p.add_argument("--top", type=bounded_int(MAX_BEST, "a window's best-first list"), default=None, metavar="N",
+                   help="also write each window's N best candidates, best first, as columns top_1 … top_N (the "
+                        "batch's ranking)")
     p.add_argument("--out", help="a .parquet or .csv file of (frame, centre, match, n_r, score), one row per "
                                  "frame (default: CSV on standard output)")
     p.set_defaults(func=run, input_flags=INPUTS)
@@ -25,6 +29,6 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.jobs.localise import localise
 
-    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out or "-")
+    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out or "-", top=args.top)
     write_summary(args, summary)
     return 0

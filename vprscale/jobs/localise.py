@@ -99,9 +99,10 @@ class MatchWriter:
 
 
 def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper", out: str | Path | None = None,
-             quiet: bool = False) -> dict[str, Any]:
+             quiet: bool = False, top: int | None = None) -> dict[str, Any]:
     """Localise every frame of ``queries``; returns a summary, and writes the rows to ``out`` (a
-    ``.parquet`` or ``.csv`` file, whole or not at all; ``"-"``: CSV on standard output) when given."""
+    ``.parquet`` or ``.csv`` file, whole or not at all; ``"-"``: CSV on standard output) when given,
+    with each window's ``top`` best candidates as columns ``top_1 …`` when asked for."""
     meta = load_index_meta(index)
     path = Path(queries)
     if not path.exists():
@@ -123,7 +124,7 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     if isinstance(L, int) and L > rows:
         raise InputError(f"--L {L}: longer than the {rows:,} frames of {path}")
     try:
-        matcher = OnlineMatcher(Index.load(index), L, mode)
+        matcher = OnlineMatcher(Index.load(index), L, mode, n_best=top or 1)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     lag = centre_lag(L)
@@ -140,14 +141,17 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
             if len(bad):  # a NaN frame would hash to an arbitrary address and be matched
                 raise InputError(f"{path}: frame {u + int(bad[0]):,} holds NaN or Inf")
             t1 = time.perf_counter()
-            match, n_r, score = matcher.push_many(block, return_score=True)  # frame by frame, one call a block
+            match, n_r, score, *best = matcher.push_many(block, return_score=True, return_top=bool(top))  # one call
             secs += time.perf_counter() - t1
             if writer is not None:
                 frames = np.arange(u, u + len(block))
                 done = match >= 0
-                writer.write(pa.table({"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
-                                       "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done),
-                                       "score": pa.array(score, mask=~done)}))
+                columns = {"frame": frames, "centre": pa.array(np.where(done, frames - lag, 0), mask=~done),
+                           "match": pa.array(match, mask=~done), "n_r": pa.array(n_r, mask=~done),
+                           "score": pa.array(score, mask=~done)}
+                for j in range(top or 0):
+                    columns[f"top_{j + 1}"] = pa.array(best[0][:, j], mask=best[0][:, j] < 0)
+                writer.write(pa.table(columns))
             u += len(block)
             if progress:
                 progress.update(1)

@@ -30,9 +30,12 @@ from numba.experimental import structref
 
 from vprscale.method.hashkernels import hash_one
 from vprscale.method.index import Index
-from vprscale.method.invlists import heads, list_span, nearest_slot
+from vprscale.method.invlists import list_span, nearest_slot
 from vprscale.method.kernels import (
+    NO_CANDIDATE,
     delta,
+    finish_best,
+    keep_best_at,
     score_planes,
     score_window,
     set_bit,
@@ -40,7 +43,7 @@ from vprscale.method.kernels import (
     window_masks,
 )
 from vprscale.method.succinct import get_packed
-from vprscale.protocol import check_window
+from vprscale.protocol import MAX_BEST, check_window
 
 
 class OnlineMatcher:
@@ -51,19 +54,25 @@ class OnlineMatcher:
     index : the index to match against.
     L : sequence length (frames per window).
     mode : ``"paper"`` or ``"aligned"`` (see docs/method.md).
+    n_best : how many best candidates each window keeps (``top``); 1 keeps the match alone.
 
     ``push(descriptor)`` returns the match of the window the frame completes (None for the
-    first L − 1 frames); ``n_r`` is then that window's number of candidates. With L = 1 the
-    match is the single best of the frame's address, as in the batch evaluation. With
-    ``return_score=True`` each match comes with its score, the batch's ``Matches.score`` (the
-    matched window's score in δ_max units; lower is more confident), so a live user can
-    threshold it.
+    first L − 1 frames); ``n_r`` is then that window's number of candidates and ``top`` its
+    ``n_best`` best candidates, best first (−1 where there were fewer): the batch's
+    ``Matches.top``, by the same window scores and ties. With L = 1 the match is the single best
+    of the frame's address, as in the batch evaluation. With ``return_score=True`` each match
+    comes with its score, the batch's ``Matches.score`` (the matched window's score in δ_max
+    units; lower is more confident), so a live user can threshold it.
     """
 
-    def __init__(self, index: Index, L: int, mode: str = "paper") -> None:
+    def __init__(self, index: Index, L: int, mode: str = "paper", n_best: int = 1) -> None:
         check_window(L, mode)
-        self.index, self.L, self.mode = index, int(L), mode
+        if not 1 <= int(n_best) <= MAX_BEST:
+            raise ValueError(f"n_best {n_best}: keep 1 to {MAX_BEST} candidates a window")
+        self.index, self.L, self.mode, self.n_best = index, int(L), mode, int(n_best)
         self.n_r: int | None = None
+        self._top_s = np.full(self.n_best, 2**62, np.int64)  # the window's best-first list, as the batch keeps it
+        self._top_c = np.full(self.n_best, NO_CANDIDATE, np.int64)
         codes, code_bits, n_ref, planes, bit_gap, w, tables, d, k, dmax = index.kernel_args()
         capacity = 2 * self.L * max(1, index.lists.longest)
         masks, gaps = window_masks(self.L, d, bit_gap)
@@ -83,7 +92,7 @@ class OnlineMatcher:
         centres = np.ascontiguousarray(index.centres, np.float64)
         self._dim = int(index.components.shape[1])
         self._frame = np.zeros((1, self._dim), np.float32)  # push copies each frame here: one type, one call
-        self._engine = _Engine(self._frame, np.ascontiguousarray(index.mean, np.float64),
+        self._engine = _Engine(self._frame, self._top_s, self._top_c, np.ascontiguousarray(index.mean, np.float64),
                                np.ascontiguousarray(index.components.T, np.float64), centres,
                                np.empty(d), np.empty(d, np.uint8), float((centres[:, -1] - centres[:, 0]).sum()),
                                self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
@@ -104,6 +113,12 @@ class OnlineMatcher:
         self.n_r = int(n_r)
         return (int(match), float(score)) if return_score else int(match)
 
+    @property
+    def top(self) -> np.ndarray:
+        """The ``n_best`` best candidates of the last window matched, best first (−1 where there
+        were fewer)."""
+        return np.where(self._top_c == NO_CANDIDATE, -1, self._top_c)
+
     def push_address(self, h: int) -> int | None:
         """Add one query frame given its own address (already hashed)."""
         match, n_r = self.push_addresses(np.array([h], np.uint64))
@@ -112,39 +127,45 @@ class OnlineMatcher:
         self.n_r = int(n_r[0])
         return int(match[0])
 
-    def push_many(self, descriptors: np.ndarray, return_score: bool = False) -> tuple[np.ndarray, ...]:
+    def push_many(self, descriptors: np.ndarray, return_score: bool = False,
+                  return_top: bool = False) -> tuple[np.ndarray, ...]:
         """Add consecutive query frames (rows); ``(match, n_r)`` of the window each completes
-        (−1 and 0 for the first L − 1 frames), and ``score`` (NaN there) with ``return_score``:
-        what :meth:`push` answers frame by frame, with the hashing and the Python call done once
-        for the block."""
+        (−1 and 0 for the first L − 1 frames), then ``score`` (NaN there) with ``return_score``
+        and ``top`` (rows of ``n_best``, −1 there) with ``return_top``: what :meth:`push`
+        answers frame by frame, with the hashing and the Python call done once for the block."""
         h, err = self.index.hash_frames(np.asarray(descriptors, np.float32))
-        match, n_r, score = self._advance(h, err, return_score)
-        return (match, n_r, score) if return_score else (match, n_r)
+        return self._advance(h, err, return_score, return_top)
 
-    def push_addresses(self, h: np.ndarray, return_score: bool = False) -> tuple[np.ndarray, ...]:
+    def push_addresses(self, h: np.ndarray, return_score: bool = False,
+                       return_top: bool = False) -> tuple[np.ndarray, ...]:
         """:meth:`push_many` for frames given by their own addresses (already hashed; an L = 1
         score then counts no quantisation error, as the batch's without errors)."""
-        match, n_r, score = self._advance(np.asarray(h, np.uint64), None, return_score)
-        return (match, n_r, score) if return_score else (match, n_r)
+        return self._advance(np.asarray(h, np.uint64), None, return_score, return_top)
 
-    def _advance(self, h: np.ndarray, errors: np.ndarray | None,
-                 scores: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """The frames in, ``(match, n_r, score)`` out: scores in δ_max units, as the batch's (at
-        L = 1 computed only when asked for; for sequences the step finds them anyway)."""
+    def _advance(self, h: np.ndarray, errors: np.ndarray | None, scores: bool, tops: bool) -> tuple[np.ndarray, ...]:
+        """The frames in; ``(match, n_r)``, then the scores in δ_max units, as the batch's (at L = 1
+        computed only when asked for; for sequences the step finds them anyway) and the best-first
+        lists, as asked for."""
         h = np.asarray(h, np.uint64)
         if self.L == 1:  # a single frame: the single best of its address, as the batch reports it
             lists = self.index.lists
             slots, taken = lists.nearest(h)
-            match, n_r = heads(lists.starts_args(), lists.ids, lists.id_bits, slots)
-            return match, n_r, self.index.single_scores(h, taken, errors) if scores else None
-        match, n_r, units = _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
-                                   self.L, self.mode == "aligned", self._fast, *self._args)
-        return match, n_r, np.where(match >= 0, units / float(self._args[-1]), np.nan)
+            match, n_r, top = _heads(lists.starts_args(), lists.ids, lists.id_bits, slots, self.n_best)
+            score = self.index.single_scores(h, taken, errors) if scores else None
+        else:
+            match, n_r, units, top = _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch,
+                                            self._slots, self.L, self.mode == "aligned", self._fast, self._top_s,
+                                            self._top_c, *self._args)
+            score = np.where(match >= 0, units / float(self._args[-1]), np.nan)
+        if len(h):  # the last frame's list, as push leaves it
+            self._top_c[:] = np.where(top[-1] < 0, NO_CANDIDATE, top[-1])
+        return (match, n_r, *((score,) if scores else ()), *((top,) if tops else ()))
 
     @property
     def state_bytes(self) -> int:
         """Bytes held between frames: fixed at construction, whatever the length of the stream."""
-        return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots))
+        return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
+                                      self._top_s, self._top_c))
 
 
 @structref.register
@@ -159,7 +180,7 @@ class _Engine(structref.StructRefProxy):
 
 
 structref.define_proxy(_Engine, _EngineType, [
-    "frame", "mean", "w", "centres", "acc", "code_row", "span",
+    "frame", "top_s", "top_c", "mean", "w", "centres", "acc", "code_row", "span",
     "state", "ring_h", "ring_n", "buf", "cand", "slots", "L", "aligned", "fast",
     "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "dw", "tables",
     "d", "k", "dmax"])
@@ -175,12 +196,35 @@ def _push(e: _Engine) -> tuple[np.int64, np.int64, float]:
     if e.L == 1:
         slot, taken = nearest_slot(e.occ, h)
         first, last = list_span(e.starts, slot)
+        _list_head(e.ids, e.id_bits, first, last, e.top_c)
         moved = delta(h, taken, e.dw, e.tables, e.d, e.k)
         return np.int64(get_packed(e.ids, e.id_bits, first)), last - first, err / e.span + moved / float(e.dmax)
-    best, n_r, units = _step(h, e.state, e.ring_h, e.ring_n, e.buf, e.cand, e.slots, e.L, e.aligned, e.fast, e.occ,
-                             e.starts, e.ids, e.id_bits, e.codes, e.code_bits, e.n_ref, e.planes, e.gaps, e.masks,
-                             e.dw, e.tables, e.d, e.k, e.dmax)
+    best, n_r, units = _step(h, e.state, e.ring_h, e.ring_n, e.buf, e.cand, e.slots, e.L, e.aligned, e.fast,
+                             e.top_s, e.top_c, e.occ, e.starts, e.ids, e.id_bits, e.codes, e.code_bits, e.n_ref,
+                             e.planes, e.gaps, e.masks, e.dw, e.tables, e.d, e.k, e.dmax)
     return best, n_r, units / float(e.dmax) if best >= 0 else np.nan
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _list_head(ids: np.ndarray, id_bits: int, first: np.int64, last: np.int64, top_c: np.ndarray) -> None:
+    """L = 1's best-first list: the list's first ``n_best`` ids (its single best, then the rest by
+    id, as the batch's ``frame_top``), empty places ``NO_CANDIDATE``."""
+    for j in range(top_c.shape[0]):
+        top_c[j] = np.int64(get_packed(ids, id_bits, first + j)) if first + j < last else NO_CANDIDATE
+
+
+@numba.njit(cache=True, nogil=True)
+def _heads(starts: tuple, ids: np.ndarray, id_bits: int, slots: np.ndarray,
+           n_best: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(best, size, top)`` of each slot's list: the single best, the length, the best-first list."""
+    best = np.empty(slots.shape[0], np.int64)
+    size = np.empty(slots.shape[0], np.int64)
+    top = np.empty((slots.shape[0], n_best), np.int64)
+    for i in range(slots.shape[0]):
+        first, last = list_span(starts, slots[i])
+        best[i], size[i] = np.int64(get_packed(ids, id_bits, first)), last - first
+        _list_head(ids, id_bits, first, last, top[i])
+    return best, size, finish_best(top)
 
 
 def _plain(value):
@@ -195,30 +239,36 @@ def _plain(value):
 
 @numba.njit(cache=True, nogil=True)
 def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
-           cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, occ: tuple, starts: tuple,
-           ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int,
-           planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
-           k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_step` for each address of ``hs`` in turn: match, N_r and the match's score in
-    fixed-point units."""
+           cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, top_s: np.ndarray,
+           top_c: np.ndarray, occ: tuple, starts: tuple, ids: np.ndarray, id_bits: int, codes: np.ndarray,
+           code_bits: int, n_ref: int, planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray,
+           tables: np.ndarray, d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_step` for each address of ``hs`` in turn: match, N_r, the match's score in
+    fixed-point units and the best-first list (−1 before L frames)."""
     match = np.empty(hs.shape[0], np.int64)
     n_r = np.empty(hs.shape[0], np.int64)
     units = np.empty(hs.shape[0], np.int64)
+    top = np.full((hs.shape[0], top_c.shape[0]), NO_CANDIDATE, np.int64)
     for i in range(hs.shape[0]):
-        match[i], n_r[i], units[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, L, aligned, fast, occ,
-                                           starts, ids, id_bits, codes, code_bits, n_ref, planes, gaps, masks, w,
-                                           tables, d, k, dmax)
-    return match, n_r, units
+        match[i], n_r[i], units[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, L, aligned, fast, top_s,
+                                           top_c, occ, starts, ids, id_bits, codes, code_bits, n_ref, planes, gaps,
+                                           masks, w, tables, d, k, dmax)
+        if match[i] >= 0:
+            top[i] = top_c
+    return match, n_r, units, finish_best(top)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
-          cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, occ: tuple, starts: tuple,
-          ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int,
-          planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
-          k: int, dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
+          cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, top_s: np.ndarray,
+          top_c: np.ndarray, occ: tuple, starts: tuple, ids: np.ndarray, id_bits: int, codes: np.ndarray,
+          code_bits: int, n_ref: int, planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray,
+          tables: np.ndarray, d: int, k: int, dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
     """One frame: its list into the window, then the window's match (−1 until L frames), its N_r
-    and its score (fixed point)."""
+    and its score (fixed point); ``(top_s, top_c)`` then hold the window's best-first list
+    (scores and candidates, ``NO_CANDIDATE`` where there were fewer), as the batch's
+    ``_score_pairs`` keeps it: ordered by score, ties to the smaller candidate, each score
+    bounded by the list's last."""
     a, _ = nearest_slot(occ, h)
     slot = st[3]
     if st[0] >= L:  # the oldest frame leaves the window
@@ -260,14 +310,16 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
     q_words = q_planes[: masks.shape[0]]  # the window starts at frame 0: its words are the plane rows as they are
     n_r = window_candidates(np.int64(half), L, half, aligned, q_start, q_stop, buf, n_ref, cand, slots[: 1 << bits],
                             bits)
-    best, best_s = np.int64(-1), np.int64(2**62)
+    n_best = top_c.shape[0]
+    top_s[:] = np.int64(2**62)
+    top_c[:] = NO_CANDIDATE
     for m in range(n_r):
         c = cand[m]
         if fast and c >= half and c - half + L <= n_ref:
             s = score_planes(c - half, planes, d, q_words, masks, gaps)
         else:
             s = score_window(c, np.int64(half), L, half, codes, code_bits, n_ref, q_hash, w, tables, d, k, dmax,
-                             best_s + 1)
-        if s < best_s or (s == best_s and c < best):
-            best_s, best = s, c
-    return best, np.int64(n_r), np.int64(best_s)
+                             top_s[n_best - 1] + 1)
+        keep_best_at(top_s, top_c, np.int64(0), n_best, s, c)
+    best = top_c[0] if top_c[0] != NO_CANDIDATE else np.int64(-1)
+    return best, np.int64(n_r), np.int64(top_s[0])
