@@ -21,6 +21,7 @@ from vprscale.cli import (
     build,
     encode,
     eval,
+    fetch,
     index,
     localise,
     methods,
@@ -37,7 +38,7 @@ from vprscale.cli.examples import epilog
 from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.provenance import set_command
 
-COMMANDS = (synth, build, index, encode, eval, report, results, methods, verify, run, bench, sql, localise,
+COMMANDS = (fetch, synth, build, index, encode, eval, report, results, methods, verify, run, bench, sql, localise,
             occupancy)  # in the order --help lists them
 
 

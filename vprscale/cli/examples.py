@@ -7,6 +7,9 @@ Q = "data/quickstart"
 INDEX = f"{Q}/20K-d15-k2.index"
 
 EXAMPLES: dict[str, list[tuple[str, str]]] = {
+    "fetch": [("vprscale fetch deep1b --rows 10M --out sources",
+               "the first 10M rows of Deep1B's base.1B.fbin (3.8 GB), by ranges, resumable: base.10M.fbin"),
+              ("vprscale fetch fas100k --url URL --out sources", "FAS100K's NetVLAD .npz (its link: docs/dataset.md)")],
     "synth": [("vprscale synth --out sources --deep1b-rows 100000 --fas-dim 512",
                "synthetic Deep1B (fvecs, fbin) and FAS100K (npz) files in the real layouts")],
     "build": [("vprscale build --scale 20K --out data", "the 20K dataset from the embedded synthetic sources"),

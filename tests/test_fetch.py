@@ -1,0 +1,275 @@
+"""``vprscale fetch`` against a real HTTP server on the loopback address that serves byte ranges,
+drops connections, ignores ranges and lies about lengths (started and stopped by each test)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import google_crc32c
+import numpy as np
+import pytest
+
+from vprscale.cli import main
+from vprscale.dataset.sources.deep1b import open_deep1b
+
+from .test_reliability import fails
+
+DIM = 96
+
+
+def deep_rows(n: int) -> bytes:
+    """A Deep1B-shaped ``.fbin`` of ``n`` rows whose values depend only on their position."""
+    values = (np.arange(n * DIM, dtype=np.float64) % 1009 / 7).astype("<f4")
+    return struct.pack("<II", n, DIM) + values.tobytes()
+
+
+@dataclass
+class Behaviour:
+    """How the served file misbehaves (each a count of requests still to misbehave, or a flag)."""
+
+    drops: int = 0  # close the connection halfway through a range, this many times
+    short: int = 0  # promise the whole range, send half of it and close, this many times
+    ignore_ranges: bool = False  # answer 200 with the whole file
+    delay_s: float = 0.0  # pause per 64 KiB sent (a slow link)
+    requests: list[str] = field(default_factory=list)
+
+
+class Server:
+    """A threaded HTTP/1.0 server of one file (``content(start, stop)`` of ``size`` bytes)."""
+
+    def __init__(self, content: Callable[[int, int], bytes], size: int) -> None:
+        self.content, self.size, self.behaviour = content, size, Behaviour()
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args) -> None:  # quiet: the test reads what it needs
+                pass
+
+            def do_GET(self) -> None:  # noqa: N802 - http.server's name
+                if self.path.endswith("/missing"):
+                    self.send_error(404)
+                    return
+                b = server.behaviour
+                rng = self.headers.get("Range", "")
+                b.requests.append(rng)
+                if not rng.startswith("bytes=") or b.ignore_ranges:
+                    start, stop, status = 0, server.size, 200
+                else:
+                    first, _, last = rng[6:].partition("-")
+                    start, stop, status = int(first), min(server.size, int(last) + 1), 206
+                    if start >= server.size:
+                        self.send_error(416)
+                        return
+                cut = stop
+                if status == 206 and b.drops > 0 and stop - start > 1:
+                    b.drops -= 1
+                    cut = start + (stop - start) // 2
+                if status == 206 and b.short > 0 and stop - start > 1:
+                    b.short -= 1
+                    cut = start + (stop - start) // 2
+                self.send_response(status)
+                if status == 206:
+                    self.send_header("Content-Range", f"bytes {start}-{stop - 1}/{server.size}")
+                self.send_header("Content-Length", str(stop - start))
+                self.end_headers()
+                for a in range(start, cut, 1 << 16):
+                    self.wfile.write(server.content(a, min(cut, a + (1 << 16))))
+                    if b.delay_s:
+                        time.sleep(b.delay_s)
+                if cut < stop:
+                    self.wfile.flush()
+                    self.connection.shutdown(2)  # mid-answer: the client sees a short read
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/DEEP/base.1B.fbin"
+        self.thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def _bytes_server(data: bytes) -> Iterator[Server]:
+    server = Server(lambda a, b: data[a:b], len(data))
+    try:
+        yield server
+    finally:
+        server.close()
+
+
+@pytest.fixture
+def served() -> Iterator[tuple[Server, bytes]]:
+    """20,000 rows (7.7 MB) in 30 parts of 256 KiB, retried without a pause."""
+    data = deep_rows(20_000)
+    yield from ((s, data) for s in _bytes_server(data))
+
+
+@pytest.fixture(autouse=True)
+def small_parts(monkeypatch):
+    monkeypatch.setattr("vprscale.core.ranged.PART_BYTES", 1 << 18)
+    monkeypatch.setattr("vprscale.core.ranged.BACKOFF_S", 0.0)
+
+
+def _crc(data: bytes) -> str:
+    return google_crc32c.Checksum(data).hexdigest().decode()
+
+
+def test_the_first_rows_arrive_with_their_header_and_a_manifest_though_connections_drop(served, tmp_path, capsys):
+    server, data = served
+    server.behaviour.drops = 3
+    assert main(["fetch", "deep1b", "--rows", "5K", "--url", server.url, "--out", str(tmp_path), "-q"]) == 0
+    got = (tmp_path / "base.5K.fbin").read_bytes()
+    assert got == struct.pack("<II", 5_000, DIM) + data[8 : 8 + 4 * DIM * 5_000]  # big-ann-benchmarks' crop
+    manifest = json.loads((tmp_path / "base.5K.fbin.manifest.json").read_text())
+    assert manifest["bytes"] == len(got) and manifest["crc32c"] == _crc(got) and manifest["rows"] == 5_000
+    assert manifest["source"] == server.url
+    assert server.behaviour.drops == 0 and not list(tmp_path.glob(".*.partial")) and not list(tmp_path.glob(".*.json"))
+    src = open_deep1b(tmp_path / "base.5K.fbin")
+    assert (src.n_rows, src.dim) == (5_000, DIM)
+    assert all(r.startswith("bytes=") for r in server.behaviour.requests)  # nothing but ranges asked for
+    asked = sum(int(r[6:].split("-")[1]) - int(r[6:].split("-")[0]) + 1 for r in server.behaviour.requests)
+    assert asked < 2 * len(got)  # the needed bytes (and the retried halves), not the 7.7 MB file
+
+
+def test_fvecs_holds_the_same_rows(served, tmp_path):
+    server, data = served
+    assert main(["fetch", "deep1b", "--rows", "3000", "--format", "fvecs", "--url", server.url, "--out",
+                 str(tmp_path), "-q"]) == 0
+    fvecs = open_deep1b(tmp_path / "base.3K.fvecs")
+    want = np.frombuffer(data[8 : 8 + 4 * DIM * 3_000], "<f4").reshape(3_000, DIM)
+    np.testing.assert_array_equal(fvecs.read(0, 3_000), want)
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.endswith(".lock")) == [
+        "base.3K.fvecs", "base.3K.fvecs.manifest.json"]
+
+
+def test_a_connection_that_keeps_dropping_stops_resumably_and_the_rerun_keeps_what_arrived(served, tmp_path, capsys):
+    server, data = served
+    argv = ["fetch", "deep1b", "--rows", "20K", "--url", server.url, "--out", str(tmp_path), "--connections", "2"]
+    server.behaviour.short = 10**6  # every answer promises the range and sends half of it
+    fails(capsys, argv, "run the same command again to resume")
+    assert not (tmp_path / "base.20K.fbin").exists() and (tmp_path / ".base.20K.fbin.partial").is_file()
+    server.behaviour = Behaviour(short=0)
+    (tmp_path / ".base.20K.fbin.parts.json").write_text(json.dumps(
+        {"url": server.url, "size": len(data), "part_bytes": 1 << 18, "parts": {"0": _crc(data[: 1 << 18])}}))
+    with open(tmp_path / ".base.20K.fbin.partial", "r+b") as fh:
+        fh.write(data[: 1 << 18])  # a part a killed run finished, and one whose bytes were since damaged:
+    record = json.loads((tmp_path / ".base.20K.fbin.parts.json").read_text())
+    record["parts"][str(1 << 18)] = "00000000"
+    (tmp_path / ".base.20K.fbin.parts.json").write_text(json.dumps(record))
+    assert main([*argv, "-v"]) == 0
+    assert "1 of 30 parts kept" in capsys.readouterr().err  # the first kept, the damaged one fetched again
+    assert not any(r.startswith("bytes=0-") and r != "bytes=0-0" and r != "bytes=0-7" for r in
+                   server.behaviour.requests)
+    assert (tmp_path / "base.20K.fbin").read_bytes() == data
+
+
+@pytest.mark.parametrize(("misbehave", "words"), [
+    ("ignore ranges", ("ignores byte ranges",)),
+    ("header lies", ("but its header says 30,000 rows", "truncated or foreign")),
+    ("too many rows", ("--rows 30,000", "holds 20,000 rows")),
+    ("missing", ("not found (HTTP 404)",)),
+    ("refused", ("cannot connect",)),
+    ("scheme", ("http:// or https://",)),
+])
+def test_a_bad_source_is_one_line_and_leaves_nothing(misbehave, words, served, tmp_path, capsys):
+    server, data = served
+    url, rows = server.url, "10K"
+    if misbehave == "ignore ranges":
+        server.behaviour.ignore_ranges = True
+    elif misbehave == "header lies":
+        server.content = lambda a, b: (struct.pack("<II", 30_000, DIM) + data[8:])[a:b]
+    elif misbehave == "too many rows":
+        rows = "30K"
+    elif misbehave == "missing":
+        url = url.rsplit("/", 1)[0] + "/missing"
+    elif misbehave == "refused":
+        server.close()
+    elif misbehave == "scheme":
+        url = "ftp://127.0.0.1/base.1B.fbin"
+    fails(capsys, ["fetch", "deep1b", "--rows", rows, "--url", url, "--out", str(tmp_path / "o")], *words)
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_credentials_in_a_url_reach_no_output(served, tmp_path, capsys):
+    server, _ = served
+    secret = server.url.replace("http://", "http://user:hunter2@") + "?X-Amz-Signature=s3cr3t"
+    assert main(["fetch", "deep1b", "--rows", "1K", "--url", secret, "--out", str(tmp_path), "-v",
+                 "--summary", str(tmp_path / "s.json")]) == 0
+    out = capsys.readouterr()
+    for text in (out.out, out.err, *(p.read_text() for p in tmp_path.glob("*.json"))):
+        assert "hunter2" not in text and "s3cr3t" not in text
+
+
+def test_a_file_already_fetched_is_kept_unless_forced_and_then_kept_beside(served, tmp_path, capsys):
+    server, _ = served
+    argv = ["fetch", "deep1b", "--rows", "1K", "--url", server.url, "--out", str(tmp_path), "-q"]
+    (tmp_path / "base.1K.fbin").write_bytes(b"mine")
+    fails(capsys, argv, "already holds base.1K.fbin", "--force")
+    assert (tmp_path / "base.1K.fbin").read_bytes() == b"mine"
+    assert main([*argv, "--force"]) == 0
+    assert (tmp_path / "base.1K.fbin.previous").read_bytes() == b"mine"
+    assert open_deep1b(tmp_path / "base.1K.fbin").n_rows == 1_000
+
+
+def test_fas100k_needs_its_link_and_is_checked_as_an_npz(served, tmp_path, capsys, monkeypatch):
+    server, _ = served
+    monkeypatch.delenv("VPRSCALE_FAS100K_URL", raising=False)
+    fails(capsys, ["fetch", "fas100k", "--out", str(tmp_path)], "no default URL", "data.mendeley.com")
+    fails(capsys, ["fetch", "fas100k", "--url", server.url, "--out", str(tmp_path)], "not an FAS100K .npz")
+    assert not any(p.suffix == ".npz" for p in tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_a_killed_fetch_resumes_to_the_same_bytes(tmp_path):
+    """kill -9 in the middle of a 231 MB fetch (4 parts of 64 MiB): the rerun keeps the parts
+    that had arrived whole and ends with every byte right."""
+    rows = 600_000
+    header = struct.pack("<II", rows, DIM)
+    size = 8 + 4 * DIM * rows
+
+    def content(a: int, b: int) -> bytes:
+        head = header[a:b] if a < 8 else b""
+        lo, hi = max(a, 8), b
+        if hi <= lo:
+            return head
+        first, last = (lo - 8) // 4, (hi - 8 + 3) // 4
+        values = (np.arange(first, last, dtype=np.float64) % 1009 / 7).astype("<f4").tobytes()
+        return head + values[(lo - 8) - 4 * first : (hi - 8) - 4 * first]
+
+    server = Server(content, size)
+    try:
+        server.behaviour.delay_s = 0.002
+        argv = [sys.executable, "-m", "vprscale.cli", "fetch", "deep1b", "--url", server.url, "--out", str(tmp_path),
+                "--connections", "2", "-q"]
+        proc = subprocess.Popen(argv, start_new_session=True)
+        record = tmp_path / ".base.600K.fbin.parts.json"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (record.is_file() and json.loads(record.read_text())["parts"]):
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+        kept = json.loads(record.read_text())["parts"]
+        assert 1 <= len(kept) < 4 and not (tmp_path / "base.600K.fbin").exists()
+        server.behaviour = Behaviour()
+        assert subprocess.run(argv, timeout=300).returncode == 0
+        fetched = {r for r in server.behaviour.requests if r not in ("bytes=0-0", "bytes=0-7")}
+        assert len(fetched) == 4 - len(kept)  # only the parts that had not arrived
+        with open(tmp_path / "base.600K.fbin", "rb") as fh:
+            for a in range(0, size, 1 << 24):
+                assert fh.read(1 << 24) == content(a, min(size, a + (1 << 24)))
+        manifest = json.loads((tmp_path / "base.600K.fbin.manifest.json").read_text())
+        assert manifest["bytes"] == size and manifest["rows"] == rows
+    finally:
+        server.close()
