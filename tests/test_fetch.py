@@ -273,3 +273,28 @@ def test_a_killed_fetch_resumes_to_the_same_bytes(tmp_path):
         assert manifest["bytes"] == size and manifest["rows"] == rows
     finally:
         server.close()
+
+
+def test_a_build_reads_deep1b_where_it_lives_to_the_same_store(sources, tiny_store, tmp_path, capsys):
+    """``build --deep1b https://…/base.fbin``: the rows the recipe reads come by byte ranges, no
+    local copy made, and the store holds the same arrays as one built from the local file."""
+    import zarr
+
+    from .conftest import write_recipe
+
+    data = sources["fbin"].read_bytes()
+    server = Server(lambda a, b: data[a:b], len(data))
+    try:
+        server.behaviour.drops = 2
+        assert main(["build", "--scale", str(write_recipe(tmp_path / "tiny.toml")), "--deep1b", server.url,
+                     "--fas", str(sources["fas"]), "--out", str(tmp_path / "data"), "-q"]) == 0
+        asked = [r for r in server.behaviour.requests if r.startswith("bytes=")]
+        assert len(asked) == len(server.behaviour.requests) > 2
+    finally:
+        server.close()
+    remote, local = (zarr.open_group(p, mode="r") for p in (tmp_path / "data" / "tiny.zarr", tiny_store))
+    for name in ("ref", "query_qm1", "query_qm2", "gt", "ref_part", "query_part"):
+        np.testing.assert_array_equal(remote[name][:], local[name][:])
+    sources_seen = json.loads((tmp_path / "data" / "tiny.zarr" / "zarr.json").read_text())
+    assert server.url in json.dumps(sources_seen)  # the URL is the source of record
+    assert not list((tmp_path / "data").glob("*.fbin"))  # read where it lives: nothing copied
