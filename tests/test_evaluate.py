@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
@@ -262,3 +263,33 @@ def test_runner_times_fewer_frames_when_each_costs_much(monkeypatch):
         _, cost = runner.Runner(workers=1, repeats=2).frames(alg, np.zeros((1000, 4), np.float32))
         assert low <= cost.frames <= high and alg.sizes[-2:] == [cost.frames] * 2
         assert all(c >= ms * 1e3 * 0.9 for c in cost.cpu_us)
+
+
+def test_the_fas_part_is_evaluated_in_metres_from_fas100k_poses(tiny_store, tiny_index, sources, tmp_path):
+    """A recipe's store keeps the FAS part's positions (the npz's arr_3, arr_4 for the rows it kept);
+    ``--radius-m`` then gives the FAS part's recall within metres, recomputed here from them."""
+    import zarr
+
+    group = zarr.open_group(tiny_store, mode="r")
+    lay = group.attrs["vprscale"]["layout"]
+    with np.load(sources["fas"]) as npz:
+        ref_pos, query_pos = npz["arr_3"][: lay["n_fas_ref"]], npz["arr_4"][: lay["n_fas_query"]]
+    np.testing.assert_array_equal(group["fas_ref_pos"][:], ref_pos)
+    np.testing.assert_array_equal(group["fas_query_pos"][:], query_pos)
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1",
+                 "--radius-m", "10,50", "--repeats", "1", "--out", str(tmp_path / "e"), "-q"]) == 0
+    res = pd.read_parquet(tmp_path / "e" / "results_m.parquet")
+    q = pd.read_parquet(tmp_path / "e" / "queries.parquet")
+    assert set(res.part) == {"fas"}  # the Deep1B part has no positions: no rows in metres
+    n_deep = lay["n_deep1b"]
+    for (method, L, mode), run in q[q.part == "fas"].groupby(["method", "L", q["mode"].fillna("-")]):
+        placed = run["match"] >= n_deep
+        far = np.linalg.norm(ref_pos[np.maximum(run["match"] - n_deep, 0)] - query_pos[run.t - n_deep], axis=1)
+        distance = np.where(placed, far, np.inf)
+        assert np.allclose(run.error_m.fillna(np.inf), distance)
+        for radius in (10.0, 50.0):
+            row = res[(res.method == method) & (res.L == L) & (res["mode"].fillna("-") == mode)
+                      & (res.radius_m == radius)].iloc[0]
+            assert row.recall == pytest.approx((distance <= radius).mean())
+    assert q[q.part == "deep1b"].error_m.isna().all()
+    assert res[res.radius_m == 50].recall.max() > res[res.radius_m == 10].recall.min()

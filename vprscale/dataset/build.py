@@ -314,6 +314,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
                "wall_s": elapsed, "peak_rss_bytes": peak,
                "provenance": provenance(inputs={k: provenance_key[k] for k in ("recipe", "sources")})}
     group = zarr.open_group(store, mode="r+")
+    _write_positions(group, traverse, lay)
     group.attrs[ATTR] = {**provenance_key, "complete": True, "versions": _versions(), "seed": recipe.seed,
                          "layout": {"kind": layout, "n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
                                     "n_fas_query": lay.n_fas_query, **extra}}
@@ -322,6 +323,18 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     partial.publish()
     summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
     return summary
+
+
+def _write_positions(group: zarr.Group, traverse: Traverse, lay: Layout) -> None:
+    """Where the FAS part's frames were taken (FAS100K's ``arr_3`` and ``arr_4``, in metres), for
+    ``eval --radius-m`` on that part: ``fas_ref_pos`` of its kept references (dataset rows
+    ``n_deep1b …``), ``fas_query_pos`` of its query rows (likewise); the Deep1B part has none."""
+    for name, pos, n in (("fas_ref_pos", traverse.ref_pos, lay.n_fas_ref),
+                         ("fas_query_pos", traverse.query_pos, lay.n_fas_query)):
+        data = np.asarray(pos[:n], np.float64).reshape(n, -1)
+        group.create_array(name, shape=data.shape, chunks=(max(1, n), data.shape[1]), dtype="f8", overwrite=True,
+                           **codecs("labels"))
+        group[name][:] = data
 
 
 def _write_full(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, timings: Timings) -> None:

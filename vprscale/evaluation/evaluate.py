@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -108,7 +109,12 @@ class QuerySet:
         self.noises = list(layout.get("noises", DEFAULT_NOISES))
         self._gt = group["gt"][:]
         self._part = group["query_part"][:]
-        self.positions = (group["ref_pos"][:], group["query_pos"][:]) if "query_pos" in group else None
+        if "query_pos" in group:  # a store of your own: every row's position
+            self.positions, self._pos_from = (group["ref_pos"][:], group["query_pos"][:]), 0
+        elif "fas_query_pos" in group:  # a recipe's store: the FAS part's, rows from n_deep1b on
+            self.positions, self._pos_from = (group["fas_ref_pos"][:], group["fas_query_pos"][:]), self.n_deep
+        else:
+            self.positions = None
 
     def _pos(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         t = np.asarray(t, np.int64)
@@ -122,9 +128,14 @@ class QuerySet:
         return np.where(held, self._gt[pos], -1)
 
     def pos_at(self, t: np.ndarray) -> np.ndarray:
-        """The query frames' positions in metres (the store must hold positions)."""
-        pos, _ = self._pos(t)
-        return self.positions[1][pos]
+        """The query frames' positions in metres (NaN where the store has none: the Deep1B part)."""
+        rows = (self._pos(t)[0] if self._pos_from == 0 else np.asarray(t, np.int64)) - self._pos_from
+        return _positions(self.positions[1], rows)
+
+    def ref_pos_at(self, ids: np.ndarray) -> np.ndarray:
+        """The references' positions in metres (NaN for −1 and where the store has none)."""
+        ids = np.asarray(ids, np.int64)
+        return _positions(self.positions[0], np.where(ids >= 0, ids - self._pos_from, -1))
 
     def part_at(self, t: np.ndarray) -> np.ndarray:
         pos, held = self._pos(t)
@@ -340,6 +351,14 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
     return methods
 
 
+def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``table[rows]``, NaN for rows outside it."""
+    held = (rows >= 0) & (rows < len(table))
+    out = np.full((*rows.shape, table.shape[1]), np.nan)
+    out[held] = table[rows[held]]
+    return out
+
+
 def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
           compared: list[FaissCodes], plugged: list[tuple[str, Any]]) -> tuple[list[dict], list[dict]]:
     """Every method of every index on every noise, L and mode; the methods come from the registry."""
@@ -381,7 +400,7 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                         bar.step(f"{noise} {alg.name} L = {L}" + (f", {mode} mode" if mode else ""))
                         answer, timing = runner.localise(alg, state, pos, L, mode, frame_cost)
                         in_list = alg.in_list(state, pos, truth) if L == 1 else None
-                        metres = (rows_m, req.radii_m, qs.positions[0], qs.pos_at(t)) if req.radii_m else None
+                        metres = (rows_m, req.radii_m, qs.ref_pos_at, qs.pos_at(t)) if req.radii_m else None
                         _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, answer, timing, in_list,
                               weights if c.fas_stride is not None else None, metres)
     bar.close()
@@ -390,11 +409,12 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
 
 def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray, parts: np.ndarray,
           answer: Answer, timing: Timing, in_list: np.ndarray | None, weights: dict[str, float] | None,
-          metres: tuple[list, list[float], np.ndarray, np.ndarray] | None = None) -> None:
+          metres: tuple[list, list[float], Callable, np.ndarray] | None = None) -> None:
     """Rows of ``results`` and ``queries`` for one run of one method, and with ``metres``
-    (``(rows_m, radii, ref_pos, query_pos)``) the rows of ``results_m``: the same figures with a
-    match correct when the matched reference lies within a radius in metres of the query's
-    position (VPR-methods-evaluation's positives), each query's distance in ``queries.error_m``.
+    (``(rows_m, radii, ref_pos_at, query_pos)``) the rows of ``results_m``: the same figures with
+    a match correct when the matched reference lies within a radius in metres of the query's
+    position (VPR-methods-evaluation's positives), each query's distance in ``queries.error_m``;
+    for the parts whose every query has a position (a recipe's store: the FAS part).
 
     With ``weights`` (a stratified sample) the overall figures weight each part by its
     share of the query rows (each query by its part's share over its part's queries);
@@ -404,9 +424,10 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
     ranked, weighed = answer.ranking
     error = np.abs(np.asarray(match, np.int64) - truth)
     if metres is not None:
-        rows_m, radii, ref_pos, query_pos = metres
-        error_m = top_distance(np.asarray(match, np.int64)[:, None], query_pos, ref_pos, 1)
-        near_m = {n: top_distance(ranked, query_pos, ref_pos, n) for n in TOP_N[1:]}
+        rows_m, radii, ref_pos_at, query_pos = metres
+        error_m = top_distance(np.asarray(match, np.int64)[:, None], query_pos, ref_pos_at, 1)
+        near_m = {n: top_distance(ranked, query_pos, ref_pos_at, n) for n in TOP_N[1:]}
+        placed = np.isfinite(query_pos).all(axis=1)
     select = {name: np.ones(len(t), bool) if code is None else parts == code for name, code in PARTS.items()}
     held = [p for p in ("deep1b", "fas") if select[p].any()]
     if len(held) < 2:  # one part (a store of your own without --part): its rows are the "all" rows
@@ -431,7 +452,7 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
         for r in RADII:
             rows.append({**key, "part": name, "radius": int(r), **{f: float(v[r]) for f, v in figures.items()},
                          "recall_in_list": float(in_curve[r]) if in_curve is not None else None, **stats})
-        if metres is not None:
+        if metres is not None and placed[sel].all() and sel.any():
             at = metrics_at(error_m[sel], {n: e[sel] for n, e in near_m.items()}, answer.score[sel], w,
                             np.asarray(radii, np.float64))
             for i, r in enumerate(radii):
@@ -439,7 +460,7 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
                                **stats})
     for i in range(len(t)):
         queries.append({**key, "t": int(t[i]), "gt": int(truth[i]), "match": int(match[i]), "error": int(error[i]),
-                        **({"error_m": float(error_m[i])} if metres is not None else {}),
+                        **({"error_m": float(error_m[i]) if placed[i] else None} if metres is not None else {}),
                         "score": float(answer.score[i]), "top": ranked[i].tolist(),
                         "n_r": int(n_r[i]), "in_list": int(in_list[i]) if in_list is not None else None,
                         "part": "deep1b" if parts[i] == 0 else "fas"})

@@ -19,6 +19,8 @@ counts once):
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 RADII = np.arange(21)  # recall radii, in frames (20 frames = 100 m on FAS)
@@ -39,14 +41,16 @@ def recall_curve(error: np.ndarray, weights: np.ndarray | None = None, radii: np
     return (w[:, None] * (np.asarray(error)[:, None] <= np.asarray(radii)[None, :])).sum(axis=0) / w.sum()
 
 
-def top_distance(top: np.ndarray, query_pos: np.ndarray, ref_pos: np.ndarray, n: int) -> np.ndarray:
+def top_distance(top: np.ndarray, query_pos: np.ndarray, ref_pos_at: Callable[[np.ndarray], np.ndarray],
+                 n: int) -> np.ndarray:
     """Each query's smallest distance in metres from its position to one of its ``n`` best
-    candidates' (−1 places never count: infinite)."""
+    candidates' (``ref_pos_at(ids)``: NaN where a place has no position; such places, and −1
+    places, never count: infinite)."""
     top = np.asarray(top, np.int64)[:, :n]
     if not top.shape[1]:
         return np.full(len(top), np.inf)
-    d = np.linalg.norm(ref_pos[np.maximum(top, 0)] - np.asarray(query_pos)[:, None, :], axis=2)
-    return np.where(top >= 0, d, np.inf).min(axis=1)
+    d = np.linalg.norm(ref_pos_at(top) - np.asarray(query_pos)[:, None, :], axis=2)
+    return np.where((top >= 0) & np.isfinite(d), d, np.inf).min(axis=1)
 
 
 def top_error(top: np.ndarray, truth: np.ndarray, n: int) -> np.ndarray:
