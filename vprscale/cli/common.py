@@ -160,6 +160,8 @@ def _check_writable_beside(flag: str, path: Path) -> None:
     folder = path.absolute().parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(f"--{flag} {path}: cannot create the output directory: {folder} is a file")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"--{flag} {path}: the folder {folder} is not writable (read-only, or not yours); "
                          "nothing was written")
