@@ -61,7 +61,12 @@ def _first_points(q: pd.DataFrame) -> pd.DataFrame:
 
 def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str | None:
     """Precision against recall at one noise level, per scale (columns) and L (rows); the
-    figure's name, or None when there is nothing to draw."""
+    figure's name, or None when there is nothing to draw.
+
+    Long sequences keep most methods at or near 100 % precision until late, where a linear
+    precision axis draws their curves on one another: the vertical axis is the share of false
+    matches among those accepted, 1 − precision, on a scale linear below 0.1 % and logarithmic
+    above (0 at the top), so 0.01 % and 1 % of false matches stand apart."""
     q = _first_points(q[q.noise == noise])
     scales = [s for s in scales if s in set(q.scale)]
     lengths = sorted(q.L.unique())
@@ -69,27 +74,25 @@ def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> s
         return None
     families = list(dict.fromkeys(q.sort_values("method", key=lambda c: c.ne("coarsehash")).family))
     colours = family_colours(families)
-    # each row (an L) its own precision range: long sequences keep most methods near 100 % until
-    # late, where a shared 0–100 axis draws them on top of one another
-    fig, axes = panels(len(lengths), len(scales), 4.4, 3.5, sharey="row")
+    fig, axes = panels(len(lengths), len(scales), 4.4, 3.5, sharey=True)
     for r, L in enumerate(lengths):
-        lowest = 100.0
         for c, scale in enumerate(scales):
             ax = axes[r][c]
             drawn = list(q[(q.scale == scale) & (q.L == L)].groupby("family", sort=False))
             for i, (fam, g) in enumerate(drawn):  # thick to thin: a curve drawn over another leaves it an outline
                 precision, recall = pr_curve(g.score.to_numpy(), g.error.to_numpy() <= RADIUS)
-                lowest = min(lowest, 100 * float(precision.min()) if len(precision) else lowest)
-                ax.plot(100 * recall, 100 * precision, lw=3.2 - 2.4 * i / max(1, len(drawn) - 1),
+                ax.plot(100 * recall, 100 * (1 - precision), lw=3.2 - 2.4 * i / max(1, len(drawn) - 1),
                         ls=family_line(fam), color=colours[fam], label=fam)
             ax.set(xlim=(0, 100))
+            ax.set_yscale("symlog", linthresh=0.1, linscale=0.5)
+            ax.set_ylim(100, 0)  # no false match at the top
+            ax.set_yticks([0, 0.1, 1, 10, 100], ["0", "0.1", "1", "10", "100"])
             ax.set_title(f"{scale}, {noise.upper()}, L = {L}", fontsize=TITLE_SIZE)
             ax.grid(alpha=0.3)
             if r == len(lengths) - 1:
                 ax.set_xlabel(f"recall within {RADIUS} frames (%)")
             if c == 0:
-                ax.set_ylabel("precision (%)")
-        axes[r][0].set_ylim(max(0.0, lowest - 0.05 * (100 - lowest) - 1), 100.5)
+                ax.set_ylabel("false among accepted (%)")
     shared_legend(fig, axes)
     fig.suptitle(f"{noise.upper()}: precision–recall, matches accepted in order of their score")
     name = f"fig_pr_{noise}"
