@@ -11,6 +11,7 @@ written beside its destination and renamed into place when whole.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 import time
@@ -50,9 +51,7 @@ def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
                 arr = zarr.open_array(path, mode="r")
             except Exception as exc:  # noqa: BLE001 - zarr's errors for a group or a damaged array vary
                 raise InputError(f"{path}: not a readable Zarr array ({exc})") from None
-            if arr.ndim == 2 and arr.nchunks_initialized < arr.nchunks:  # Zarr reads an unwritten chunk as fill
-                raise InputError(f"{path}: declares {arr.shape[0]:,} rows in {arr.nchunks:,} chunks, of which "
-                                 f"{arr.nchunks_initialized:,} are written: the others are no frames")
+            _check_written(arr, path)
         if arr.ndim != 2:
             raise InputError(f"{path}: a {arr.ndim}-D array, not rows of descriptors")
         return arr.shape[0], arr.shape[1], (arr[a : a + READ_ROWS] for a in range(0, arr.shape[0], READ_ROWS))
@@ -68,6 +67,19 @@ def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
 
     src = open_deep1b(path)
     return src.n_rows, src.dim, (src.read(a, min(src.n_rows, a + READ_ROWS)) for a in range(0, src.n_rows, READ_ROWS))
+
+
+def _check_written(arr: zarr.Array, path: Path) -> None:
+    """Refuse an array that declares more rows than its written chunks hold: Zarr reads an
+    unwritten chunk as its fill value, which are no frames (and 10^11 declared rows would be
+    matched for days). The chunk (or shard) files are counted as they are listed, so the check
+    costs what the array holds, not what it declares."""
+    grid = getattr(arr, "shards", None) or arr.chunks
+    objects = math.prod(-(-s // c) for s, c in zip(arr.shape, grid, strict=True))
+    written = sum(len(files) for _, _, files in os.walk(path / "c"))
+    if written < objects:
+        raise InputError(f"{path}: declares {arr.shape[0]:,} rows in {objects:,} chunks, of which {written:,} are "
+                         "written: the others are no frames")
 
 
 OUT_FORMATS = {".parquet": "parquet", ".pq": "parquet", ".csv": "csv"}
