@@ -39,6 +39,7 @@ class Behaviour:
 
     drops: int = 0  # close the connection halfway through a range, this many times
     short: int = 0  # promise the whole range, send half of it and close, this many times
+    cut_from: int | None = None  # send half of every range that starts at or after this byte, and close
     ignore_ranges: bool = False  # answer 200 with the whole file
     delay_s: float = 0.0  # pause per 64 KiB sent (a slow link)
     requests: list[str] = field(default_factory=list)
@@ -48,7 +49,7 @@ class Server:
     """A threaded HTTP/1.0 server of one file (``content(start, stop)`` of ``size`` bytes)."""
 
     def __init__(self, content: Callable[[int, int], bytes], size: int) -> None:
-        self.content, self.size, self.behaviour = content, size, Behaviour()
+        self.content, self.size, self.behaviour, self.etag = content, size, Behaviour(), None
         server = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -77,10 +78,14 @@ class Server:
                 if status == 206 and b.short > 0 and stop - start > 1:
                     b.short -= 1
                     cut = start + (stop - start) // 2
+                if status == 206 and b.cut_from is not None and start >= b.cut_from:
+                    cut = start + (stop - start) // 2
                 self.send_response(status)
                 if status == 206:
                     self.send_header("Content-Range", f"bytes {start}-{stop - 1}/{server.size}")
                 self.send_header("Content-Length", str(stop - start))
+                if server.etag:
+                    self.send_header("ETag", server.etag)
                 self.end_headers()
                 for a in range(start, cut, 1 << 16):
                     self.wfile.write(server.content(a, min(cut, a + (1 << 16))))
@@ -173,6 +178,21 @@ def test_a_connection_that_keeps_dropping_stops_resumably_and_the_rerun_keeps_wh
     assert not any(r.startswith("bytes=0-") and r != "bytes=0-0" and r != "bytes=0-7" for r in
                    server.behaviour.requests)
     assert (tmp_path / "base.20K.fbin").read_bytes() == data
+
+
+def test_a_resumed_fetch_starts_over_when_the_remote_file_changed(served, tmp_path, capsys):
+    """Parts kept from one version of the remote file are never mixed with another's (ETag)."""
+    server, data = served
+    server.etag = '"v1"'
+    argv = ["fetch", "deep1b", "--rows", "20K", "--url", server.url, "--out", str(tmp_path), "--connections", "1"]
+    server.behaviour.cut_from = len(data) // 2  # the first half arrives whole, then the link fails
+    fails(capsys, argv, "run the same command again to resume")
+    assert len(json.loads((tmp_path / ".base.20K.fbin.parts.json").read_text())["parts"]) >= 10
+    new = struct.pack("<II", 20_000, DIM) + bytes(len(data) - 8)  # the mirror now serves another file
+    server.content, server.etag, server.behaviour = (lambda a, b: new[a:b]), '"v2"', Behaviour()
+    assert main([*argv, "-v"]) == 0
+    assert "parts kept" not in capsys.readouterr().err
+    assert (tmp_path / "base.20K.fbin").read_bytes() == new
 
 
 @pytest.mark.parametrize(("misbehave", "words"), [

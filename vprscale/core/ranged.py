@@ -103,17 +103,20 @@ def _open(url: str, start: int, stop: int) -> http.client.HTTPResponse:
     return resp
 
 
-def remote_size(url: str) -> int:
-    """The whole remote file's size, from the ``Content-Range`` of a one-byte range request."""
+def probe(url: str) -> tuple[int, str]:
+    """``(size, version)`` of the remote file: its size from the ``Content-Range`` of a one-byte
+    range request, its version from the ``ETag`` (else ``Last-Modified``) the server gives, so that
+    a resumed download never mixes the bytes of two versions of a file."""
     try:
         with _open(url, 0, 1) as resp:
             total = resp.headers["Content-Range"].rpartition("/")[2]
+            version = resp.headers.get("ETag") or resp.headers.get("Last-Modified") or ""
             resp.read()
     except Dropped as exc:
         raise InputError(f"{public(url)}: no answer ({exc}); check the URL and the network") from None
     if not total.isdigit():
         raise InputError(f"{public(url)}: the server does not say the file's size (Content-Range {total!r})")
-    return int(total)
+    return int(total), version
 
 
 def read_range(url: str, start: int, stop: int) -> bytes:
@@ -156,6 +159,7 @@ class Plan:
     url: str
     out: Path
     size: int
+    version: str = ""  # the remote file's ETag or Last-Modified (:func:`probe`)
 
 
 def _crc(data: bytes | memoryview) -> str:
@@ -177,8 +181,9 @@ def download(plan: Plan, connections: int = 4, quiet: bool = False) -> Path:
         todo = [p for p in parts if str(p[0]) not in done]
         if done and not quiet:
             log.info(f"… resuming {out.name}: {len(parts) - len(todo)} of {len(parts)} parts kept (checked)")
-        progress = None if quiet else ChunkProgress(f"fetch {out.name}", max(1, plan.size >> 20),
-                                                    done=(plan.size - sum(b - a for a, b in todo)) >> 20, unit="MiB")
+        got = plan.size - sum(b - a for a, b in todo)
+        progress = None if quiet else ChunkProgress(f"fetch {out.name}", max(1, plan.size >> 20), done=got >> 20,
+                                                    unit="MiB")
 
         def one(part: tuple[int, int]) -> tuple[int, str]:
             a, b = part
@@ -198,8 +203,9 @@ def download(plan: Plan, connections: int = 4, quiet: bool = False) -> Path:
                     a, crc = future.result()
                     done[str(a)] = crc
                     _save(record_file, plan, done)
+                    before, got = got, got + min(plan.size, a + PART_BYTES) - a
                     if progress:
-                        progress.update((min(plan.size, a + PART_BYTES) - a) >> 20)
+                        progress.update((got >> 20) - (before >> 20))
             except BaseException:
                 for f in futures:
                     f.cancel()
@@ -221,8 +227,8 @@ def _kept_parts(work: Path, record_file: Path, plan: Plan) -> dict[str, str]:
     except (OSError, ValueError):
         return {}
     if not isinstance(record, dict) or record.get("url") != public(plan.url) or record.get("size") != plan.size \
-            or not work.is_file():
-        return {}
+            or record.get("version", "") != plan.version or not work.is_file():
+        return {}  # another download, or the remote file changed since: started over
     kept = {}
     with open(work, "rb") as fh:
         for a, crc in (record.get("parts") or {}).items():
@@ -235,8 +241,8 @@ def _kept_parts(work: Path, record_file: Path, plan: Plan) -> dict[str, str]:
 
 def _save(record_file: Path, plan: Plan, done: dict[str, str]) -> None:
     tmp = record_file.with_name(record_file.name + ".tmp")
-    tmp.write_text(json.dumps({"url": public(plan.url), "size": plan.size, "part_bytes": PART_BYTES,
-                               "parts": done}, sort_keys=True))
+    tmp.write_text(json.dumps({"url": public(plan.url), "size": plan.size, "version": plan.version,
+                               "part_bytes": PART_BYTES, "parts": done}, sort_keys=True))
     tmp.replace(record_file)
 
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from vprscale.core.errors import InputError
 from vprscale.core.publish import check_writable, exclusive, keep_beside
-from vprscale.core.ranged import Plan, download, finish, public, read_range, remote_size
+from vprscale.core.ranged import Plan, download, finish, probe, public, read_range
 
 log = logging.getLogger(__name__)
 
@@ -99,10 +99,10 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
     url = source_url(req)
     check_writable(req.out)
     if req.source == "fas100k":
-        size = remote_size(url)
+        size, version = probe(url)
         name, header, rows = "FAS_uniSam5_all.npz", None, None
     else:
-        rows, dim, size, header = _fbin_plan(url, req.rows if req.source == "deep1b" else None)
+        rows, dim, size, header, version = _fbin_plan(url, req.rows if req.source == "deep1b" else None)
         base = "base" if req.source == "deep1b" else "query.public"
         name = f"{base}.{label(rows)}.{'fvecs' if req.format == 'fvecs' else 'fbin'}"
     out = req.out / name
@@ -115,7 +115,7 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
         if out.exists() and not req.force:
             raise InputError(f"--out {req.out}: already holds {name}; --force fetches it again and keeps the old "
                              f"one beside, as {name}.previous")
-        plan = Plan(url, out if req.format == "fbin" else req.out / f"{base}.{label(rows)}.fbin", size)
+        plan = Plan(url, out if req.format == "fbin" else req.out / f"{base}.{label(rows)}.fbin", size, version)
         work = download(plan, req.connections, req.quiet)
         if header is not None:
             with open(work, "r+b") as fh:
@@ -139,20 +139,21 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
     return {"file": str(out), **manifest}
 
 
-def _fbin_plan(url: str, rows: int | None) -> tuple[int, int, int, bytes]:
-    """``(rows, dim, bytes to fetch, the crop's header)`` of an ``.fbin`` at ``url``, its size
-    checked against its header (a file cut short, or a header that lies, is refused here)."""
+def _fbin_plan(url: str, rows: int | None) -> tuple[int, int, int, bytes, str]:
+    """``(rows, dim, bytes to fetch, the crop's header, the remote version)`` of an ``.fbin`` at
+    ``url``, its size checked against its header (a file cut short, or a header that lies, is
+    refused here)."""
     n, dim = struct.unpack("<II", read_range(url, 0, 8))
     if n == 0 or not 0 < dim <= MAX_DIM:
         raise InputError(f"{public(url)}: not an .fbin file (its header says {n:,} rows of {dim:,} dimensions)")
-    size = remote_size(url)
+    size, version = probe(url)
     if size != 8 + 4 * dim * n:
         raise InputError(f"{public(url)}: {size:,} bytes, but its header says {n:,} rows of {dim} float32, "
                          f"{8 + 4 * dim * n:,} bytes: a truncated or foreign file")
     rows = n if rows is None else rows
     if rows > n:
         raise InputError(f"--rows {rows:,}: {public(url)} holds {n:,} rows")
-    return rows, dim, 8 + 4 * dim * rows, struct.pack("<II", rows, dim)
+    return rows, dim, 8 + 4 * dim * rows, struct.pack("<II", rows, dim), version
 
 
 def _check_fas(work: Path, url: str) -> None:

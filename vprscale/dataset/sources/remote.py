@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
-from vprscale.core.ranged import public, read_range, remote_size
+from vprscale.core.ranged import probe, public, read_range
 from vprscale.dataset.sources.base import RowSource
 
 URL = re.compile(r"^https?://", re.IGNORECASE)
@@ -31,7 +31,7 @@ class RemoteFbinSource(RowSource):
         self.url = url
         self.name = public(url)
         n, d = struct.unpack("<II", read_range(url, 0, 8))
-        size = remote_size(url)
+        size, self.version = probe(url)
         if d == 0 or size != 8 + 4 * n * d:
             raise InputError(f"{self.name}: header says n = {n}, d = {d} (a file of {8 + 4 * n * d:,} bytes) but the "
                              f"server has {size:,} bytes")
@@ -44,4 +44,5 @@ class RemoteFbinSource(RowSource):
         return np.frombuffer(data, "<f4").reshape(stop - start, self.dim)
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"format": "fbin", "rows": self.n_rows, "dim": self.dim, "url": self.name, "bytes": self.bytes}
+        return {"format": "fbin", "rows": self.n_rows, "dim": self.dim, "url": self.name, "bytes": self.bytes,
+                "version": self.version}
