@@ -57,11 +57,15 @@ def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, messa
 def test_an_eval_stage_passes_its_flat_noise_levels(tmp_path):
     stages = ('[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "i"\nkind = "index"\n'
               'store = "b"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "b"\nindex = "i"\ncompare = ["PQ4"]\n'
-              'flat_noise = ["qm1"]\n')
+              'flat_noise = ["qm1"]\nradius_m = [10, 25.5]\n')
     pipe = load_pipeline(_write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") + stages))
     outputs = {"b": {"store": "s.zarr"}, "i": {"index": "s.index"}}
     cmd = stage_command(pipe, pipe.stages[2], outputs, None)
     assert cmd[cmd.index("--flat-noise") + 1] == "qm1" and cmd[cmd.index("--compare") + 1] == "PQ4"
+    assert cmd[cmd.index("--radius-m") + 1] == "10,25.5"
+    bad = stages.replace("radius_m = [10, 25.5]", 'radius_m = ["far"]')
+    with pytest.raises(InputError, match="radius_m.*a list of numbers"):
+        load_pipeline(_write(tmp_path / "q.toml", BASE.format(out=tmp_path / "out") + bad))
 
 
 def test_shipped_pipelines_are_valid():

@@ -57,7 +57,7 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
              "noise": ("list[str]", False), "L": ("list[int]", False), "modes": ("list[str]", False),
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
              "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
-             "flat_noise": ("list[str]", False),
+             "flat_noise": ("list[str]", False), "radius_m": ("list[float]", False),
              "methods": ("list[str]", False), "method_k": ("list[int]", False), "repeats": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
@@ -88,12 +88,14 @@ def _type_ok(value: Any, kind: str) -> bool:
         return isinstance(value, int) and not isinstance(value, bool)
     if kind == "bool":
         return isinstance(value, bool)
+    if kind == "float":
+        return isinstance(value, int | float) and not isinstance(value, bool)
     inner = kind[5:-1]
     return isinstance(value, list) and all(_type_ok(v, "str" if inner == "stage" else inner) for v in value)
 
 
 _TYPE_WORDS = {"str": "a string", "stage": "the name of an earlier stage", "int": "an integer", "bool": "true or false",
-               "list[int]": "a list of integers", "list[str]": "a list of strings",
+               "list[int]": "a list of integers", "list[str]": "a list of strings", "list[float]": "a list of numbers",
                "list[stage]": "a list of earlier stage names"}
 
 
@@ -478,7 +480,7 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
             cmd += ["--compare", factory]
         for method in p.get("methods", []):
             cmd += ["--method", method]
-        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats"):
+        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats", "radius_m"):
             value = ",".join(map(str, p[key])) if isinstance(p.get(key), list) else str(p.get(key))
             cmd += ["--" + key.replace("_", "-"), value] if key in p else []
         # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)
