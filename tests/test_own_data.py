@@ -183,6 +183,12 @@ def test_positions_count_every_reference_within_a_radius_in_metres(own_files, tm
     assert len(capsys.readouterr().out.splitlines()) == 3  # the header and the paper and aligned rows
     assert main(["sql", str(index), "SELECT count(*) AS n FROM results_m", "--csv"]) == 0
     assert capsys.readouterr().out.split()[1] == str(len(res))
+    assert main(["report", str(index / "eval"), "--out", str(tmp_path / "report"), "-q"]) == 0
+    text = (tmp_path / "report" / "report.md").read_text()
+    best = res[(res.L == 20) & (res["mode"] == "aligned") & (res.radius_m == 25.0) & (res.part == "all")].iloc[0]
+    assert "## Recall within metres" in text
+    assert f"| ref | NIGHT | all | 20 | CoarseHash d=13 (aligned) | 25 | {best.n_queries} | {100 * best.recall:.1f} |" \
+        in text
 
 
 @pytest.mark.parametrize(("case", "message"), [
