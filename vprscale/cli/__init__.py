@@ -153,6 +153,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, not a traceback
         return _bug(args, exc, level)
+    finally:
+        set_command([])  # this command's line is not the provenance of what the process makes next
 
 
 def _bug(args: argparse.Namespace, exc: BaseException, level: int) -> int:

@@ -38,7 +38,7 @@ def _verify(root: Path, kind: str) -> int:
     """Every checksum of one output, through the reader of its kind where that is light (an index's
     metadata, an evaluation's folder), which refuses one published without its manifest; a store
     or encoding by its recorded provenance and version. Returns the files checked."""
-    from vprscale.core.manifest import check_manifest, made_since_manifests, read_manifest, remake
+    from vprscale.core.manifest import check_manifest, made_since_manifests, read_manifest, read_record, remake
 
     if kind == "index":
         from vprscale.method.indexmeta import load_index_meta
@@ -51,23 +51,13 @@ def _verify(root: Path, kind: str) -> int:
     else:
         usual = f"re-run the vprscale command that made this {kind}, with --force"
         if kind == "dataset store":  # its provenance is in build.json; zarr.json records the version that built it
-            attrs = _json(root / "zarr.json").get("attributes", {}).get("vprscale", {})
-            how = remake(_json(root / "build.json"), usual,
+            attrs = read_record(root / "zarr.json").get("attributes", {}).get("vprscale", {})
+            how = remake(read_record(root / "build.json"), usual,
                          made_since_manifests(attrs.get("versions", {}).get("vprscale", "0.3")))
         else:  # every encoding of the format read today had a manifest from birth
-            how = remake(_json(root / "encoding.json"), usual, published=True)
+            how = remake(read_record(root / "encoding.json"), usual, published=True)
         check_manifest(root, full=True, remake=how)
-    if read_manifest(root) is None:
+    manifest = read_manifest(root)
+    if manifest is None:
         raise InputError(f"{root}: this {kind} has no manifest (written before vprscale 0.3); rebuild it to verify")
-    return len(read_manifest(root)["files"])
-
-
-def _json(path: Path) -> dict:
-    """A metadata file as a dict ({} where it is missing or not a JSON object: the manifest says why)."""
-    import json
-
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return record if isinstance(record, dict) else {}
+    return len(manifest["files"])

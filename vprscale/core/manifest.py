@@ -31,7 +31,8 @@ FORMAT = 1
 READ_BYTES = 1 << 24
 
 
-def _crc(path: Path) -> str:
+def crc32c_of(path: Path) -> str:
+    """The CRC32C of a file's bytes, read in blocks (as manifests record it)."""
     crc = google_crc32c.Checksum()
     with open(path, "rb") as fh:
         while block := fh.read(READ_BYTES):
@@ -48,7 +49,7 @@ def _files(root: Path) -> list[Path]:
 
 def write_manifest(root: Path) -> dict[str, Any]:
     """List every file under ``root`` with its size and CRC32C in ``root/manifest.json``."""
-    files = {p.relative_to(root).as_posix(): {"bytes": p.stat().st_size, "crc32c": _crc(p)} for p in _files(root)}
+    files = {p.relative_to(root).as_posix(): {"bytes": p.stat().st_size, "crc32c": crc32c_of(p)} for p in _files(root)}
     manifest = {"format": FORMAT, "files": files}
     tmp = root / f".{NAME}.tmp"
     tmp.write_text(json.dumps(manifest, indent=0, sort_keys=True))
@@ -86,6 +87,16 @@ def remake(record: Any, usual: str, published: bool = False) -> str | None:
         return None
     command = provenance.get("command") if isinstance(provenance, dict) else None
     return f"{command} --force" if isinstance(command, str) and command.startswith("vprscale ") else usual
+
+
+def read_record(path: Path) -> dict[str, Any]:
+    """An output's metadata file (``build.json``, ``index.json``, ``zarr.json`` …) as a dict: {}
+    where it is missing or not a JSON object (the manifest check then says what is wrong)."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
 
 
 def made_since_manifests(version: Any) -> bool:
@@ -129,7 +140,7 @@ def check_manifest(root: Path, full: bool = False, only: str | None = None, budg
             raise InputError(f"{path}: {info.st_size:,} bytes, its manifest says {entry['bytes']:,}; "
                              "the output is damaged, rebuild it")
         summed += info.st_size
-        if (full or summed <= budget) and _crc(path) != entry["crc32c"]:
+        if (full or summed <= budget) and crc32c_of(path) != entry["crc32c"]:
             raise InputError(f"{path}: its content changed since it was published (checksum differs); "
                              "the output is damaged, rebuild it")
         checked += 1

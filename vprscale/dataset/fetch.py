@@ -26,10 +26,10 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import google_crc32c
 import numpy as np
 
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import crc32c_of
 from vprscale.core.publish import check_writable, exclusive, keep_beside
 from vprscale.core.ranged import Plan, download, finish, probe, public, read_range
 
@@ -183,11 +183,7 @@ def _to_fvecs(fbin: Path, out: Path, rows: int, dim: int) -> Path:
 
 
 def _manifest(path: Path, name: str, url: str, rows: int | None, req: FetchRequest) -> dict[str, Any]:
-    crc = google_crc32c.Checksum()
-    with open(path, "rb") as fh:
-        while block := fh.read(1 << 24):
-            crc.update(block)
-    return {"file": name, "bytes": path.stat().st_size, "crc32c": crc.hexdigest().decode(), "source": public(url),
+    return {"file": name, "bytes": path.stat().st_size, "crc32c": crc32c_of(path), "source": public(url),
             "rows": rows, "format": req.format if req.source == "deep1b" else None,
             "fetched": datetime.now(UTC).isoformat(timespec="seconds")}
 

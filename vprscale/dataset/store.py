@@ -17,7 +17,7 @@ import numpy as np
 import zarr
 
 from vprscale.core.errors import InputError
-from vprscale.core.manifest import check_manifest, made_since_manifests, remake
+from vprscale.core.manifest import check_manifest, made_since_manifests, read_record, remake
 from vprscale.method.coarsehash import CoarseHasher
 
 ATTR = "vprscale"
@@ -44,12 +44,9 @@ def _remake(store: Path, meta: dict[str, Any], kind: str) -> str | None:
     """How to re-create a store published with a manifest (None for one built before 0.3, which
     had none): the command its ``build.json`` records. A store of your own data (no recipe
     versions recorded) is 0.3 or later by birth."""
-    try:
-        record = json.loads((store / "build.json").read_text())
-    except (OSError, ValueError):
-        record = None
-    return remake(record, f"vprscale build … --out {store.parent} --force (the build that made {store.name})",
-                  made_since_manifests(meta.get("versions", {}).get("vprscale", "0.3")))
+    usual = f"vprscale build … --out {store.parent} --force (the build that made {store.name})"
+    since = made_since_manifests(meta.get("versions", {}).get("vprscale", "0.3"))
+    return remake(read_record(store / "build.json"), usual, since)
 
 
 def store_identity(group: zarr.Group) -> str:
