@@ -223,8 +223,8 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
 @pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("IVF256,PQ4", "residual"),
                                            ("IVF300,PQ4", "residual"), ("OPQ3_30,IVF300,PQ3", "residual"),
                                            ("OPQ4,IVF16,PQ4x6", "residual"),
-                                           ("OPQ4,PQ4", "pq"), ("PQ4x6", "pq"), ("PQ8x4fs", "pq"),
-                                           ("OPQ8,PQ8x4fs", "pq"), ("PQ1x4", "pq")])
+                                           ("OPQ4,PQ4", "tables"), ("PQ4x6", "tables"), ("PQ8x4fs", "tables"),
+                                           ("OPQ8,PQ8x4fs", "tables"), ("PQ1x4", "tables")])
 def test_table_scores_equal_decoded_vector_scores(factory, form):
     """Every candidate's window score from the tables (IVF-PQ: coarse distance + per-list term +
     frame table) equals, to float rounding, the sum of squared distances to the decoded codes."""
@@ -252,6 +252,50 @@ def test_table_scores_equal_decoded_vector_scores(factory, form):
     assert both[0].keys() == both[1].keys() and len(both[0]) == 3 * len(cand)
     got, want = (np.array([b[key] for key in sorted(both[0])]) for b in both)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6 * want.max())
+
+
+@pytest.mark.parametrize("factory, form", [("RQ3x8_Nqint8", "tables"), ("LSQ4x5_Nqint4", "tables"),
+                                           ("PRQ2x2x4_Nqint8", "tables"), ("RQ2x8_Ncqint8", "tables"),
+                                           ("IVF16,RQ3x8_Nqint8", "residual"),
+                                           ("OPQ4,IVF16,PLSQ2x2x6_Nqint8", "residual")])
+def test_additive_tables_give_faiss_own_distances(factory, form):
+    """An additive quantiser that keeps its norm in the code is scored from tables, one per
+    codebook and one for the norm's levels (over an inverted file: the frame's coarse distance,
+    the list's term and the frame's tables): each term is the distance FAISS's own search
+    ranks by (its quantised norm, not the decoded vector's), for the places FAISS returns, and
+    a window's score is the sum of its terms."""
+    rng = np.random.default_rng(4)
+    ref = np.cumsum(rng.standard_normal((4000, 32)), axis=0).astype(np.float32) * 0.1
+    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.05
+    codes = FaissCodes(factory, 32, k=8, nprobe=16)
+    codes.train(ref)
+    codes.start(len(ref))
+    codes.encode(ref)
+    codes.finish()
+    assert codes.form == form
+    distances, ids = codes.search(query)
+    terms = codes.frame_terms(query)
+    cand = ids.reshape(-1)
+    centres = np.repeat(np.arange(len(query)), ids.shape[1])
+    first, n_r = np.arange(len(cand)), np.ones(len(cand), np.int64)
+    top, scores = _score(codes, terms, centres, 1, cand, first, n_r, 1)
+    np.testing.assert_array_equal(top[:, 0], cand)
+    # both sum float32 terms of the size of ‖y‖² and ‖x‖² to a far smaller distance
+    rounding = 1e-6 * ((query**2).sum(axis=1).max() + (ref**2).sum(axis=1).max())
+    np.testing.assert_allclose(scores[:, 0], distances.reshape(-1), rtol=1e-5, atol=rounding)
+    # a window of 5 frames: the sum of its terms, each a one-frame window's
+    L, t, c = 5, np.array([20]), np.array([1020], np.int64)
+    window = _score(codes, terms, t, L, c, np.zeros(1, np.int64), np.ones(1, np.int64), 1)[1][0, 0]
+    singles = [_score(codes, terms, np.array([20 + i]), 1, np.array([1020 + i], np.int64), np.zeros(1, np.int64),
+                      np.ones(1, np.int64), 1)[1][0, 0] for i in range(-2, 3)]
+    np.testing.assert_allclose(window, sum(singles), rtol=1e-9)
+
+
+@pytest.mark.parametrize("factory", ["RQ3x8", "IVF16,RQ2x8_Nfloat", "LSQ2x8_Nfloat", "IVF16,RaBitQ"])
+def test_codes_without_tables_are_decoded(factory):
+    """An additive quantiser without its norm in the code (FAISS decodes it to search) or with
+    a float32 norm has no per-index tables: its windows read decoded vectors."""
+    assert FaissCodes(factory, 32, k=8).form == "vectors"
 
 
 def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_best, codes_arg=None, vectors=None):

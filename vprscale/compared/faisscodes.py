@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
-from vprscale.compared import codesearch
+from vprscale.compared import codesearch, subtables
 from vprscale.compared.codescore import (
     REF_LEVEL_BYTES,
     coarse_levels,
@@ -129,15 +129,16 @@ def _fast_scan_of(inner: Any, codes: np.ndarray) -> Any:
 
 
 def _form(inner: Any) -> str:
-    """How the window scores read a FAISS index's codes (:mod:`vprscale.compared.codescore`)."""
+    """How the window scores read a FAISS index's codes (:mod:`vprscale.compared.codescore`):
+    binary codes by Hamming tables, codes with per-index tables (:mod:`~vprscale.compared.subtables`)
+    by their tables, flat or over an inverted file's residuals, any other decoded."""
     if isinstance(inner, faiss.IndexLSH):
         return "hamming"
-    if isinstance(inner, (faiss.IndexPQ, faiss.IndexPQFastScan)) and inner.pq.nbits <= 8:
-        return "pq"
-    if (isinstance(inner, faiss.IndexIVFPQ) and inner.by_residual and inner.pq.nbits <= 8
-            and inner.metric_type == faiss.METRIC_L2):
-        return "residual"
-    return "vectors"
+    if not subtables.has_tables(inner):
+        return "vectors"
+    if isinstance(inner, faiss.IndexIVF):
+        return "residual" if inner.by_residual and inner.metric_type == faiss.METRIC_L2 else "vectors"
+    return "tables"
 
 
 def _byte_tables(tables: np.ndarray) -> np.ndarray:
@@ -217,6 +218,14 @@ class FaissCodes:
         self.graph = isinstance(self.inner, faiss.IndexHNSWFlat)
         self.set_point(self.k, self.nprobe)
         self.form = _form(self.inner)
+        self._subs: subtables.ProductTables | subtables.AdditiveTables | None = None
+
+    @property
+    def subs(self) -> subtables.ProductTables | subtables.AdditiveTables:
+        """The tables view of a trained index's codes (``tables`` and ``residual`` forms)."""
+        if self._subs is None:
+            self._subs = subtables.tables_of(self.inner)
+        return self._subs
 
     def set_point(self, k: int, nprobe: int) -> None:
         """Search at operating point ``k`` and ``nprobe`` (the inverted lists an IVF frame
@@ -235,7 +244,8 @@ class FaissCodes:
         window scores read its packed bytes, each byte's two indices through one 256-entry
         table, the sum of their two 16-entry ones (two look-ups become one). 8-bit codes are
         their indices already; other widths are unpacked into one index per byte."""
-        return self.form == "pq" and self.inner.pq.nbits == 4
+        return self.form == "tables" and isinstance(self.inner, (faiss.IndexPQ, faiss.IndexPQFastScan)) \
+            and self.inner.pq.nbits == 4
 
     @property
     def name(self) -> str:
@@ -296,8 +306,8 @@ class FaissCodes:
         transform = sum(2.0 * t.d_in * t.d_out for t in self.chain)
         width = self.codes.shape[1]
         tables = 0.0  # decoded vectors (a graph's rows): none
-        if self.form in ("pq", "residual"):
-            tables = 3.0 * self.inner.pq.ksub * self.dim  # a frame's sub-quantiser tables
+        if self.form in ("tables", "residual"):
+            tables = self.subs.table_ops(self.dim)  # a frame's tables
             tables += 256.0 * width if self.nibbles else 0.0  # and their byte sums
         elif self.form == "hamming":
             tables = 256.0 * width
@@ -317,7 +327,7 @@ class FaissCodes:
     def code_width(self) -> int:
         """Bytes of a place's code that the window scores look up in a frame's tables (a
         residual place's record also holds its list number and its term's level)."""
-        return self.inner.pq.M if self.form == "residual" else self.codes.shape[1]
+        return self.subs.columns if self.form == "residual" else self.codes.shape[1]
 
     def _transform(self, x: np.ndarray) -> np.ndarray:
         for t in self.chain:
@@ -331,9 +341,9 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.inner.pq.M if self.form == "pq" and not self.nibbles else self.code_bytes
-        if self.form == "residual":  # a record: the sub-quantiser indices, the list number, the term's level
-            width = record_width(self.inner.pq.M, self.ivf.coarse_code_size())
+        width = self.subs.columns if self.form == "tables" and not self.nibbles else self.code_bytes
+        if self.form == "residual":  # a record: the table indices, the list number, the term's level
+            width = record_width(self.subs.columns, self.ivf.coarse_code_size())
             self._residual_tables()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled, self._pending = 0, _NO_ROWS
@@ -389,8 +399,8 @@ class FaissCodes:
         lo, self._filled = self._filled, self._filled + len(codes)
         if self.form == "residual":
             codes = self.window_records(codes)
-        elif self.form == "pq" and not self.nibbles:
-            codes = self._pq_indices(codes)
+        elif self.form == "tables" and not self.nibbles:
+            codes = self.subs.indices(codes)
         self.codes[lo : self._filled] = codes
 
     def window_records(self, codes: np.ndarray) -> np.ndarray:
@@ -400,7 +410,7 @@ class FaissCodes:
         (:func:`~vprscale.compared.codescore.ref_scale`)."""
         coarse = self.ivf.coarse_code_size()  # a standalone IVF code: the list number (little-endian), the PQ code
         lists = (codes[:, :coarse].astype(np.int64) << (8 * np.arange(coarse, dtype=np.int64))).sum(axis=1)
-        sub = self._pq_indices(codes[:, coarse:])
+        sub = self.subs.indices(codes[:, coarse:])
         terms = np.asarray(sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1])), np.float32)
         rise = (terms - self.ref_base[lists]) / (self.ref_step or 1.0)
         level = np.clip(np.floor(rise), 0, 255).astype(np.uint8)
@@ -464,22 +474,10 @@ class FaissCodes:
         """The coarse centroids, their largest squared norm and, per list ``l``, sub-quantiser ``m`` and code ``v``,
         ``‖ρ_mv‖² + 2⟨c_l[m], ρ_mv⟩`` (the query-independent part of a residual distance), and the scale of
         its levels (:func:`~vprscale.compared.codescore.ref_scale`)."""
-        pq = self.inner.pq
         self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
         self.centroid_norm = float((self.centroids.astype(np.float64) ** 2).sum(axis=1).max())  # for coarse_levels
-        cents = faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
-        sub = self.centroids.reshape(self.ivf.nlist, pq.M, pq.dsub)
-        self.per_list = ((cents**2).sum(-1)[None, :, :] + 2 * np.einsum("lmd,mkd->lmk", sub, cents)).astype(np.float32)
+        self.per_list = self.subs.list_terms(self.centroids)
         self.ref_base, self.ref_step, self.ref_err = ref_scale(self.per_list)
-
-    def _pq_indices(self, codes: np.ndarray) -> np.ndarray:
-        """A product quantiser's packed codes as one centroid index per sub-quantiser (FAISS
-        packs ``nbits`` per index, least significant bit first)."""
-        pq = self.inner.pq
-        if pq.nbits == 8:
-            return codes
-        bits = np.unpackbits(codes, axis=1, bitorder="little")[:, : pq.M * pq.nbits].reshape(len(codes), pq.M, pq.nbits)
-        return (bits.astype(np.uint16) << np.arange(pq.nbits, dtype=np.uint16)).sum(axis=2).astype(np.uint8)
 
     def search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
@@ -496,7 +494,7 @@ class FaissCodes:
         distance rather than every place (:mod:`vprscale.compared.codesearch`): flat product
         quantisers searched with float tables (not fast-scan ones, whose 8-bit look-up
         tables rank places approximately) and binary codes, of at most 62 bits."""
-        if self.form == "pq" and isinstance(self.inner, faiss.IndexPQ):
+        if self.form == "tables" and isinstance(self.inner, faiss.IndexPQ):
             return self.inner.pq.M * self.inner.pq.nbits <= codesearch.MAX_KEY_BITS
         return self.form == "hamming" and self.inner.nbits <= codesearch.MAX_KEY_BITS
 
@@ -509,7 +507,7 @@ class FaissCodes:
     def _keys(self, codes: np.ndarray) -> np.ndarray:
         """Codes as they are held (:meth:`add_codes`), one int64 key each
         (:func:`~vprscale.compared.codesearch.code_keys`)."""
-        unpacked = self.form == "pq" and self.inner.pq.nbits not in (4, 8)  # one index per byte
+        unpacked = self.form == "tables" and self.inner.pq.nbits not in (4, 8)  # one index per byte
         return codesearch.code_keys(codes, self.inner.pq.nbits if unpacked else None)
 
     def exact_search(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -532,8 +530,7 @@ class FaissCodes:
 
     def _exact_tables(self, y: np.ndarray) -> np.ndarray:
         """Float64 tables of squared distances from each frame's sub-vectors to each centroid (frames, M, ksub)."""
-        ys, cents = self._sub_products(y)
-        ys, cents = ys.astype(np.float64), cents.astype(np.float64)
+        ys, cents = self.subs.split(y).astype(np.float64), self.subs.cents.astype(np.float64)
         return (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
 
     def check_exact(self, rows: np.ndarray) -> None:
@@ -566,24 +563,17 @@ class FaissCodes:
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
             return FrameTerms(_POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], _NO_ROWS)
-        if self.form == "pq":
-            ys, cents = self._sub_products(y)
-            tables = (ys**2).sum(-1)[:, :, None] - 2 * np.einsum("nmd,mkd->nmk", ys, cents) + (cents**2).sum(-1)[None]
-            tables = np.maximum(tables, 0).astype(np.float32)
+        if self.form == "tables":
+            tables = self.subs.frame_tables(y)
             return FrameTerms(_byte_tables(tables) if self.nibbles else tables, _NO_ROWS)
         return FrameTerms(_NO_TABLES, y)
-
-    def _sub_products(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The frames split by sub-quantiser, and the sub-quantisers' centroids."""
-        pq = self.inner.pq
-        return y.reshape(len(y), pq.M, pq.dsub), faiss.vector_to_array(pq.centroids).reshape(pq.M, pq.ksub, pq.dsub)
 
     def _residual_frames(self, rows: np.ndarray) -> FrameTerms:
         """:class:`FrameTerms` of residual IVF-PQ codes, block by block (FAISS's BLAS on one
         thread each: the same bits for any threads), each block written into place (7.5 KB a
         frame at 4,096 lists: a million frames' blocks and their concatenation took 15 GB)."""
-        pq, n = self.inner.pq, len(rows)
-        terms = FrameTerms(np.empty((n, pq.M, pq.ksub), np.float32), np.empty((n, self.inner.d), np.float32),
+        n = len(rows)
+        terms = FrameTerms(np.empty((n, self.subs.columns, self.subs.ksub), np.float32), np.empty((n, self.inner.d), np.float32),
                            np.empty((n, self.ivf.nlist), np.uint8), np.empty((n, 4)))
 
         def fill(lo: int) -> None:
@@ -598,8 +588,7 @@ class FaissCodes:
         every list (:func:`~vprscale.compared.codescore.coarse_levels`; the distances themselves
         are not kept: 16 KB a frame)."""
         y = self._transform(rows)
-        ys, cents = self._sub_products(y)
-        tables = (-2 * np.einsum("nmd,mkd->nmk", ys, cents)).astype(np.float32)
+        tables = self.subs.residual_tables(y)
         levels, scale = coarse_levels(faiss.pairwise_distances(y, self.centroids), self.ref_base, y,
                                       self.centroid_norm, self.ref_step, self.ref_err)
         return tables, y, levels, scale

@@ -41,6 +41,7 @@ import numpy as np
 import zarr
 
 from vprscale.compared.faisscodes import FaissCodes, FrameTerms, training_rows
+from vprscale.compared.subtables import ProductTables
 from vprscale.core.errors import InputError
 from vprscale.dataset.store import open_complete_group, store_layout
 
@@ -158,7 +159,7 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
         computer = _faiss_distance_computer(codes, query, repeats)
         theirs = _faiss_scan(codes, query, repeats)
         width = codes.code_width
-        if codes.form == "pq":
+        if codes.form == "tables" and isinstance(codes.subs, ProductTables):
             flat_pq.setdefault(width, ours[0])
         vs_pq = f"{ours[0] / flat_pq[width]:8.2f}" if codes.form == "residual" and width in flat_pq else f"{'-':>8}"
         lines.append(f"{factory:<18} {codes.form:<9} {width:>6} {_fmt(ours):>22} {_fmt(ours_random):>22} "
