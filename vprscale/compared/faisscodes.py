@@ -573,8 +573,9 @@ class FaissCodes:
         thread each: the same bits for any threads), each block written into place (7.5 KB a
         frame at 4,096 lists: a million frames' blocks and their concatenation took 15 GB)."""
         n = len(rows)
-        terms = FrameTerms(np.empty((n, self.subs.columns, self.subs.ksub), np.float32), np.empty((n, self.inner.d), np.float32),
-                           np.empty((n, self.ivf.nlist), np.uint8), np.empty((n, 4)))
+        terms = FrameTerms(np.empty((n, self.subs.columns, self.subs.ksub), np.float32),
+                           np.empty((n, self.inner.d), np.float32), np.empty((n, self.ivf.nlist), np.uint8),
+                           np.empty((n, 4)))
 
         def fill(lo: int) -> None:
             for whole, part in zip(terms, self._residual_terms(rows[lo : lo + BLOCK_ROWS]), strict=True):
