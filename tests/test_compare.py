@@ -23,6 +23,7 @@ from hypothesis import strategies as st
 from threadpoolctl import threadpool_limits
 
 from vprscale.cli import main
+from vprscale.compared import rabitq
 from vprscale.compared.codescore import REF_LEVEL_BYTES, _smallest, score_windows
 from vprscale.compared.faisscodes import ENCODE_ROWS, ID_BYTES, FaissCodes, FrameTerms, training_rows
 from vprscale.core.errors import InputError
@@ -103,8 +104,36 @@ def test_single_frame_agrees_with_a_direct_faiss_search(compared, direct, factor
     np.testing.assert_array_equal(rows.n_r.to_numpy(), (ids >= 0).sum(axis=1))
 
 
+def _rabitq_estimates(index, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """RaBitQ's estimate of the distance from each query row to each reference row, from the
+    rows' standalone codes as FAISS's ``RaBitQDistanceComputerNotQ`` computes it: ``max(0, A +
+    ‖y − c‖² − 2·D·(c1·Σ_{bit} (y − c)_j − Σ_j (y − c)_j / √d))`` with ``c1 = 2 / √d``, ``c`` the
+    code's centre (the index's, or its list's centroid)."""
+    inner = faiss.downcast_index(index)
+    ivf = faiss.try_extract_index_ivf(inner)
+    d, codes = inner.d, index.sa_encode(x)
+    lb = ivf.coarse_code_size() if ivf is not None else 0
+    if ivf is not None:
+        lists = codes[:, :lb].astype(np.int64) @ (256 ** np.arange(lb, dtype=np.int64))
+        centre = ivf.quantizer.reconstruct_n(0, ivf.nlist).astype(np.float64)[lists]
+    else:
+        centre = np.broadcast_to(faiss.vector_to_array(inner.center).astype(np.float64), (len(x), d))
+    nb = (d + 7) // 8
+    bits = np.unpackbits(codes[:, lb : lb + nb], axis=1, bitorder="little")[:, :d].astype(np.float64)
+    a, dp = codes[:, lb + nb : lb + nb + 8].copy().view(np.float32).astype(np.float64).T
+    out = np.empty((len(y), len(x)))
+    for i, row in enumerate(y.astype(np.float64)):
+        q = row[None, :] - centre
+        final = 2 / np.sqrt(d) * (bits * q).sum(axis=1) - q.sum(axis=1) / np.sqrt(d)
+        out[i] = np.maximum(0, a + (q**2).sum(axis=1) - 2 * dp * final)
+    return out
+
+
 def _distances(index, factory: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Distance of each query row to each reference row's decoded code (float64, brute force)."""
+    """Distance of each query row to each reference row as the window scores define it (float64,
+    brute force): to the decoded code, RaBitQ's estimate, the Hamming distance of binary codes."""
+    if "RaBitQ" in factory:
+        return _rabitq_estimates(index, y, x)
     if "LSH" in factory:  # binary codes: the Hamming distance of the codes
         qc, rc = np.unpackbits(index.sa_encode(y), axis=1), np.unpackbits(index.sa_encode(x), axis=1)
         return (qc[:, None, :] != rc[None, :, :]).sum(axis=2).astype(np.float64)
@@ -257,44 +286,52 @@ def test_table_scores_equal_decoded_vector_scores(factory, form):
 @pytest.mark.parametrize("factory, form", [("RQ3x8_Nqint8", "tables"), ("LSQ4x5_Nqint4", "tables"),
                                            ("PRQ2x2x4_Nqint8", "tables"), ("RQ2x8_Ncqint8", "tables"),
                                            ("IVF16,RQ3x8_Nqint8", "residual"),
-                                           ("OPQ4,IVF16,PLSQ2x2x6_Nqint8", "residual")])
-def test_additive_tables_give_faiss_own_distances(factory, form):
+                                           ("OPQ4,IVF16,PLSQ2x2x6_Nqint8", "residual"),
+                                           ("RaBitQ", "factors"), ("IVF16,RaBitQ", "factors"),
+                                           ("PCA16,IVF16,RaBitQ", "factors")])
+def test_table_terms_are_faiss_own_distances(factory, form):
     """An additive quantiser that keeps its norm in the code is scored from tables, one per
     codebook and one for the norm's levels (over an inverted file: the frame's coarse distance,
-    the list's term and the frame's tables): each term is the distance FAISS's own search
-    ranks by (its quantised norm, not the decoded vector's), for the places FAISS returns, and
-    a window's score is the sum of its terms."""
-    rng = np.random.default_rng(4)
-    ref = np.cumsum(rng.standard_normal((4000, 32)), axis=0).astype(np.float32) * 0.1
-    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.05
+    the list's term and the frame's tables); RaBitQ from byte tables of its signs, its two
+    factors and the frame's distance to the code's centre. Each term is the distance FAISS's
+    own search ranks by (the quantised norm, not the decoded vector's; RaBitQ's estimator,
+    with the frame unquantised: ``qb = 0``), for the places FAISS returns, and a window's
+    score is the sum of its terms."""
+    rng = np.random.default_rng(4)  # rows about their mean (RaBitQ's flat centre), as whitened descriptors lie
+    ref = rng.standard_normal((4000, 32)).astype(np.float32)
+    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.3
     codes = FaissCodes(factory, 32, k=8, nprobe=16)
     codes.train(ref)
     codes.start(len(ref))
     codes.encode(ref)
     codes.finish()
     assert codes.form == form
+    if form == "factors":
+        codes.inner.qb = 0
     distances, ids = codes.search(query)
+    assert (distances > 0).mean() > 0.9  # distances, not RaBitQ's estimates clipped at 0
     terms = codes.frame_terms(query)
     cand = ids.reshape(-1)
     centres = np.repeat(np.arange(len(query)), ids.shape[1])
     first, n_r = np.arange(len(cand)), np.ones(len(cand), np.int64)
-    top, scores = _score(codes, terms, centres, 1, cand, first, n_r, 1)
+    top, scores = codes.score(centres, 1, cand, first, n_r, terms)
     np.testing.assert_array_equal(top[:, 0], cand)
     # both sum float32 terms of the size of ‖y‖² and ‖x‖² to a far smaller distance
     rounding = 1e-6 * ((query**2).sum(axis=1).max() + (ref**2).sum(axis=1).max())
     np.testing.assert_allclose(scores[:, 0], distances.reshape(-1), rtol=1e-5, atol=rounding)
     # a window of 5 frames: the sum of its terms, each a one-frame window's
     L, t, c = 5, np.array([20]), np.array([1020], np.int64)
-    window = _score(codes, terms, t, L, c, np.zeros(1, np.int64), np.ones(1, np.int64), 1)[1][0, 0]
-    singles = [_score(codes, terms, np.array([20 + i]), 1, np.array([1020 + i], np.int64), np.zeros(1, np.int64),
-                      np.ones(1, np.int64), 1)[1][0, 0] for i in range(-2, 3)]
+    window = codes.score(t, L, c, np.zeros(1, np.int64), np.ones(1, np.int64), terms)[1][0, 0]
+    singles = [codes.score(np.array([20 + i]), 1, np.array([1020 + i], np.int64), np.zeros(1, np.int64),
+                           np.ones(1, np.int64), terms)[1][0, 0] for i in range(-2, 3)]
     np.testing.assert_allclose(window, sum(singles), rtol=1e-9)
 
 
-@pytest.mark.parametrize("factory", ["RQ3x8", "IVF16,RQ2x8_Nfloat", "LSQ2x8_Nfloat", "IVF16,RaBitQ"])
+@pytest.mark.parametrize("factory", ["RQ3x8", "IVF16,RQ2x8_Nfloat", "LSQ2x8_Nfloat", "RaBitQ4"])
 def test_codes_without_tables_are_decoded(factory):
     """An additive quantiser without its norm in the code (FAISS decodes it to search) or with
-    a float32 norm has no per-index tables: its windows read decoded vectors."""
+    a float32 norm has no per-index tables, nor has a RaBitQ code of extended bits: their windows
+    read decoded vectors."""
     assert FaissCodes(factory, 32, k=8).form == "vectors"
 
 
@@ -537,7 +574,7 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     additive quantisers (LSQ's codes depend on the rows encoded together: encoded in blocks
     at fixed offsets) and HNSW graphs (linked in such blocks on one thread), given their
     references in uneven chunks, answer as FAISS's own index built by ``add``, and their
-    decoded vectors (a graph's: its rows) are what the window scores read."""
+    decoded vectors (a graph's: its rows; RaBitQ's: its records) are what the window scores read."""
     rng = np.random.default_rng(3)
     ref = rng.standard_normal((9000, 16)).astype(np.float32)
     query = ref[::50] + 0.2 * rng.standard_normal((180, 16)).astype(np.float32)
@@ -560,6 +597,9 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
         blocks = [codes._transform(ref[lo : lo + ENCODE_ROWS]) for lo in range(0, len(ref), ENCODE_ROWS)]
         np.testing.assert_array_equal(codes.vectors, np.concatenate(blocks))
         assert codes.scan_per_frame() > 0 and codes.params == "k=7 efSearch=64"
+    elif codes.form == "factors":  # RaBitQ's records: signs, list number, two float32 factors
+        assert codes.codes.shape == (len(ref), rabitq.record_width(16, codes.inner.sa_code_size() - 10))
+        assert codes.vectors.shape == (0, 0)
     else:
         assert codes.vectors.shape == (len(ref), codes.inner.d)
 

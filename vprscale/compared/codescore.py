@@ -18,6 +18,11 @@ compute it:
   bounds every candidate from 8-bit levels of the first two terms (the frame's,
   :func:`coarse_levels`; the place's, :func:`ref_scale`) and computes the terms
   exactly for the few the bounds leave (:func:`_residual_best`).
+- *factors* (RaBitQ, :mod:`vprscale.compared.rabitq`): ``dist = max(0, F_r + ‖y − c‖² −
+  2 D_r Σ_b tables[p, b, signs[r, b]])``, the code's estimator of the distance, with the
+  place's two factors from its record and the frame's distance to the code's centre: one
+  per frame for a flat index (``scale[p, 0]``), to the place's list's centroid over an
+  inverted file (computed, D operations; the centroids stay in cache).
 - *vectors*: the references' codes decoded once (``vectors[r]``) against the query frames.
 
 Reference frames outside the map cost the largest distance seen in the window (over every
@@ -159,12 +164,28 @@ def _vector_dist(q: np.ndarray, p: np.int64, x: np.ndarray, r: np.int64) -> np.f
     return s
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _factors_dist(tables: np.ndarray, scale: np.ndarray, q: np.ndarray, centroids: np.ndarray,
+                  records: np.ndarray, factors: np.ndarray, p: np.int64, r: np.int64, width: int,
+                  list_bytes: int) -> np.float64:
+    """A RaBitQ term: the place's factors ``F, D`` (the last two of its record's float32
+    view), its signs' look-ups and the frame's distance to the code's centre."""
+    if centroids.shape[0] > 0:
+        g = _coarse_dist(q, p, centroids, _list_at(records, r, width, list_bytes))
+    else:
+        g = scale[p, 0]
+    f = factors.shape[1]
+    dot = _table_dist(tables, p, records, r, width)
+    return max(0.0, np.float64(factors[r, f - 2]) + g - 2.0 * np.float64(factors[r, f - 1]) * dot)
+
+
 @numba.njit(cache=True, nogil=True)
 def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.ndarray, codes: np.ndarray,
-                 q_vectors: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.float64]:
+                 q_vectors: np.ndarray, vectors: np.ndarray, scale: np.ndarray,
+                 centroids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.float64]:
     """``(sums, outside, largest)`` of the window centred at query-frame position ``t`` over
-    the candidate centres ``cand`` (tables or vectors form): each candidate's sum of terms
-    inside the map, its count of reference frames outside it, and the largest term seen.
+    the candidate centres ``cand`` (tables, factors or vectors form): each candidate's sum of
+    terms inside the map, its count of reference frames outside it, and the largest term seen.
 
     The window's frames are the outer loop: each frame's tables (3 KB for 3 code bytes) stay
     in the first-level cache while every candidate reads its reference at that offset, and
@@ -172,7 +193,13 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
     """
     half = L // 2
     by_tables = tables.shape[0] > 0
-    width = codes.shape[1]
+    by_factors = by_tables and vectors.shape[0] > 0
+    width = tables.shape[1] if by_factors else codes.shape[1]
+    list_bytes = 0  # as FAISS's coarse_code_size: the bytes of the largest list number
+    lists = centroids.shape[0] - 1
+    while lists > 0:
+        list_bytes += 1
+        lists >>= 8
     m = cand.shape[0]
     sums = np.zeros(m, np.float64)
     outside = np.zeros(m, np.int64)
@@ -186,7 +213,12 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
             if r < 0 or r >= n_ref:  # a reference frame outside the map
                 outside[j] += 1
                 continue
-            dist = _table_dist(tables, p, codes, r, width) if by_tables else _vector_dist(q_vectors, p, vectors, r)
+            if by_factors:
+                dist = _factors_dist(tables, scale, q_vectors, centroids, codes, vectors, p, r, width, list_bytes)
+            elif by_tables:
+                dist = _table_dist(tables, p, codes, r, width)
+            else:
+                dist = _vector_dist(q_vectors, p, vectors, r)
             sums[j] += dist
             largest = max(largest, dist)
     return sums, outside, largest
@@ -431,7 +463,10 @@ def score_windows(centres_t: np.ndarray, L: int, cand: np.ndarray, first: np.nda
     follows what is given: residual tables when ``levels`` has frames (:func:`coarse_levels`;
     ``q_vectors`` the frames and ``centroids`` the lists'
     centroids, in the space the codes are in; ``codes`` the places' records and
-    ``per_list`` their lists' tables), tables when ``tables`` has, decoded vectors otherwise.
+    ``per_list`` their lists' tables), factors when ``tables`` and ``vectors`` have (RaBitQ:
+    ``codes`` the places' records, ``vectors`` their float32 view, ``centroids`` the lists'
+    centroids of an inverted file, none for a flat index, whose frames' distances to its centre
+    are ``scale[:, 0]``), tables when ``tables`` has, decoded vectors otherwise.
     """
     top = np.full((centres_t.shape[0], n_best), NO_CANDIDATE)
     scores = np.full((centres_t.shape[0], n_best), np.inf)
@@ -441,7 +476,8 @@ def score_windows(centres_t: np.ndarray, L: int, cand: np.ndarray, first: np.nda
             _residual_best(centres_t[qi], L, mine, n_ref, tables, levels, scale, q_vectors, centroids, per_list,
                            codes, scores[qi], top[qi])
             continue
-        sums, outside, largest = _window_sums(centres_t[qi], L, mine, n_ref, tables, codes, q_vectors, vectors)
+        sums, outside, largest = _window_sums(centres_t[qi], L, mine, n_ref, tables, codes, q_vectors, vectors, scale,
+                                              centroids)
         for j in range(mine.shape[0]):
             keep_best(scores[qi], top[qi], sums[j] + outside[j] * largest, mine[j])
     return finish_best(top), scores

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import faiss
 import numpy as np
 
-from vprscale.compared import codesearch, subtables
+from vprscale.compared import codesearch, rabitq, subtables
 from vprscale.compared.codescore import (
     REF_LEVEL_BYTES,
     coarse_levels,
@@ -111,21 +111,25 @@ def _ivf_rabitq_twin(fast: Any) -> Any:
     return plain
 
 
+_RABITQ = (faiss.IndexRaBitQ, faiss.IndexRaBitQFastScan, faiss.IndexIVFRaBitQ, faiss.IndexIVFRaBitQFastScan)
 _TWINS: dict[type, Callable[[Any], Any]] = {faiss.IndexPQFastScan: _pq_twin, faiss.IndexRaBitQFastScan: _rabitq_twin,
                                             faiss.IndexIVFPQFastScan: _ivf_pq_twin,
                                             faiss.IndexIVFRaBitQFastScan: _ivf_rabitq_twin}
 
 
-def _fast_scan_of(inner: Any, codes: np.ndarray) -> Any:
-    """A populated fast-scan index like ``inner`` (trained, empty) holding ``codes`` (its
-    standalone codes, in id order), through its plain twin."""
+def _plain_twin(inner: Any) -> Any:
+    """An empty plain index like the fast-scan ``inner`` (trained), to take its standalone codes."""
     plain = _TWINS[type(inner)](inner)
     plain.is_trained = True
-    if isinstance(plain, faiss.IndexIVF):
-        plain.add_sa_codes(codes, np.arange(len(codes), dtype=np.int64))
+    return plain
+
+
+def _add_standalone(index: Any, codes: np.ndarray, start: int) -> None:
+    """Add standalone codes of ids ``start`` on (an IVF index takes them with their ids)."""
+    if isinstance(index, faiss.IndexIVF):
+        index.add_sa_codes(codes, np.arange(start, start + len(codes), dtype=np.int64))
     else:
-        plain.add_sa_codes(codes)
-    return type(inner)(plain, inner.bbs)
+        index.add_sa_codes(codes)
 
 
 def _form(inner: Any) -> str:
@@ -134,6 +138,8 @@ def _form(inner: Any) -> str:
     by their tables, flat or over an inverted file's residuals, any other decoded."""
     if isinstance(inner, faiss.IndexLSH):
         return "hamming"
+    if isinstance(inner, _RABITQ) and inner.rabitq.nb_bits == 1 and inner.metric_type == faiss.METRIC_L2:
+        return "factors" if not isinstance(inner, faiss.IndexIVF) or inner.by_residual else "vectors"
     if not subtables.has_tables(inner):
         return "vectors"
     if isinstance(inner, faiss.IndexIVF):
@@ -204,6 +210,8 @@ class FaissCodes:
         self.ref_step, self.ref_err = 0.0, 0.0  # residual form: a place's term level's step and error
         self.centroids = _NO_ROWS  # residual form: the coarse centroids
         self.centroid_norm = 0.0  # residual form: their largest squared norm
+        self._code_centres = np.zeros((0, 0))  # factors form: the centres its codes are relative to
+        self._twin: Any = None  # a fast-scan code: the plain index taking its standalone codes
         self._values: tuple[np.ndarray, ...] | None = None  # enumerable codes: their distinct values' lists
         self._walked = 0.0  # a graph: distances per frame of its last search
         self._pending = _NO_ROWS  # rows given to encode that do not yet fill a block
@@ -287,10 +295,11 @@ class FaissCodes:
             hnsw = self.inner.hnsw
             links = hnsw.neighbors.size() * 4 + hnsw.offsets.size() * 8 + hnsw.levels.size() * 4
             return float(FLOAT_BYTES * self.inner.d + links / max(1, self.n_ref))
-        if self.ivf is None:
-            return float(self.inner.sa_code_size())
-        extra = REF_LEVEL_BYTES if self.form == "residual" else 0  # a place's term level
-        return float(self.ivf.code_size + ID_BYTES + self.inner.sa_code_size() + extra)
+        if self.form == "factors":  # its record (signs, list number, factors), rounded up to whole float32s
+            kept = rabitq.record_width(self.inner.d, self._list_bytes)
+        else:
+            kept = self.inner.sa_code_size() + (REF_LEVEL_BYTES if self.form == "residual" else 0)  # a term's level
+        return float(kept if self.ivf is None else self.ivf.code_size + ID_BYTES + kept)
 
     def scan_per_frame(self) -> float:
         """Places (codes) a frame's search visits: all of them, the probed lists' share, or
@@ -311,6 +320,8 @@ class FaissCodes:
             tables += 256.0 * width if self.nibbles else 0.0  # and their byte sums
         elif self.form == "hamming":
             tables = 256.0 * width
+        elif self.form == "factors":
+            tables = 2.0 * 256 * self.inner.d  # a frame's sign tables
         coarse = 3.0 * self.dim * self.ivf.nlist if self.ivf is not None else 0.0
         # the window scores' coarse row, beside the search's, and its 8-bit levels (add, range, scale, round)
         coarse = 2 * coarse + 6.0 * self.ivf.nlist if self.form == "residual" else coarse
@@ -321,13 +332,28 @@ class FaissCodes:
         """Operations of one (candidate, frame) term of a window score."""
         if self.form == "residual":
             return 2.0 * self.code_width + 3  # the look-ups, the list's level and the place's
+        if self.form == "factors":  # the look-ups, the factors, and over an inverted file the coarse distance
+            return self.code_width + 4.0 + (3.0 * self.inner.d if self.ivf is not None else 0.0)
         return float(self.codes.shape[1]) if self.form != "vectors" else 3.0 * self.vectors.shape[1]
 
     @property
     def code_width(self) -> int:
         """Bytes of a place's code that the window scores look up in a frame's tables (a
         residual place's record also holds its list number and its term's level)."""
+        if self.form == "factors":
+            return rabitq.sign_bytes(self.inner.d)
         return self.subs.columns if self.form == "residual" else self.codes.shape[1]
+
+    @property
+    def _list_bytes(self) -> int:
+        """Bytes of a list number in a standalone code (none for a flat index)."""
+        return self.ivf.coarse_code_size() if self.ivf is not None else 0
+
+    @property
+    def records_on_disk(self) -> bool:
+        """Whether a stored encoding keeps this method's inverted lists on disk and its window
+        records beside them (an IVF index whose windows read records in place)."""
+        return self.ivf is not None and self.form in ("residual", "factors")
 
     def _transform(self, x: np.ndarray) -> np.ndarray:
         for t in self.chain:
@@ -345,9 +371,13 @@ class FaissCodes:
         if self.form == "residual":  # a record: the table indices, the list number, the term's level
             width = record_width(self.subs.columns, self.ivf.coarse_code_size())
             self._residual_tables()
+        elif self.form == "factors":
+            width = rabitq.record_width(self.inner.d, self._list_bytes)
+            self._centres()
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled, self._pending = 0, _NO_ROWS
         self._values = None
+        self._twin = _plain_twin(self.inner) if isinstance(self.inner, _FAST_SCAN) else None
 
     def _blocks(self, fn: Callable[[np.ndarray], Any], x: np.ndarray, rows: int = BLOCK_ROWS) -> list[Any]:
         """``fn`` of each block of ``rows`` rows of ``x``, on ``threads`` threads, in order."""
@@ -394,10 +424,12 @@ class FaissCodes:
 
         A fast-scan index cannot take standalone codes, and a graph's links depend on how its
         rows arrive: both are built from them all at :meth:`finish`."""
-        if not isinstance(self.inner, _FAST_SCAN) and not self.graph:
+        if isinstance(self.inner, _FAST_SCAN):
+            _add_standalone(self._twin, codes, self._filled)
+        elif not self.graph:
             self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
-        if self.form == "residual":
+        if self.form in ("residual", "factors"):
             codes = self.window_records(codes)
         elif self.form == "tables" and not self.nibbles:
             codes = self.subs.indices(codes)
@@ -407,7 +439,10 @@ class FaissCodes:
         """What the window scores read of residual IVF-PQ places, from their standalone codes
         (after :meth:`start`): their records (:func:`~vprscale.compared.codescore.place_records`),
         with the 8-bit level of each place's ``‖ρ‖² + 2⟨c_l, ρ⟩`` above its list's smallest
-        (:func:`~vprscale.compared.codescore.ref_scale`)."""
+        (:func:`~vprscale.compared.codescore.ref_scale`); of RaBitQ places, their
+        :func:`~vprscale.compared.rabitq.records`."""
+        if self.form == "factors":
+            return rabitq.records(codes, self.inner.d, self._list_bytes, self._code_centres)
         coarse = self.ivf.coarse_code_size()  # a standalone IVF code: the list number (little-endian), the PQ code
         lists = (codes[:, :coarse].astype(np.int64) << (8 * np.arange(coarse, dtype=np.int64))).sum(axis=1)
         sub = self.subs.indices(codes[:, coarse:])
@@ -424,6 +459,8 @@ class FaissCodes:
         self._values = None
         if self.form == "residual":
             self._residual_tables()
+        elif self.form == "factors":
+            self._centres()
 
     def finish(self) -> None:
         if len(self._pending):
@@ -453,10 +490,12 @@ class FaissCodes:
             _one_thread(self.inner.add, np.ascontiguousarray(rows[lo : lo + ENCODE_ROWS]))
 
     def _fast_scan_copy(self) -> None:
-        """The searched index of a fast-scan code (:func:`_fast_scan_of`); the transforms of
-        the chain, if any, go before it. The trained index stays as it was: it encodes and
+        """The searched index of a fast-scan code, built by FAISS's own constructor from the
+        plain twin that took its standalone codes (:meth:`add_codes`); the transforms of the
+        chain, if any, go before it. The trained index stays as it was: it encodes and
         transforms."""
-        fast = _fast_scan_of(self.inner, np.ascontiguousarray(self.codes))
+        fast = type(self.inner)(self._twin, self.inner.bbs)
+        self._twin = None  # the fast-scan copy holds the codes now
         if not self.chain:
             self.searched = fast
         else:
@@ -469,6 +508,15 @@ class FaissCodes:
     def searched_inner(self) -> Any:
         """The index the searches end in, after the transforms (for a fast-scan code, its copy holding the codes)."""
         return faiss.downcast_index(self.searched.index) if self.chain else self.searched
+
+    def _centres(self) -> None:
+        """What RaBitQ codes are relative to (float64, for their records): a flat index's
+        centre, or the coarse centroids of an inverted file (which the windows also read)."""
+        if self.ivf is None:
+            self._code_centres = faiss.vector_to_array(self.inner.center).astype(np.float64)[None, :]
+            return
+        self.centroids = np.ascontiguousarray(self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist), np.float32)
+        self._code_centres = self.centroids.astype(np.float64)
 
     def _residual_tables(self) -> None:
         """The coarse centroids, their largest squared norm and, per list ``l``, sub-quantiser ``m`` and code ``v``,
@@ -563,6 +611,11 @@ class FaissCodes:
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
             return FrameTerms(_POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], _NO_ROWS)
+        if self.form == "factors":  # a flat index's frames' distances to its centre in scale[:, 0]
+            centre_dist = ((y.astype(np.float64) - self._code_centres[0]) ** 2).sum(axis=1) if self.ivf is None else 0.0
+            scale = np.zeros((len(y), 4))
+            scale[:, 0] = centre_dist
+            return FrameTerms(rabitq.sign_tables(y), y, scale=scale)
         if self.form == "tables":
             tables = self.subs.frame_tables(y)
             return FrameTerms(_byte_tables(tables) if self.nibbles else tables, _NO_ROWS)
@@ -611,5 +664,6 @@ class FaissCodes:
               terms: FrameTerms, n_best: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """:func:`score_windows` of given candidates over this method's codes, in its form."""
         codes = self.codes if self.form != "vectors" else np.zeros((0, 1), np.uint8)
+        vectors = self.codes.view(np.float32) if self.form == "factors" else self.vectors
         return score_windows(positions, L, cand, first, n_r, self.n_ref, terms.tables, terms.levels, terms.scale,
-                             self.per_list, codes, terms.vectors, self.vectors, self.centroids, n_best)
+                             self.per_list, codes, terms.vectors, vectors, self.centroids, n_best)

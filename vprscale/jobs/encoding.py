@@ -145,7 +145,7 @@ def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, re
     with timings.stage(f"{factory}: encode {n_ref:,} references"):
         reduce_pass(work, f"encode {factory}", bounds, _EncodeChunk(read, str(partial_out.path), factory, dim),
                     lambda s, _: s, None, group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
-    if method.form == "residual":
+    if method.records_on_disk:
         with timings.stage(f"{factory}: inverted lists on disk and window records"):
             write_searched(partial_out.path, factory, dim, partial_out.done, partial_out.mark)
     record = provenance(inputs={"store_identity": identity, "factory": factory}, workers=workers)

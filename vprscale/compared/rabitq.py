@@ -1,0 +1,63 @@
+"""RaBitQ codes (Gao and Long, 2024) as tables: the estimator of the distance, a sum of byte look-ups.
+
+A 1-bit RaBitQ code of a row ``x`` near centre ``c`` (the data's mean for a flat index, the
+list's centroid over an inverted file) holds the signs ``s`` of ``x − c``, ``A = ‖x − c‖²``
+and a factor ``D``; FAISS estimates the distance from a query frame ``y`` as
+
+    max(0, A + ‖y − c‖² − 2 D ⟨s, y − c⟩ / √d)
+
+(its ``RaBitQDistanceComputerNotQ``; FAISS's search quantises the frame to ``qb`` bits first,
+for speed). ``⟨s, y⟩ / √d`` is a sum over the code's bytes of one 256-entry table each, the
+frame's (:func:`sign_tables`), and ``⟨s, c⟩`` does not depend on the frame, so a place's
+record keeps ``F = A + 2 D ⟨s, c⟩ / √d`` beside ``D``: a term is ``F + ‖y − c‖² − 2 D Σ_b
+T_b[byte_b]``, the frame's distance to the centre once per frame (flat) or to the place's
+list's centroid (inverted file). Only 1-bit codes: the extended bits of ``RaBitQ4`` and its
+kin enter the estimator through products of their own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FACTOR_BYTES = 8  # F and D, float32
+_SIGNS = np.where(np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1, bitorder="little"), 1.0, -1.0)
+
+
+def sign_bytes(dim: int) -> int:
+    """Bytes of a code's signs."""
+    return (dim + 7) // 8
+
+
+def record_width(dim: int, list_bytes: int) -> int:
+    """Bytes of a place's record: its signs, its list number (inverted file), zeros up to a
+    multiple of 4, then ``F`` and ``D`` (float32, read through a float32 view of the records)."""
+    head = sign_bytes(dim) + list_bytes
+    return -(-head // 4) * 4 + FACTOR_BYTES
+
+
+def sign_tables(y: np.ndarray) -> np.ndarray:
+    """Each frame's byte tables ``T_b[v] = Σ_i s_i(v) y[8b + i] / √d`` with ``s_i(v) = ±1`` the
+    ``i``-th bit of ``v`` (least significant first, as FAISS packs them): (frames, bytes, 256)."""
+    n, dim = y.shape
+    padded = np.zeros((n, sign_bytes(dim) * 8), np.float64)
+    padded[:, :dim] = y
+    parts = padded.reshape(n, -1, 8)
+    return (np.einsum("nbi,vi->nbv", parts, _SIGNS) / np.sqrt(dim)).astype(np.float32)
+
+
+def records(codes: np.ndarray, dim: int, list_bytes: int, centres: np.ndarray) -> np.ndarray:
+    """Places' records from their standalone codes (an inverted file's: the list number's
+    little-endian bytes first) and the centres their codes are relative to (``centres[l]``
+    for list ``l``; one row for a flat index)."""
+    nb = sign_bytes(dim)
+    lists = (codes[:, :list_bytes].astype(np.int64) << (8 * np.arange(list_bytes, dtype=np.int64))).sum(axis=1)
+    signs = codes[:, list_bytes : list_bytes + nb]
+    factors = codes[:, list_bytes + nb : list_bytes + nb + FACTOR_BYTES].copy().view(np.float32).astype(np.float64)
+    s = np.where(np.unpackbits(signs, axis=1, bitorder="little")[:, :dim], 1.0, -1.0)
+    e = (s * centres[lists]).sum(axis=1) / np.sqrt(dim)
+    out = np.zeros((len(codes), record_width(dim, list_bytes)), np.uint8)
+    out[:, :nb] = signs
+    out[:, nb : nb + list_bytes] = codes[:, :list_bytes]
+    fd = np.stack([factors[:, 0] + 2 * factors[:, 1] * e, factors[:, 1]], axis=1).astype(np.float32)
+    out[:, -FACTOR_BYTES:] = fd.view(np.uint8)
+    return out
