@@ -13,7 +13,8 @@ import pytest
 from vprscale.cli import main
 from vprscale.compared.encoding import LISTS, SEARCHED, WINDOW, encoding_dir
 
-FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4"]  # 8-bit, 4-bit fast-scan and residual codes
+# 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records
+FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ"]
 
 
 @pytest.fixture
@@ -35,7 +36,8 @@ def _codes(store: Path) -> dict[str, bytes]:
 def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path, monkeypatch, capfd):
     """An evaluation reading the stored encodings gives the answers, scores included, of one
     that encodes in its own process (IVF-PQ's searched on on-disk inverted lists merged from
-    several shards, its window records memory-mapped); and it says which it did. FAISS's
+    several shards, its window records memory-mapped; IVF-RQ's and IVF-RaBitQ's likewise); and it
+    says which it did. FAISS's
     bookkeeping of its on-disk lists stays out of the commands' output."""
     import ctypes
 
@@ -49,8 +51,9 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
     for f in FACTORIES:
         meta = json.loads((encoding_dir(store, f) / "encoding.json").read_text())
         assert meta["factory"] == f and meta["n_ref"] == 52_500 and "commit" in json.dumps(meta["provenance"])
-    ivf = {p.name for p in encoding_dir(store, "IVF32,PQ4").iterdir()}
-    assert {SEARCHED, LISTS, WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
+    for f in ("IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ"):
+        ivf = {p.name for p in encoding_dir(store, f).iterdir()}
+        assert {SEARCHED, LISTS, WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
     assert SEARCHED not in {p.name for p in encoding_dir(store, "PQ4").iterdir()}  # flat codes load in memory
     assert main([*argv, "--out", str(tmp_path / "stored")]) == 0
     ctypes.CDLL(None).fflush(None)  # whatever C's stdio still buffers, into the captured output
