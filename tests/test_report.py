@@ -93,10 +93,11 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 @pytest.fixture(scope="module")
 def two_noise_report(tiny_store, tiny_index, tmp_path_factory):
-    """A report of CoarseHash, the baseline and one FAISS code on both noise levels."""
+    """A report of CoarseHash, the baseline and one FAISS code on both noise levels, with radii
+    in metres on the FAS part (the recipe's store keeps its poses)."""
     tmp = tmp_path_factory.mktemp("html")
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1,qm2",
-                 "--compare", "PQ4", "--repeats", "1", "--out", str(tmp / "e")]) == 0
+                 "--compare", "PQ4", "--repeats", "1", "--radius-m", "5,25", "--out", str(tmp / "e")]) == 0
     assert main(["report", str(tmp / "e"), "--out", str(tmp / "r")]) == 0
     return tmp / "e", tmp / "r"
 
@@ -114,12 +115,13 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     no error in
     the page or its console, every figure drawn (Plotly's points in the page, and pixels of
     the methods' colours in a screenshot), each figure's table holding points of both noise
-    levels, and the embedded rows the results' rows over all queries."""
+    levels, and the embedded rows the results' rows over all queries; the figure in metres from
+    the rows in metres."""
     import json as _json
 
     from PIL import Image
 
-    from vprscale.evaluation.htmlreport import FIGURES
+    from vprscale.evaluation.htmlreport import FIGURES, METRES_FIGURE
 
     evaluation, report = two_noise_report
     page = report / "report.html"
@@ -128,7 +130,7 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     assert ":CONSOLE" not in loaded.stderr, loaded.stderr
     dom = loaded.stdout
     assert 'data-drawn="yes"' in dom and '<pre id="page-errors" hidden=""></pre>' in dom
-    for fig, *_ in FIGURES:
+    for fig, *_ in (*FIGURES, METRES_FIGURE):
         block = dom.split(f'id="{fig}"', 1)[1].split('class="figure"', 1)[0]
         assert int(re.search(r'data-points="(\d+)"', block).group(1)) > 0
         assert block.count('class="point"') > 0  # Plotly drew the points
@@ -137,6 +139,9 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     rows = _json.loads(text.split('<script id="rows" type="application/json">', 1)[1].split("</script>", 1)[0])
     res = pd.read_parquet(evaluation / "results.parquet")
     assert len(rows) == int((res.part == "all").sum()) and {r["noise"] for r in rows} == {"qm1", "qm2"}
+    rows_m = _json.loads(text.split('<script id="rows-m" type="application/json">', 1)[1].split("</script>", 1)[0])
+    res_m = pd.read_parquet(evaluation / "results_m.parquet")
+    assert len(rows_m) == len(res_m) > 0 and {r["radius_m"] for r in rows_m} == {5, 25}
     _chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri())
     shot = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB")).reshape(-1, 3).astype(int)
     colours = _json.loads(re.search(r"var COLOURS = (\{.*?\}), SYMBOLS", text).group(1))

@@ -7,7 +7,9 @@ browser:
 
 - recall against queries per second per core, against bytes per place, and against the
   localisation radius, every point hoverable (method, parameters, mode, L, scale, noise,
-  recall with its 95 % interval, µs per query, bytes per place, queries);
+  recall with its 95 % interval, µs per query, bytes per place, queries); where evaluations
+  counted radii in metres (``eval --radius-m``), recall against the radius in metres too, per
+  part with positions;
 - filters by scale, noise level, L, mode and method, and the recall radius the first two
   figures read (every noise level is there: none is left out);
 - under each figure the table it draws, and a button that downloads it as CSV (the rows the
@@ -42,16 +44,20 @@ SYMBOLS = {"aligned": "triangle-up", "paper": "circle", "single": "square"}  # t
 FIGURES = (("fig-qps", "Recall against queries per second per core", "qps_per_core", "queries per second per core"),
            ("fig-bytes", "Recall against bytes per place", "bytes_per_place", "bytes per place"),
            ("fig-radius", "Recall against the localisation radius", "radius", "radius (frames)"))
+# Drawn from the rows in metres, when there are any
+METRES_FIGURE = ("fig-metres", "Recall against the radius in metres (parts with positions)", "radius_m", "radius (m)")
+METRES_COLUMNS = (*COLUMNS[: COLUMNS.index("radius")], "part", "radius_m", *COLUMNS[COLUMNS.index("radius") + 1 :])
 
 
-def page_rows(res: pd.DataFrame) -> pd.DataFrame:
-    """The rows the page draws: every method's recall over all queries at every radius."""
-    rows = with_family(res[res.part == "all"])
+def page_rows(res: pd.DataFrame, columns: tuple[str, ...] = COLUMNS) -> pd.DataFrame:
+    """The rows the page draws: every method's recall over all queries at every radius (rows in
+    metres: over each part with positions, ``columns`` ``METRES_COLUMNS``)."""
+    rows = with_family(res[res.part == "all"] if "radius" in columns else res)
     rows["method"] = [method_and_mode(f)[0] for f in rows.family]  # CoarseHash one method at every width
     for missing in {"bytes_per_place", "us_per_query"} - set(rows.columns):  # results of a vprscale before 0.3
         rows[missing] = np.nan
     rows["qps_per_core"] = 1e6 / rows.us_per_query.clip(lower=1e-9)
-    return rows[[c for c in COLUMNS if c in rows.columns]].reset_index(drop=True)
+    return rows[[c for c in columns if c in rows.columns]].reset_index(drop=True)
 
 
 def _json(rows: pd.DataFrame) -> str:
@@ -62,19 +68,24 @@ def _json(rows: pd.DataFrame) -> str:
     return json.dumps(records, separators=(",", ":")).replace("</", "<\\/")
 
 
-def write_html(res: pd.DataFrame, provenance_lines: list[str], title: str, out: Path) -> Path:
-    """Write ``out/report.html`` from the results ``res`` and the report's provenance lines."""
+def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[str], title: str, out: Path) -> Path:
+    """Write ``out/report.html`` from the results ``res``, the rows in metres ``metres`` (empty
+    when no evaluation counted them) and the report's provenance lines."""
     from plotly.offline import get_plotlyjs
 
     here = resources.files(__package__)
     template, script = (here / PAGE).read_text("utf-8"), (here / SCRIPT).read_text("utf-8")
     rows = page_rows(res)
-    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in family_colours(list(rows.family.unique())).items()}
+    rows_m = page_rows(metres, METRES_COLUMNS) if len(metres) else rows.iloc[:0]
+    figures = FIGURES + ((METRES_FIGURE,) if len(rows_m) else ())
+    families = list(dict.fromkeys([*rows.family, *rows_m.family]))
+    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in family_colours(families).items()}
     provenance = "".join(f"<li>{html.escape(line.removeprefix('- '))}</li>" for line in provenance_lines
                          if line.startswith("- "))
     script = (script.replace("@COLOURS@", json.dumps(colours)).replace("@SYMBOLS@", json.dumps(SYMBOLS))
-              .replace("@FIGURES@", json.dumps(FIGURES)))
+              .replace("@FIGURES@", json.dumps(figures)))
     values = {"TITLE": html.escape(title), "PROVENANCE": provenance, "SCRIPT": script, "ROWS": _json(rows),
+              "ROWSM": _json(rows_m),
               "PLOTLY": get_plotlyjs().replace("</script", "<\\/script")}
     page = re.sub(r"@([A-Z]+)@", lambda m: values[m.group(1)], template)  # one pass: inserted text is not rescanned
     path = out / "report.html"

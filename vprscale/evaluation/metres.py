@@ -18,10 +18,10 @@ def load_metres(runs: list[str]) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def metres_section(runs: list[str], scales: list[str], table) -> list[str]:
+def metres_section(res: pd.DataFrame, scales: list[str], table) -> list[str]:
     """The section: per scale, noise, L and method, the recall and Recall@N within each radius in
-    metres, for every part with positions; empty when no evaluation has them."""
-    res = load_metres(runs)
+    metres (the evaluations' rows, :func:`load_metres`), for every part with positions; empty
+    when no evaluation has them."""
     if res.empty:
         return []
     order = {s: i for i, s in enumerate(scales)}

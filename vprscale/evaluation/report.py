@@ -26,7 +26,7 @@ from vprscale.core.publish import check_writable, exclusive, keep_beside  # noqa
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
-from vprscale.evaluation.metres import metres_section  # noqa: E402
+from vprscale.evaluation.metres import load_metres, metres_section  # noqa: E402
 from vprscale.evaluation.operating import operating_section
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import eval_folder, main_noise, noise_order  # noqa: E402
@@ -363,10 +363,11 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     compared = compare_section(res, scales, out, save, _md_table)
     compared += operating_section(res, scales, _md_table)
     compared += pr_section(res, list(dict.fromkeys(res.run)), scales, out, save, _md_table)
-    compared += metres_section(list(dict.fromkeys(res.run)), scales, _md_table)
+    metres = load_metres(list(dict.fromkeys(res.run)))
+    compared += metres_section(metres, scales, _md_table)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_balance, compared)
     (out / "report.md").write_text(text)
-    write_html(res, _provenance_block(evals), REPORT_TITLE.removeprefix("# "), out)
+    write_html(res, metres, _provenance_block(evals), REPORT_TITLE.removeprefix("# "), out)
     small = res[res.radius.isin([0, 5, 10, 20])].drop(columns=["store", "index"], errors="ignore")
     small.to_csv(out / "recall_table.csv", index=False)
     return {"report": str(out / "report.md"), "figures": figures}

@@ -1,11 +1,13 @@
 (function () {
   var ROWS = JSON.parse(document.getElementById("rows").textContent);
+  var ROWS_M = JSON.parse(document.getElementById("rows-m").textContent);  // radii in metres (parts with positions)
   var COLOURS = @COLOURS@, SYMBOLS = @SYMBOLS@;
   var FIGURES = @FIGURES@;
   var FILTERS = [["scale", "scale"], ["noise", "noise"], ["L", "L"], ["mode", "mode"], ["method", "method"],
                  ["radius", "radius (first two figures)"]];
   var TABLE = ["scale", "noise", "L", "family", "params", "radius", "recall", "recall_lo", "recall_hi",
                "bytes_per_place", "us_per_query", "qps_per_core", "n_queries"];
+  var TABLE_M = TABLE.slice(0, 5).concat(["part", "radius_m"], TABLE.slice(6));
 
   function values(key) {
     var seen = [];
@@ -35,12 +37,13 @@
   function pct(v) { return v === null ? "–" : (100 * v).toFixed(1); }
   function hover(r) {
     return r.family + (r.params ? " " + r.params : "") + "<br>" + r.scale + ", " + String(r.noise).toUpperCase() +
-      ", L = " + r.L + ", radius " + r.radius + "<br>recall " + pct(r.recall) + " % (" + pct(r.recall_lo) + "–" +
+      ", L = " + r.L + (r.radius_m === undefined ? ", radius " + r.radius : ", " + r.part + ", within " + r.radius_m + " m") +
+      "<br>recall " + pct(r.recall) + " % (" + pct(r.recall_lo) + "–" +
       pct(r.recall_hi) + ")<br>" + (r.us_per_query === null ? "–" : r.us_per_query.toFixed(2)) + " µs/query, " +
       (r.bytes_per_place === null ? "–" : r.bytes_per_place.toFixed(2)) + " B/place, " + r.n_queries + " queries";
   }
   function csv(rows) {
-    var cols = Object.keys(ROWS[0] || {});
+    var cols = Object.keys(rows[0] || ROWS[0] || {});
     var quote = function (v) { v = v === null ? "" : String(v); return /[",\n]/.test(v) ? '"' + v.replace(/"/g, '""') + '"' : v; };
     return [cols.join(",")].concat(rows.map(function (r) { return cols.map(function (c) { return quote(r[c]); }).join(","); })).join("\n") + "\n";
   }
@@ -63,10 +66,10 @@
   });
   document.getElementById("download-all").addEventListener("click", function () { download("recall_rows.csv", ROWS); });
 
-  function table(id, rows) {
-    var tab = document.getElementById(id + "-table"), head = "<tr>" + TABLE.map(function (c) { return "<th>" + c + "</th>"; }).join("") + "</tr>";
+  function table(id, rows, cols) {
+    var tab = document.getElementById(id + "-table"), head = "<tr>" + cols.map(function (c) { return "<th>" + c + "</th>"; }).join("") + "</tr>";
     tab.innerHTML = head + rows.map(function (r) {
-      return '<tr data-noise="' + r.noise + '" data-family="' + r.family + '">' + TABLE.map(function (c) {
+      return '<tr data-noise="' + r.noise + '" data-family="' + r.family + '">' + cols.map(function (c) {
         var v = r[c]; return "<td>" + (v === null ? "–" : typeof v === "number" && !Number.isInteger(v) ? v.toPrecision(4) : v) + "</td>";
       }).join("") + "</tr>";
     }).join("");
@@ -74,7 +77,8 @@
   function traces(rows, x, lines) {
     var groups = {};
     rows.forEach(function (r) {
-      var key = r.family + (lines ? " " + (r.params || "") + " L=" + r.L + " " + r.scale + " " + r.noise : "");
+      var key = r.family + (lines ? " " + (r.params || "") + " L=" + r.L + " " + r.scale + " " + r.noise +
+                            (r.part ? " " + r.part : "") : "");
       (groups[key] = groups[key] || []).push(r);
     });
     return Object.keys(groups).map(function (key) {
@@ -90,17 +94,17 @@
   }
   function draw() {
     FIGURES.forEach(function (f) {
-      var radiusFigure = f[2] === "radius";
-      var rows = ROWS.filter(function (r) { return kept(r, !radiusFigure) && r[f[2]] !== null; });
+      var metres = f[2] === "radius_m", radiusFigure = f[2] === "radius" || metres;
+      var rows = (metres ? ROWS_M : ROWS).filter(function (r) { return kept(r, !radiusFigure) && r[f[2]] !== null; });
       drawn[f[0]] = rows;
       var layout = {margin: {t: 20}, hovermode: "closest", legend: {orientation: "h", y: -0.2},
-                    xaxis: {title: {text: f[3]}, type: radiusFigure ? "linear" : "log", dtick: radiusFigure ? 1 : undefined},
+                    xaxis: {title: {text: f[3]}, type: radiusFigure ? "linear" : "log", dtick: f[2] === "radius" ? 1 : undefined},
                     yaxis: {title: {text: "recall" + (radiusFigure ? "" : " within " + chosen("radius") + " frames") + " (%)"},
                             range: [0, 102]}};
       var drawnTraces = traces(rows, f[2], radiusFigure);
       layout.showlegend = drawnTraces.length <= 30;  // beyond, the legend would hide the plot: hover names each line
       Plotly.react(f[0], drawnTraces, layout, {responsive: true, displaylogo: false});
-      table(f[0], rows);
+      table(f[0], rows, metres ? TABLE_M : TABLE);
       document.getElementById(f[0]).dataset.points = String(rows.length);
     });
     document.body.dataset.drawn = "yes";
