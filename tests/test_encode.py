@@ -11,10 +11,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from vprscale.cli import main
-from vprscale.compared.encoding import LISTS, SEARCHED, WINDOW, encoding_dir
+from vprscale.compared.encoding import GRAPH, LISTS, SEARCHED, WINDOW, encoding_dir
 
-# 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records
-FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ"]
+# 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records; a graph
+FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ", "HNSW16"]
 
 
 @pytest.fixture
@@ -37,7 +37,7 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
     """An evaluation reading the stored encodings gives the answers, scores included, of one
     that encodes in its own process (IVF-PQ's searched on on-disk inverted lists merged from
     several shards, its window records memory-mapped; IVF-RQ's and IVF-RaBitQ's likewise); and it
-    says which it did. FAISS's
+    says which it did. A graph is stored linked. FAISS's
     bookkeeping of its on-disk lists stays out of the commands' output."""
     import ctypes
 
@@ -55,6 +55,7 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
         ivf = {p.name for p in encoding_dir(store, f).iterdir()}
         assert {SEARCHED, LISTS, WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
     assert SEARCHED not in {p.name for p in encoding_dir(store, "PQ4").iterdir()}  # flat codes load in memory
+    assert GRAPH in {p.name for p in encoding_dir(store, "HNSW16").iterdir()}  # the graph linked once, stored
     assert main([*argv, "--out", str(tmp_path / "stored")]) == 0
     ctypes.CDLL(None).fflush(None)  # whatever C's stdio still buffers, into the captured output
     printed = "".join(capfd.readouterr())

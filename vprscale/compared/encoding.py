@@ -17,6 +17,9 @@ only, not on a CoarseHash index:
   ``window_places.npy`` (per place its sub-quantiser indices, its list number and the 8-bit
   level of its query-independent distance term: 6 bytes for ``IVF4096,PQ3``), also
   memory-mapped;
+- for an HNSW graph, ``graph.faiss``: the graph linked from every row (linking takes a core a
+  quarter of an hour at 10M; an evaluation reads it instead), its rows being ``codes.npy``
+  (memory-mapped);
 - ``encoding.json``: the factory, the store's identity, the number of references and the
   training rows, with the provenance of the run.
 
@@ -48,7 +51,7 @@ from vprscale.core.manifest import check_manifest, remake
 ENCODING_FORMAT = 3
 LOAD_ROWS = 1 << 20  # codes added to the FAISS index (or turned into window records) at a time
 SHARD_ROWS = 1 << 26  # places in one in-memory shard of the inverted lists before the on-disk merge (0.7 GB)
-SEARCHED, LISTS = "searched.faiss", "lists.ivfdata"
+SEARCHED, LISTS, GRAPH = "searched.faiss", "lists.ivfdata", "graph.faiss"
 WINDOW = "window_places.npy"
 
 
@@ -159,14 +162,31 @@ def write_searched(out: Path, factory: str, dim: int, done: Callable[[str], bool
         mark("window")
 
 
+def write_graph(out: Path, factory: str, dim: int, progress: Callable[[int], None] | None = None) -> None:
+    """An HNSW encoding's linked graph, from the rows in ``codes.npy`` (what an evaluation
+    would link in its own process: the same blocks, on one thread)."""
+    stored = np.load(out / "codes.npy", mmap_mode="r")
+    codes = read_trained(out, factory, dim)
+    codes.start(len(stored))
+    for i in range(0, len(stored), LOAD_ROWS):
+        codes.add_codes(np.ascontiguousarray(stored[i : i + LOAD_ROWS]))
+    codes.finish(progress)
+    faiss.write_index(codes.index, str(out / f".{GRAPH}.tmp"))
+    (out / f".{GRAPH}.tmp").replace(out / GRAPH)
+
+
 def load_encoding(out: Path, codes: FaissCodes) -> None:
     """Give ``codes`` (a method not yet trained) the stored index and every reference's code:
     a residual IVF-PQ method its searched index on on-disk lists and its memory-mapped window
-    records (nothing read until searched), any other its trained index and codes in memory."""
+    records (nothing read until searched), a graph the linked graph and its memory-mapped rows,
+    any other its trained index and codes in memory."""
     if (out / SEARCHED).is_file():
         with _faiss_quiet():  # publishing renamed the directory FAISS wrote the lists' path into
             index = faiss.read_index(str(out / SEARCHED), faiss.IO_FLAG_ONDISK_SAME_DIR)
         codes.attach(index, np.load(out / WINDOW, mmap_mode="r"))
+        return
+    if (out / GRAPH).is_file():
+        codes.attach(faiss.read_index(str(out / GRAPH)), np.load(out / "codes.npy", mmap_mode="r"))
         return
     codes.bind(faiss.read_index(str(out / "trained.faiss")))
     stored = np.load(out / "codes.npy", mmap_mode="r")

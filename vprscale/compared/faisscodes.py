@@ -453,16 +453,23 @@ class FaissCodes:
 
     def attach(self, index: Any, records: np.ndarray) -> None:
         """Work on a populated IVF ``index`` (inverted lists on disk, say) and its places'
-        window records (:meth:`window_records`; memory-mapped, say), instead of adding codes."""
+        window records (:meth:`window_records`; memory-mapped, say), or a linked graph and its
+        rows' bytes (:meth:`encode_rows`), instead of adding codes."""
         self.bind(index)
         self.codes, self._filled = records, len(records)
         self._values = None
-        if self.form == "residual":
+        if self.graph:
+            self.vectors = self.codes.view(np.float32)
+        elif self.form == "residual":
             self._residual_tables()
         elif self.form == "factors":
             self._centres()
 
-    def finish(self) -> None:
+    def finish(self, progress: Callable[[int], None] | None = None) -> None:
+        """Encode the rows held back, then what needs every code: a fast-scan code's searched
+        copy, a graph's links and decoded vectors. ``progress`` is called with each block of
+        ``ENCODE_ROWS`` rows a graph links (the long part: a graph of 10M rows links on one
+        core for a quarter of an hour; :attr:`finish_blocks` of them)."""
         if len(self._pending):
             rows, self._pending = self._pending, _NO_ROWS
             self.add_codes(self.encode_rows(rows, self._filled))
@@ -471,7 +478,7 @@ class FaissCodes:
         if isinstance(self.inner, _FAST_SCAN):
             self._fast_scan_copy()
         if self.graph:
-            self._link()
+            self._link(progress)
         self.index.ntotal = self.inner.ntotal
         if self.graph:  # the rows themselves, as the graph holds them
             self.vectors = self.codes.view(np.float32)
@@ -480,7 +487,12 @@ class FaissCodes:
             for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])
 
-    def _link(self) -> None:
+    @property
+    def finish_blocks(self) -> int:
+        """The blocks :meth:`finish` reports (a graph's: those it links; none otherwise)."""
+        return -(-len(self.codes) // ENCODE_ROWS) if self.graph else 0
+
+    def _link(self, progress: Callable[[int], None] | None) -> None:
         """Build the graph from every row, on one FAISS thread, in blocks of ``ENCODE_ROWS``
         at fixed offsets: FAISS inserts a block's rows level by level, and its threads race
         for the links, so the same blocks on one thread give the same graph however the rows
@@ -488,6 +500,8 @@ class FaissCodes:
         rows = self.codes.view(np.float32)
         for lo in range(0, len(rows), ENCODE_ROWS):
             _one_thread(self.inner.add, np.ascontiguousarray(rows[lo : lo + ENCODE_ROWS]))
+            if progress is not None:
+                progress(1)
 
     def _fast_scan_copy(self) -> None:
         """The searched index of a fast-scan code, built by FAISS's own constructor from the

@@ -30,12 +30,19 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from vprscale.compared.encoding import describe, encoding_dir, read_trained, write_searched, write_trained
-from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.compared.encoding import (
+    describe,
+    encoding_dir,
+    read_trained,
+    write_graph,
+    write_searched,
+    write_trained,
+)
+from vprscale.compared.faisscodes import ENCODE_ROWS, FaissCodes, training_rows
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.passes import reduce_pass
-from vprscale.core.progress import Timings
+from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.dataset.references import reference_reader
@@ -148,6 +155,11 @@ def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, re
     if method.records_on_disk:
         with timings.stage(f"{factory}: inverted lists on disk and window records"):
             write_searched(partial_out.path, factory, dim, partial_out.done, partial_out.mark)
+    elif method.graph and not partial_out.done("graph"):
+        with timings.stage(f"{factory}: link the graph"):
+            bar = None if quiet else ChunkProgress(f"link {factory}", -(-n_ref // ENCODE_ROWS), unit="blocks")
+            write_graph(partial_out.path, factory, dim, bar.update if bar else None)
+        partial_out.mark("graph")
     record = provenance(inputs={"store_identity": identity, "factory": factory}, workers=workers)
     (partial_out.path / "encoding.json").write_text(json.dumps(describe(factory, identity, n_ref, len(rows), record),
                                                                indent=1))
