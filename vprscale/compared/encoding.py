@@ -17,8 +17,8 @@ only, not on a CoarseHash index:
   ``window_places.npy`` (per place its sub-quantiser indices, its list number and the 8-bit
   level of its query-independent distance term: 6 bytes for ``IVF4096,PQ3``), also
   memory-mapped;
-- for an HNSW graph, ``graph.faiss``: the graph linked from every row (linking takes a core a
-  quarter of an hour at 10M; an evaluation reads it instead), its rows being ``codes.npy``
+- for an HNSW graph, ``graph.faiss``: the graph linked from every row (linking takes a core about
+  half an hour at 10M; an evaluation reads it instead), its rows being ``codes.npy``
   (memory-mapped);
 - ``encoding.json``: the factory, the store's identity, the number of references and the
   training rows, with the provenance of the run.

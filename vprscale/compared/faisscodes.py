@@ -469,7 +469,7 @@ class FaissCodes:
         """Encode the rows held back, then what needs every code: a fast-scan code's searched
         copy, a graph's links and decoded vectors. ``progress`` is called with each block of
         ``ENCODE_ROWS`` rows a graph links (the long part: a graph of 10M rows links on one
-        core for a quarter of an hour; :attr:`finish_blocks` of them)."""
+        core for about half an hour; :attr:`finish_blocks` of them)."""
         if len(self._pending):
             rows, self._pending = self._pending, _NO_ROWS
             self.add_codes(self.encode_rows(rows, self._filled))
