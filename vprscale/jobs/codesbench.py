@@ -43,6 +43,7 @@ import zarr
 from vprscale.compared.faisscodes import FaissCodes, FrameTerms, training_rows
 from vprscale.compared.subtables import ProductTables
 from vprscale.core.errors import InputError
+from vprscale.core.progress import StepProgress
 from vprscale.dataset.store import open_complete_group, store_layout
 
 DEFAULT_FACTORIES = ("PQ3", "OPQ3,PQ3", "IVF1024,PQ3")
@@ -145,7 +146,9 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
              f"{'FAISS: distance comp.':>22} {'FAISS: scan':>22} {'ours/dist.':>10} {'ours/scan':>9} {'ours/PQ':>8}"]
     flat_pq: dict[int, float] = {}
     searches: list[str] = []
+    steps = StepProgress("bench codes", len(factories))  # a few minutes a code at 1M places (--quiet: silent)
     for factory in factories:
+        steps.step(f"{factory}: train, encode {n:,} references, time")
         codes = FaissCodes(factory, ref.shape[1], k=1)
         codes.train(ref[training_rows(n)])
         codes.start(n)
@@ -167,6 +170,7 @@ def bench_codes(store: str, factories: list[str], places: int | None, L: int, re
                      f"{ours[0] / theirs[0]:9.2f} {vs_pq}")
         if codes.enumerable:
             searches.append(_frame_search(codes, query, repeats))
+    steps.close()
     if searches:
         lines += ["", f"a frame's top-{FRAME_K}, CPU µs per frame, one thread, median (min–max) of {repeats}, "
                       f"{SEARCHED_FRAMES} query frames: FAISS's search (every code; what an evaluation times) "
