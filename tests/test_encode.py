@@ -14,7 +14,7 @@ from vprscale.cli import main
 from vprscale.compared.encoding import GRAPH, LISTS, SEARCHED, WINDOW, encoding_dir
 
 # 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records; a graph
-FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ", "HNSW16"]
+FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "PCA16,IVF32,RaBitQ", "HNSW16"]
 
 
 @pytest.fixture
@@ -51,7 +51,7 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
     for f in FACTORIES:
         meta = json.loads((encoding_dir(store, f) / "encoding.json").read_text())
         assert meta["factory"] == f and meta["n_ref"] == 52_500 and "commit" in json.dumps(meta["provenance"])
-    for f in ("IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ"):
+    for f in ("IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "PCA16,IVF32,RaBitQ"):
         ivf = {p.name for p in encoding_dir(store, f).iterdir()}
         assert {SEARCHED, LISTS, WINDOW} <= ivf and not any(name.startswith("shard") for name in ivf)
     assert SEARCHED not in {p.name for p in encoding_dir(store, "PQ4").iterdir()}  # flat codes load in memory
