@@ -288,7 +288,7 @@ def test_table_scores_equal_decoded_vector_scores(factory, form):
                                            ("IVF16,RQ3x8_Nqint8", "residual"),
                                            ("OPQ4,IVF16,PLSQ2x2x6_Nqint8", "residual"),
                                            ("RaBitQ", "factors"), ("IVF16,RaBitQ", "factors"),
-                                           ("PCA16,IVF16,RaBitQ", "factors")])
+                                           ("PCA16,IVF16,RaBitQ", "factors"), ("IVF1,RaBitQ", "factors")])
 def test_table_terms_are_faiss_own_distances(factory, form):
     """An additive quantiser that keeps its norm in the code is scored from tables, one per
     codebook and one for the norm's levels (over an inverted file: the frame's coarse distance,

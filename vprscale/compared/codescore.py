@@ -165,18 +165,13 @@ def _vector_dist(q: np.ndarray, p: np.int64, x: np.ndarray, r: np.int64) -> np.f
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _factors_dist(tables: np.ndarray, scale: np.ndarray, q: np.ndarray, centroids: np.ndarray,
-                  records: np.ndarray, factors: np.ndarray, p: np.int64, r: np.int64, width: int,
-                  list_bytes: int) -> np.float64:
+def _factors_dist(tables: np.ndarray, records: np.ndarray, factors: np.ndarray, p: np.int64, r: np.int64,
+                  width: int, centre_dist: np.float64) -> np.float64:
     """A RaBitQ term: the place's factors ``F, D`` (the last two of its record's float32
-    view), its signs' look-ups and the frame's distance to the code's centre."""
-    if centroids.shape[0] > 0:
-        g = _coarse_dist(q, p, centroids, _list_at(records, r, width, list_bytes))
-    else:
-        g = scale[p, 0]
+    view), its signs' look-ups and the frame's distance to the code's centre (``centre_dist``)."""
     f = factors.shape[1]
     dot = _table_dist(tables, p, records, r, width)
-    return max(0.0, np.float64(factors[r, f - 2]) + g - 2.0 * np.float64(factors[r, f - 1]) * dot)
+    return max(0.0, np.float64(factors[r, f - 2]) + centre_dist - 2.0 * np.float64(factors[r, f - 1]) * dot)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -208,13 +203,20 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
         p = t + i - half
         if by_tables and i + 1 < L:
             _prefetch_row(tables, p + 1)
+        # RaBitQ: the frame's distance to the code's centre, one per frame (flat) or per list, kept
+        # for the next candidate (half of a traverse's consecutive places share their list)
+        centre_list, centre_dist = -1, scale[p, 0] if by_factors else 0.0
         for j in range(m):
             r = cand[j] + i - half
             if r < 0 or r >= n_ref:  # a reference frame outside the map
                 outside[j] += 1
                 continue
             if by_factors:
-                dist = _factors_dist(tables, scale, q_vectors, centroids, codes, vectors, p, r, width, list_bytes)
+                if list_bytes > 0:
+                    lst = _list_at(codes, r, width, list_bytes)
+                    if lst != centre_list:
+                        centre_list, centre_dist = lst, _coarse_dist(q_vectors, p, centroids, lst)
+                dist = _factors_dist(tables, codes, vectors, p, r, width, centre_dist)
             elif by_tables:
                 dist = _table_dist(tables, p, codes, r, width)
             else:

@@ -625,8 +625,9 @@ class FaissCodes:
         if self.form == "hamming":
             q = self.inner.sa_encode(y)
             return FrameTerms(_POPCOUNT[q[:, :, None] ^ np.arange(256, dtype=np.uint8)[None, None, :]], _NO_ROWS)
-        if self.form == "factors":  # a flat index's frames' distances to its centre in scale[:, 0]
-            centre_dist = ((y.astype(np.float64) - self._code_centres[0]) ** 2).sum(axis=1) if self.ivf is None else 0.0
+        if self.form == "factors":  # one centre (a flat index's, an IVF's single list): its distances in scale[:, 0]
+            one = self._list_bytes == 0
+            centre_dist = ((y.astype(np.float64) - self._code_centres[0]) ** 2).sum(axis=1) if one else 0.0
             scale = np.zeros((len(y), 4))
             scale[:, 0] = centre_dist
             return FrameTerms(rabitq.sign_tables(y), y, scale=scale)
