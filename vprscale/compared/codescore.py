@@ -60,6 +60,12 @@ def place_records(sub: np.ndarray, list_bytes: np.ndarray, level: np.ndarray) ->
     return np.concatenate([sub, list_bytes, level[:, None].astype(np.uint8)], axis=1)
 
 
+def list_numbers(codes: np.ndarray, list_bytes: int) -> np.ndarray:
+    """The list numbers of standalone IVF codes: their first ``list_bytes`` bytes, little-endian
+    (FAISS's ``coarse_code_size``; none for a flat index: list 0)."""
+    return (codes[:, :list_bytes].astype(np.int64) << (8 * np.arange(list_bytes, dtype=np.int64))).sum(axis=1)
+
+
 def record_width(code_width: int, list_bytes: int) -> int:
     """Bytes of a :func:`place_records` record."""
     return code_width + list_bytes + REF_LEVEL_BYTES

@@ -28,6 +28,7 @@ from vprscale.compared import codesearch, rabitq, subtables
 from vprscale.compared.codescore import (
     REF_LEVEL_BYTES,
     coarse_levels,
+    list_numbers,
     place_records,
     record_width,
     ref_scale,
@@ -444,7 +445,7 @@ class FaissCodes:
         if self.form == "factors":
             return rabitq.records(codes, self.inner.d, self._list_bytes, self._code_centres)
         coarse = self.ivf.coarse_code_size()  # a standalone IVF code: the list number (little-endian), the PQ code
-        lists = (codes[:, :coarse].astype(np.int64) << (8 * np.arange(coarse, dtype=np.int64))).sum(axis=1)
+        lists = list_numbers(codes, coarse)
         sub = self.subs.indices(codes[:, coarse:])
         terms = np.asarray(sum(self.per_list[lists, m, sub[:, m]] for m in range(sub.shape[1])), np.float32)
         rise = (terms - self.ref_base[lists]) / (self.ref_step or 1.0)

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vprscale.compared.codescore import list_numbers
+
 FACTOR_BYTES = 8  # F and D, float32
 _SIGNS = np.where(np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1, bitorder="little"), 1.0, -1.0)
 
@@ -50,7 +52,7 @@ def records(codes: np.ndarray, dim: int, list_bytes: int, centres: np.ndarray) -
     little-endian bytes first) and the centres their codes are relative to (``centres[l]``
     for list ``l``; one row for a flat index)."""
     nb = sign_bytes(dim)
-    lists = (codes[:, :list_bytes].astype(np.int64) << (8 * np.arange(list_bytes, dtype=np.int64))).sum(axis=1)
+    lists = list_numbers(codes, list_bytes)
     signs = codes[:, list_bytes : list_bytes + nb]
     factors = codes[:, list_bytes + nb : list_bytes + nb + FACTOR_BYTES].copy().view(np.float32).astype(np.float64)
     s = np.where(np.unpackbits(signs, axis=1, bitorder="little")[:, :dim], 1.0, -1.0)
