@@ -327,6 +327,35 @@ def test_table_terms_are_faiss_own_distances(factory, form):
     np.testing.assert_allclose(window, sum(singles), rtol=1e-9)
 
 
+@pytest.mark.parametrize("factory, form", [("IVF16,PQ8x4fsr", "residual"), ("IVF16,PQ8x4fs", "tables")])
+def test_ivf_fast_scan_pq_is_scored_from_tables(factory, form):
+    """FAISS's IVF fast-scan PQ searches 8-bit quantised tables, but its codes are an IVF-PQ's
+    (of the residuals, ``…fsr``, or of the rows, ``…fs``): the windows read them from tables,
+    as residual records or as product codes with the list number aside (FAISS cannot decode
+    them: its ``sa_decode`` crashes), each term the exact ``‖y − x̂‖²`` of the place FAISS's
+    search returned."""
+    rng = np.random.default_rng(5)
+    ref = rng.standard_normal((4000, 32)).astype(np.float32)
+    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.3
+    codes = FaissCodes(factory, 32, k=8, nprobe=16)
+    codes.train(ref)
+    codes.start(len(ref))
+    codes.encode(ref)
+    codes.finish()
+    assert codes.form == form and not codes.records_on_disk
+    plain = faiss.IndexIVFPQ(codes.inner.quantizer, 32, 16, 8, 4)
+    plain.pq, plain.by_residual, plain.is_trained = codes.inner.pq, codes.inner.by_residual, True
+    decoded = plain.sa_decode(codes.inner.sa_encode(ref))
+    _, ids = codes.search(query)
+    assert (ids >= 0).all()
+    terms = codes.frame_terms(query)
+    cand = ids.reshape(-1)
+    centres = np.repeat(np.arange(len(query)), ids.shape[1])
+    top, scores = codes.score(centres, 1, cand, np.arange(len(cand)), np.ones(len(cand), np.int64), terms)
+    np.testing.assert_array_equal(top[:, 0], cand)
+    exact = ((np.repeat(query, ids.shape[1], axis=0).astype(np.float64) - decoded[cand]) ** 2).sum(axis=1)
+    np.testing.assert_allclose(scores[:, 0], exact, rtol=1e-5, atol=1e-4)
+
 @pytest.mark.parametrize("factory", ["RQ3x8", "IVF16,RQ2x8_Nfloat", "LSQ2x8_Nfloat", "RaBitQ4"])
 def test_codes_without_tables_are_decoded(factory):
     """An additive quantiser without its norm in the code (FAISS decodes it to search) or with
@@ -574,7 +603,8 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     additive quantisers (LSQ's codes depend on the rows encoded together: encoded in blocks
     at fixed offsets) and HNSW graphs (linked in such blocks on one thread), given their
     references in uneven chunks, answer as FAISS's own index built by ``add``, and their
-    decoded vectors (a graph's: its rows; RaBitQ's: its records) are what the window scores read."""
+    decoded vectors (a graph's: its rows; RaBitQ's: its records; an IVF fast-scan PQ's: its
+    indices) are what the window scores read."""
     rng = np.random.default_rng(3)
     ref = rng.standard_normal((9000, 16)).astype(np.float32)
     query = ref[::50] + 0.2 * rng.standard_normal((180, 16)).astype(np.float32)
@@ -600,6 +630,8 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     elif codes.form == "factors":  # RaBitQ's records: signs, list number, two float32 factors
         assert codes.codes.shape == (len(ref), rabitq.record_width(16, codes.inner.sa_code_size() - 10))
         assert codes.vectors.shape == (0, 0)
+    elif codes.form == "tables":  # an IVF fast-scan PQ of the rows: its indices, the list number aside
+        assert codes.codes.shape == (len(ref), codes.inner.pq.M) and codes.vectors.shape == (0, 0)
     else:
         assert codes.vectors.shape == (len(ref), codes.inner.d)
 

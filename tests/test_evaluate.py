@@ -257,13 +257,50 @@ def test_runner_times_fewer_frames_when_each_costs_much(monkeypatch):
         def localise(self, state, pos, L, mode, n_best=1):
             raise AssertionError("not called")
 
-    monkeypatch.setattr(runner, "FRAME_SECONDS", 0.1)
+    monkeypatch.setattr(runner, "TIMED_SECONDS", 0.1)
     for ms, low, high in ((2.0, 25, 100), (50.0, 16, 16)):
         alg = Costly(ms)
         _, cost = runner.Runner(workers=1, repeats=2).frames(alg, np.zeros((1000, 4), np.float32))
         assert low <= cost.frames <= high and alg.sizes[-2:] == [cost.frames] * 2
         assert all(c >= ms * 1e3 * 0.9 for c in cost.cpu_us)
 
+
+
+def test_runner_times_fewer_centres_when_each_costs_much(monkeypatch):
+    """The match timed as the frames are: centres of 2 ms of CPU each (the baseline's scan of
+    every place), a budget of 0.1 s a repeat: about 50 centres timed, not 1,024; cheap centres
+    are all timed up to 1,024; a centre of 50 ms still gets the floor of 16."""
+    import time
+
+    from vprscale.evaluation import runner
+    from vprscale.evaluation.algorithms.base import Algorithm, Answer
+
+    class Costly(Algorithm):
+        name, bytes_per_place = "costly", 1.0
+
+        def __init__(self, ms: float) -> None:
+            self.ms, self.sizes = ms, []
+
+        def columns(self) -> dict:
+            return {}
+
+        def frames(self, rows: np.ndarray) -> None:
+            return None
+
+        def localise(self, state, pos, L, mode, n_best=1):
+            self.sizes.append(len(pos))
+            end = time.thread_time() + self.ms * 1e-3 * len(pos) * (n_best == 1)  # the answers' call: free
+            while time.thread_time() < end:
+                pass
+            return Answer(np.zeros((len(pos), n_best), np.int64), np.zeros(len(pos)), np.ones(len(pos)), 1.0)
+
+    monkeypatch.setattr(runner, "TIMED_SECONDS", 0.1)
+    frame = runner.FrameCost([0.0, 0.0], 0.0, 1)
+    for ms, low, high in ((2.0, 25, 100), (1e-4, 1024, 1024), (50.0, 16, 16)):
+        alg = Costly(ms)
+        _, timing = runner.Runner(workers=1, repeats=2).localise(alg, None, np.arange(5000), 5, "paper", frame)
+        assert low <= timing.timed_queries <= high and alg.sizes[-2:] == [timing.timed_queries] * 2
+        assert timing.us_per_match >= ms * 1e3 * 0.9
 
 def test_the_fas_part_is_evaluated_in_metres_from_fas100k_poses(tiny_store, tiny_index, sources, tmp_path):
     """A recipe's store keeps the FAS part's positions (the npz's arr_3, arr_4 for the rows it kept);

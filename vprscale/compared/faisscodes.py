@@ -143,9 +143,11 @@ def _form(inner: Any) -> str:
         return "factors" if not isinstance(inner, faiss.IndexIVF) or inner.by_residual else "vectors"
     if not subtables.has_tables(inner):
         return "vectors"
-    if isinstance(inner, faiss.IndexIVF):
-        return "residual" if inner.by_residual and inner.metric_type == faiss.METRIC_L2 else "vectors"
-    return "tables"
+    if isinstance(inner, faiss.IndexIVF) and inner.metric_type != faiss.METRIC_L2:
+        return "vectors"
+    if isinstance(inner, faiss.IndexIVF) and inner.by_residual:
+        return "residual"
+    return "tables"  # flat, or an inverted file of the rows' own codes (``IVF…,PQ…fs``): the list number aside
 
 
 def _byte_tables(tables: np.ndarray) -> np.ndarray:
@@ -353,8 +355,9 @@ class FaissCodes:
     @property
     def records_on_disk(self) -> bool:
         """Whether a stored encoding keeps this method's inverted lists on disk and its window
-        records beside them (an IVF index whose windows read records in place)."""
-        return self.ivf is not None and self.form in ("residual", "factors")
+        records beside them (an IVF index whose windows read records in place; not a fast-scan
+        one, whose lists FAISS lays out in blocks in memory, built from the stored codes)."""
+        return self.ivf is not None and self.form in ("residual", "factors") and not isinstance(self.inner, _FAST_SCAN)
 
     def _transform(self, x: np.ndarray) -> np.ndarray:
         for t in self.chain:
@@ -433,7 +436,7 @@ class FaissCodes:
         if self.form in ("residual", "factors"):
             codes = self.window_records(codes)
         elif self.form == "tables" and not self.nibbles:
-            codes = self.subs.indices(codes)
+            codes = self.subs.indices(codes[:, self._list_bytes :])
         self.codes[lo : self._filled] = codes
 
     def window_records(self, codes: np.ndarray) -> np.ndarray:

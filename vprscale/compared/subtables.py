@@ -174,9 +174,12 @@ def _pad(rows: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([rows, np.repeat(rows[:1], n - len(rows), axis=0)]) if len(rows) < n else rows
 
 
+_PRODUCT = (faiss.IndexPQ, faiss.IndexPQFastScan, faiss.IndexIVFPQ, faiss.IndexIVFPQFastScan)
+
+
 def has_tables(inner: Any) -> bool:
     """Whether a FAISS index's codes (flat or IVF; trained or not) have a tables view."""
-    if isinstance(inner, (faiss.IndexPQ, faiss.IndexPQFastScan, faiss.IndexIVFPQ)):
+    if isinstance(inner, _PRODUCT):
         return inner.pq.nbits <= MAX_INDEX_BITS
     return (isinstance(inner, (faiss.IndexAdditiveQuantizer, faiss.IndexIVFAdditiveQuantizer))
             and AdditiveTables.supports(inner.aq))
@@ -184,6 +187,6 @@ def has_tables(inner: Any) -> bool:
 
 def tables_of(inner: Any) -> ProductTables | AdditiveTables:
     """The tables view of a trained FAISS index's codes (:func:`has_tables`)."""
-    if isinstance(inner, (faiss.IndexPQ, faiss.IndexPQFastScan, faiss.IndexIVFPQ)):
+    if isinstance(inner, _PRODUCT):
         return ProductTables(inner.pq)
     return AdditiveTables(inner.aq, inner.aq.d)

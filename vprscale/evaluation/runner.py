@@ -7,9 +7,9 @@ Two figures come out of each call (docs/accounting.md, "How times are measured")
   one new frame and its match in a sliding deployment). CPU time of one thread does not
   move with ``--workers`` or with other load on the machine, as wall time does. It is
   measured ``repeats`` times on an evenly spaced sample of at most ``TIMED_QUERIES`` centres
-  (for the per-frame work at most ``TIMED_FRAMES`` frames, and when a frame costs much —
-  a flat scan — as many as fit in ``FRAME_SECONDS`` of CPU, at least ``MIN_TIMED_FRAMES``;
-  ``timed_frames`` says how many) and reported as the median with the smallest and largest
+  and ``TIMED_FRAMES`` frames, and when each costs much — a flat scan, the baseline's scan
+  of every place — as many as fit in ``TIMED_SECONDS`` of CPU, at least ``MIN_TIMED``
+  (``timed_queries`` and ``timed_frames`` say how many), and reported as the median with the smallest and largest
   (``us_per_query_lo``, ``us_per_query_hi``). ``us_per_match`` is the median of the match
   alone (the window scores, without the per-frame work): where a frame costs thousands of
   times a match (a flat scan), ``us_per_query − us_per_frame`` is a small difference of two
@@ -43,11 +43,12 @@ from vprscale.method.kernels import N_BEST
 
 TIMED_QUERIES = 1024  # centres a timing repeat localises (evenly spaced; all when there are fewer)
 TIMED_FRAMES = 256  # frames a timing repeat works on, at most
-# Fewer frames when each costs much (FAISS's flat scans: 30-60 ms a frame at 10M, 10x that at 100M):
-# as many as fit in FRAME_SECONDS of CPU a repeat, at least MIN_TIMED_FRAMES, judged from PROBE_FRAMES
-FRAME_SECONDS = 1.0
-MIN_TIMED_FRAMES = 16
-PROBE_FRAMES = 8
+# Fewer when each costs much (FAISS's flat scans: 30-60 ms a frame at 10M, 10x that at 100M; the
+# baseline's scan, 15 ms a centre at 10M): as many as fit in TIMED_SECONDS of CPU a repeat, at least
+# MIN_TIMED, judged from PROBED of them
+TIMED_SECONDS = 1.0
+MIN_TIMED = 16
+PROBED = 8
 DEFAULT_REPEATS = 3
 # The results columns that measure the machine rather than the method's answers: everything
 # else in an evaluation's tables is the same bytes for the same inputs, whatever the workers.
@@ -96,6 +97,15 @@ def _cpu_us(fn: Callable[[], Any], n: int) -> float:
     return (time.thread_time() - t0) / max(1, n) * 1e6
 
 
+def _timed(n: int, limit: int, cost_us: Callable[[np.ndarray], float]) -> np.ndarray:
+    """Positions of ``n`` items a timing repeat works on: evenly spaced, at most ``limit``, as
+    many as fit in ``TIMED_SECONDS`` of CPU at ``cost_us`` (CPU µs an item of the positions
+    given, probed on ``PROBED`` of them), at least ``MIN_TIMED``."""
+    probe = cost_us(spread(n, PROBED))
+    fit = int(TIMED_SECONDS * 1e6 / max(probe, 1e-3))
+    return spread(n, min(limit, max(MIN_TIMED, fit)))
+
+
 class Runner:
     """Runs methods on ``workers`` threads for their answers, and on one thread for their costs."""
 
@@ -124,9 +134,7 @@ class Runner:
             state = alg.answer_frames(rows)
             wall = (time.perf_counter() - t0) / max(1, len(rows)) * 1e6
         with self._threads(alg, 1):
-            probe = _cpu_us(lambda: alg.frames(rows[spread(len(rows), PROBE_FRAMES)]), min(len(rows), PROBE_FRAMES))
-            fit = int(FRAME_SECONDS * 1e6 / max(probe, 1e-3))
-            sample = rows[spread(len(rows), min(TIMED_FRAMES, max(MIN_TIMED_FRAMES, fit)))]
+            sample = rows[_timed(len(rows), TIMED_FRAMES, lambda p: _cpu_us(lambda: alg.frames(rows[p]), len(p)))]
             cpu = [_cpu_us(lambda: alg.frames(sample), len(sample)) for _ in range(self.repeats)]
         if alg.answers_apart:  # the state came by another route: the deployed work's wall, on all workers
             wall = float(np.median(cpu)) / self.workers
@@ -141,8 +149,9 @@ class Runner:
             t0 = time.perf_counter()
             answer = alg.localise(state, pos, L, mode, N_BEST)
             wall = time.perf_counter() - t0
-        sample = pos[spread(len(pos), TIMED_QUERIES)]
         with self._threads(alg, 1):  # the match and its score, as deployed (the 20-best list is the evaluation's)
+            sample = pos[_timed(len(pos), TIMED_QUERIES,
+                                lambda p: _cpu_us(lambda: alg.localise(state, pos[p], L, mode, 1), len(p)))]
             match = [_cpu_us(lambda: alg.localise(state, sample, L, mode, 1), len(sample)) for _ in frame.cpu_us]
         per_query = [m + f for m, f in zip(match, frame.cpu_us, strict=True)]
         n = len(pos)
