@@ -136,9 +136,9 @@ class FaissMethod(Algorithm):
     def answer_frames(self, rows: np.ndarray) -> tuple:
         """:meth:`frames`'s state by :meth:`_search`, with the frames' top ``N_BEST`` for the
         Recall@N ranking when this point's k is smaller. One search at ``N_BEST`` gives both:
-        a frame's top-k is the head of its top-``N_BEST`` (FAISS ranks the places it keeps by
-        distance, then id; only places at exactly the k-th distance could be kept otherwise),
-        and the search, which dominates an IVF code's evaluation, is not run twice."""
+        a frame's top-k is the head of its top-``N_BEST`` (the same distances as a search at k;
+        only places at exactly equal distances may come in another order), and the search,
+        which dominates an IVF code's evaluation, is not run twice."""
         self.codes.set_point(max(self.k, N_BEST), self.nprobe)
         dist, ids = self._search(rows)
         ranking = None
