@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         return _build_own(args)
     if not args.scale:
         raise InputError("build: give --scale (a recipe), or --ref, --query and --gt (your own descriptors)")
-    summary = build(BuildRequest(scale=args.scale, out=Path(args.out), deep1b=args.deep1b, fas=args.fas,
+    summary = build(BuildRequest(scale=args.scale, out=args.out, deep1b=args.deep1b, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
                                  force=args.force, fas_dim=args.fas_dim, rescale=args.rescale,
                                  layout=args.layout))

@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import is_url, public
 
 EXIT_USAGE = 2  # bad input
 EXIT_FAILURE = 1  # vprscale itself failed
@@ -102,9 +103,16 @@ def _flag_paths(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[st
         for v in value if isinstance(value, list) else [value]:
             if name == "query" and isinstance(v, str):  # NAME=PATH
                 v = v.partition("=")[2]
-            if isinstance(v, str) and v and (name != "scale" or Path(v).suffix == ".toml"):
+            if isinstance(v, str) and v and not is_url(v) and (name != "scale" or Path(v).suffix == ".toml"):
                 found.append((name, Path(v)))
     return found
+
+
+def _flag_urls(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[str, str]]:
+    """The flags among ``names`` given as URLs (object storage, HTTP), as given."""
+    values = [(name, getattr(args, name, None)) for name in names]
+    return [(name, v.rstrip("/")) for name, value in values for v in (value if isinstance(value, list) else [value])
+            if is_url(v)]
 
 
 def _owner(path: Path) -> Path | None:
@@ -132,6 +140,11 @@ def _check_not_over_inputs(args: argparse.Namespace) -> None:
         if owner is not None and not own_eval:
             raise InputError(f"--{out_flag} {out}: lies inside {owner}, a vprscale store or index this command does "
                              "not own; write elsewhere")
+    for out_flag, out in _flag_urls(args, OUTPUT_FLAGS):
+        for in_flag, src in _flag_urls(args, getattr(args, "input_flags", ())):
+            if out == src or out.startswith(src + "/"):
+                raise InputError(f"--{out_flag} {public(out)}: would write {'over' if out == src else 'into'} the "
+                                 f"input {public(src)} (--{in_flag})")
 
 
 def check_outputs(args: argparse.Namespace) -> None:
@@ -145,7 +158,7 @@ def check_outputs(args: argparse.Namespace) -> None:
         if not path.parent.is_dir():
             raise InputError(f"--summary {summary}: the folder {path.parent} does not exist")
     out = getattr(args, "out", None)
-    if out and getattr(args, "out_is_dir", False) and Path(out).exists() and not Path(out).is_dir():
+    if out and not is_url(out) and getattr(args, "out_is_dir", False) and Path(out).exists() and not Path(out).is_dir():
         raise InputError(f"--out {out}: is a file, not a directory")
     for flag, path in _flag_paths(args, OUTPUT_FLAGS):
         if str(path) != "-":  # standard output
@@ -173,7 +186,7 @@ def disk_full(exc: OSError, args: argparse.Namespace) -> bool:
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return True
     out = getattr(args, "out", None)
-    if not out:
+    if not out or is_url(out):
         return False
     path = Path(out).absolute()
     while not path.exists() and path != path.parent:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from vprscale.cli.common import csv_of, positive_int, write_summary
 from vprscale.core.errors import InputError
+from vprscale.core.objects import location
 
 INPUTS = ('store', 'index')  # the flags naming what it reads: no output may be written over them
 
@@ -70,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     from vprscale.evaluation.evaluate import EvalRequest, check_request, evaluate
     from vprscale.jobs.indexing import sweep_indexes
 
-    req = EvalRequest(store=Path(args.store), indexes=[Path(args.index)] if args.index else [],
+    req = EvalRequest(store=location(args.store), indexes=[Path(args.index)] if args.index else [],
                       noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
                       z=args.z, baseline_queries=args.baseline_queries,
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import Remote, location
 
 KINDS = {"zarr.json": "dataset store", "index.json": "index", "eval.json": "evaluation", "encoding.json": "encoding"}
 
@@ -21,7 +22,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 
 
 def run(args: argparse.Namespace) -> int:
-    path = Path(args.path)
+    path = location(args.path)
     kind = next((k for f, k in KINDS.items() if (path / f).is_file()), None)
     if kind is None:
         raise InputError(f"{path}: not a vprscale store, index, evaluation or encoding")
@@ -34,13 +35,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _verify(root: Path, kind: str) -> int:
+def _verify(root: Path | Remote, kind: str) -> int:
     """Every checksum of one output, through the reader of its kind where that is light (an index's
     metadata, an evaluation's folder), which refuses one published without its manifest; a store
     or encoding by its recorded provenance and version. Returns the files checked."""
     from vprscale.core.manifest import check_manifest, made_since_manifests, read_manifest, read_record, remake
 
-    if kind == "index":
+    if isinstance(root, Remote):  # on object storage an output is its manifest's: no older forms to allow
+        check_manifest(root, full=True)
+    elif kind == "index":
         from vprscale.method.indexmeta import load_index_meta
 
         load_index_meta(root, upgradable=True, full=True)

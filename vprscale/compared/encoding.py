@@ -46,6 +46,7 @@ from faiss.contrib.ondisk import merge_ondisk
 from vprscale.compared.faisscodes import FaissCodes
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest, remake
+from vprscale.core.objects import Remote
 
 # 2: residual IVF-PQ encodings hold their on-disk inverted lists and window arrays; 3: one window record per place
 ENCODING_FORMAT = 3
@@ -102,8 +103,12 @@ def describe(factory: str, identity: str, n_ref: int, train_rows: int, record: d
             "training_rows": train_rows, "provenance": record}
 
 
-def stored_encoding(store: Path, factory: str, identity: str) -> Path | None:
-    """The published encoding of ``factory`` for this store, if there is one; a stale one is refused."""
+def stored_encoding(store: Path | Remote, factory: str, identity: str) -> Path | None:
+    """The published encoding of ``factory`` for this store, if there is one; a stale one is refused.
+    A store on object storage has none (``vprscale encode`` writes beside a local store): the
+    evaluation then trains and encodes the code itself."""
+    if isinstance(store, Remote):
+        return None
     out = encoding_dir(store, factory)
     meta_file = out / "encoding.json"
     if not meta_file.is_file():

@@ -11,7 +11,9 @@ about one read of the output). Outputs written before manifests existed have
 none and are opened as before; one whose own metadata says it was written since (a reader
 passes ``remake``) is refused without its manifest, which would otherwise turn every check
 off. A listed file or folder that is a symbolic link is refused: nothing is read from outside
-a published output through it.
+a published output through it. An output on object storage (a :class:`~vprscale.core.objects.Remote`
+root) is listed once instead of a ``stat`` per file, and is never opened without its manifest:
+written last, it is what makes such an output complete.
 """
 
 from __future__ import annotations
@@ -25,16 +27,19 @@ from typing import Any
 import google_crc32c
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import BOOKKEEPING, Remote
+
+Root = Path | Remote  # a local output directory, or an output's prefix on object storage
 
 NAME = "manifest.json"
 FORMAT = 1
 READ_BYTES = 1 << 24
 
 
-def crc32c_of(path: Path) -> str:
+def crc32c_of(path: Path | Remote) -> str:
     """The CRC32C of a file's bytes, read in blocks (as manifests record it)."""
     crc = google_crc32c.Checksum()
-    with open(path, "rb") as fh:
+    with path.open("rb") if isinstance(path, Remote) else open(path, "rb") as fh:
         while block := fh.read(READ_BYTES):
             crc.update(block)
     return crc.hexdigest().decode()
@@ -47,8 +52,20 @@ def _files(root: Path) -> list[Path]:
                   and not any(part in (".done", ".work") for part in p.relative_to(root).parts))
 
 
-def write_manifest(root: Path) -> dict[str, Any]:
+def _remote_files(root: Remote) -> dict[str, int]:
+    """Every object of an output on object storage but the manifest and the job's bookkeeping, with its size."""
+    return {rel: size for rel, size in root.files().items()
+            if rel != NAME and not any(rel == b or rel.startswith(b) for b in BOOKKEEPING)}
+
+
+def write_manifest(root: Root) -> dict[str, Any]:
     """List every file under ``root`` with its size and CRC32C in ``root/manifest.json``."""
+    if isinstance(root, Remote):
+        files = {rel: {"bytes": size, "crc32c": crc32c_of(root / rel)}
+                 for rel, size in sorted(_remote_files(root).items())}
+        manifest = {"format": FORMAT, "files": files}
+        (root / NAME).write_text(json.dumps(manifest, indent=0, sort_keys=True))
+        return manifest
     files = {p.relative_to(root).as_posix(): {"bytes": p.stat().st_size, "crc32c": crc32c_of(p)} for p in _files(root)}
     manifest = {"format": FORMAT, "files": files}
     tmp = root / f".{NAME}.tmp"
@@ -57,9 +74,9 @@ def write_manifest(root: Path) -> dict[str, Any]:
     return manifest
 
 
-def read_manifest(root: Path) -> dict[str, Any] | None:
+def read_manifest(root: Root) -> dict[str, Any] | None:
     """The manifest of ``root`` (None for an output written before manifests existed)."""
-    path = Path(root) / NAME
+    path = root / NAME if isinstance(root, Remote) else Path(root) / NAME
     if not path.is_file():
         return None
     try:
@@ -89,12 +106,12 @@ def remake(record: Any, usual: str, published: bool = False) -> str | None:
     return f"{command} --force" if isinstance(command, str) and command.startswith("vprscale ") else usual
 
 
-def read_record(path: Path) -> dict[str, Any]:
+def read_record(path: Path | Remote) -> dict[str, Any]:
     """An output's metadata file (``build.json``, ``index.json``, ``zarr.json`` …) as a dict: {}
     where it is missing or not a JSON object (the manifest check then says what is wrong)."""
     try:
-        record = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+        record = json.loads(path.read_text() if isinstance(path, Remote) else Path(path).read_text())
+    except (OSError, ValueError, InputError):
         return {}
     return record if isinstance(record, dict) else {}
 
@@ -108,13 +125,15 @@ def made_since_manifests(version: Any) -> bool:
 CHEAP_BYTES = 1 << 30  # checksummed on every open: reading this much costs well under a second from the page cache
 
 
-def check_manifest(root: Path, full: bool = False, only: str | None = None, budget: int = CHEAP_BYTES,
+def check_manifest(root: Root, full: bool = False, only: str | None = None, budget: int = CHEAP_BYTES,
                    remake: str | None = None) -> int:
     """Check the files ``root``'s manifest lists (those under ``only``, if given): present with their
     size, none a symbolic link or inside one, and their checksum, smallest files first while their
     bytes stay within ``budget`` (all of them with ``full``). Returns the number checked; an error
     names the first bad file. ``remake`` (the command that re-creates the output) says the output
     was published with a manifest, so its absence is an error rather than an older output."""
+    if isinstance(root, Remote):
+        return _check_remote(root, full, only, budget)
     root = Path(root)
     manifest = read_manifest(root)
     if manifest is None:
@@ -147,6 +166,32 @@ def check_manifest(root: Path, full: bool = False, only: str | None = None, budg
     return checked
 
 
+def _check_remote(root: Remote, full: bool, only: str | None, budget: int) -> int:
+    """:func:`check_manifest` of an output on object storage: sizes from one listing; no manifest,
+    no output (it is written last: without it the output was never completed)."""
+    manifest = read_manifest(root)
+    if manifest is None:
+        raise InputError(f"{root}: no {NAME}: on object storage an output is complete only once its manifest is "
+                         "written (its job did not finish, or this is not a vprscale output)")
+    sizes = root.files()
+    checked, summed = 0, 0
+    for rel, entry in sorted(manifest["files"].items(), key=lambda item: (item[1]["bytes"], item[0])):
+        if only is not None and not rel.startswith(only):
+            continue
+        if rel not in sizes:
+            raise InputError(f"{root / rel}: missing from a complete output (its manifest lists it); "
+                             "the output is damaged, rebuild it")
+        if sizes[rel] != entry["bytes"]:
+            raise InputError(f"{root / rel}: {sizes[rel]:,} bytes, its manifest says {entry['bytes']:,}; "
+                             "the output is damaged, rebuild it")
+        summed += sizes[rel]
+        if (full or summed <= budget) and crc32c_of(root / rel) != entry["crc32c"]:
+            raise InputError(f"{root / rel}: its content changed since it was published (checksum differs); "
+                             "the output is damaged, rebuild it")
+        checked += 1
+    return checked
+
+
 def _no_link_within(root: Path, folder: Path, seen: set[Path]) -> None:
     """Refuse a symbolic link among the folders from ``root`` (exclusive) down to ``folder``; each
     folder is looked at once per check (a store lists tens of thousands of chunks in a few folders)."""
@@ -158,7 +203,7 @@ def _no_link_within(root: Path, folder: Path, seen: set[Path]) -> None:
         folder = folder.parent
 
 
-def listed(root: Path, prefix: str) -> set[str] | None:
+def listed(root: Root, prefix: str) -> set[str] | None:
     """Names under ``prefix`` the manifest lists (None without a manifest)."""
     manifest = read_manifest(root)
     if manifest is None:

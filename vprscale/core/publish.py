@@ -21,6 +21,7 @@ from filelock import FileLock, Timeout
 
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import write_manifest
+from vprscale.core.objects import ObjectOutput, Remote, check_bucket
 
 NAME_BYTES = 255  # the longest file name POSIX filesystems take
 MARKS = (".partial", ".sealed", ".lock", ".old", ".previous.999")  # what publishing adds to a name, at most
@@ -44,12 +45,16 @@ def _lock_file(path: Path) -> Path:
 
 
 @contextmanager
-def exclusive(path: Path):
+def exclusive(path: Path | Remote):
     """Hold an advisory lock for ``path``; a second holder is refused at once (kill -9 frees it).
 
     The lock is ``filelock``'s (``flock`` on ``.<name>.lock`` beside the output), taken
     without waiting: a scheduled job that finds its output busy should say so, not queue.
+    Object storage has no lock to take: there, two jobs must not write one output at once.
     """
+    if isinstance(path, Remote):
+        yield
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
     lock = FileLock(_lock_file(path), timeout=0, thread_local=False)
     try:
@@ -64,7 +69,7 @@ def exclusive(path: Path):
 
 
 @contextmanager
-def shared(path: Path):
+def shared(path: Path | Remote):
     """Hold a shared lock for ``path``, which this job reads: any number of readers hold it at
     once (two evaluations of one index, into different outputs), and :func:`exclusive` (a
     job replacing ``path``: re-indexing) is refused while they do, as they are while it runs.
@@ -72,6 +77,9 @@ def shared(path: Path):
     The same file and primitive as :func:`exclusive` (``flock`` of ``.<name>.lock``; filelock
     never removes the file), in shared mode; closing the descriptor, or a kill, releases it.
     """
+    if isinstance(path, Remote):  # no locks on object storage (see exclusive)
+        yield
+        return
     lock_file = _lock_file(path)
     fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)
     try:
@@ -148,6 +156,16 @@ class PartialOutput:
         except (OSError, ValueError):
             return None
 
+    @property
+    def work(self) -> Path:
+        """The job's own folder (checkpoints of its passes), removed when the output is published."""
+        work = self.path / ".work"
+        work.mkdir(exist_ok=True)
+        return work
+
+    def write_text(self, name: str, text: str) -> None:
+        (self.path / name).write_text(text)
+
     def done(self, unit: str) -> bool:
         return (self._markers / unit).exists()
 
@@ -201,11 +219,23 @@ def keep_beside(path: Path, kept: Path | None = None) -> Path:
     return kept
 
 
-def check_writable(out: Path) -> None:
+Output = PartialOutput | ObjectOutput  # an output being written, on a local disk or on object storage
+
+
+def output_for(final: Path | Remote, key: dict[str, Any]) -> Output:
+    """The lifecycle of an output: a work copy renamed into place on a local disk, written in
+    place and completed by its manifest on object storage."""
+    return ObjectOutput(final, key) if isinstance(final, Remote) else PartialOutput(final, key)
+
+
+def check_writable(out: Path | Remote, flag: str = "--out") -> None:
     """Fail early, naming the directory, if outputs cannot be written there."""
+    if isinstance(out, Remote):
+        check_bucket(out, flag)
+        return
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(f"--out {out}: cannot create the output directory: {exc.strerror}") from None
+        raise InputError(f"{flag} {out}: cannot create the output directory: {exc.strerror}") from None
     if not os.access(out, os.W_OK | os.X_OK):
-        raise InputError(f"--out {out}: the output directory is not writable")
+        raise InputError(f"{flag} {out}: the output directory is not writable")

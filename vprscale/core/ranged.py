@@ -30,6 +30,7 @@ from pathlib import Path
 import google_crc32c
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import public
 from vprscale.core.progress import ChunkProgress
 
 log = logging.getLogger(__name__)
@@ -43,15 +44,6 @@ BACKOFF_S = 0.5  # the first retry's pause; doubled for each further one
 
 class Dropped(OSError):
     """A transfer that stopped before its range was whole (retried; resumable)."""
-
-
-def public(url: str) -> str:
-    """``url`` as it may be shown or recorded: without user name, password, query or fragment."""
-    parts = urllib.parse.urlsplit(url)
-    host = parts.hostname or ""
-    if parts.port:
-        host = f"{host}:{parts.port}"
-    return urllib.parse.urlunsplit((parts.scheme, host, parts.path, "", ""))
 
 
 def _request(url: str, start: int, stop: int) -> urllib.request.Request:

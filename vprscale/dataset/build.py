@@ -30,10 +30,12 @@ import vprscale
 from vprscale.core.blocks import BLOCK, chunk_bounds
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.manifest import NAME as MANIFEST
+from vprscale.core.objects import Remote, location, zarr_url
 from vprscale.core.passes import reduce_pass
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive
+from vprscale.core.publish import Output, check_writable, exclusive, output_for
 from vprscale.dataset import compact
 from vprscale.dataset.homogenise import window_mean
 from vprscale.dataset.layout import ChunkWriter, Layout, codecs
@@ -62,7 +64,7 @@ class BuildRequest:
     """What the user asked for (the CLI's arguments)."""
 
     scale: str
-    out: Path
+    out: str | Path  # a local directory or a URL (s3://bucket/prefix)
     deep1b: str | None = None
     fas: str | None = None
     workers: int = 2
@@ -116,7 +118,7 @@ def _per_row(fn, rows: int) -> float:
     return best / rows
 
 
-def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers: int, layout: str,
+def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path | Remote, workers: int, layout: str,
          measure: bool = True) -> dict[str, Any]:
     """What a build reads, writes and needs, with a time estimate from measured per-row costs.
 
@@ -135,7 +137,8 @@ def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path, workers
     else:
         held = 120 * (lay.n_query // recipe.query_stride + 2 * MIN_FAS)  # windows of L ≤ 100, 1.2 safety
         write = (address_dtype(d_hash, 2).itemsize + 8) * lay.n_ref + held * (8 * d + 9)
-    free = shutil.disk_usage(out if out.exists() else out.parent if out.parent.exists() else Path.cwd()).free
+    free = math.inf if isinstance(out, Remote) else shutil.disk_usage(
+        out if out.exists() else out.parent if out.parent.exists() else Path.cwd()).free
     if not measure:
         return {"bytes_written_max": write, "disk_free": free}
     rows = min(BLOCK, recipe.deep1b_rows_kept)
@@ -183,7 +186,7 @@ def _gib(x: float) -> str:
     return f"{x / 2**30:.2f} GiB"
 
 
-def print_plan(p: dict[str, Any], out: Path) -> None:
+def print_plan(p: dict[str, Any], out: Path | Remote) -> None:
     print(f"build {p['scale']} ({p['layout']} layout) → {out}")
     for kind in ("ref", "query"):
         rows, fas = p[f"{kind}_rows"], p[f"fas_{kind}_rows"]
@@ -199,8 +202,10 @@ def build(req: BuildRequest) -> dict[str, Any]:
     """Run (or plan) a build; returns the summary that the CLI prints."""
     recipe = load_recipe(req.scale)
     deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
-    out = Path(req.out).absolute()  # workers of a distributed cluster do not share our working directory
-    if out.exists() and not out.is_dir():
+    out = location(req.out)
+    if isinstance(out, Path):
+        out = out.absolute()  # workers of a distributed cluster do not share our working directory
+    if isinstance(out, Path) and out.exists() and not out.is_dir():
         raise InputError(f"--out {req.out}: is a file, not a directory")
     final = out / f"{recipe.scale}{'' if req.rescale else '-norescale'}.zarr"
     p = plan(recipe, deep, traverse, out, req.workers, req.layout or recipe.layout, measure=req.dry_run)
@@ -213,13 +218,13 @@ def build(req: BuildRequest) -> dict[str, Any]:
         return {"dry_run": True, **p}
     check_writable(out)
     with exclusive(final):
-        if PartialOutput(final, {}).recover() and not req.quiet:
+        if output_for(final, {}).recover() and not req.quiet:
             log.info(f"{final}: finished publishing the build a killed run had completed")
-        if final.exists() and not (final / "zarr.json").is_file():
+        if isinstance(final, Path) and final.exists() and not (final / "zarr.json").is_file():
             raise InputError(f"--out {out}: {final} exists and is not a dataset store; not replaced")
         if (final / "zarr.json").exists() and not req.force:
-            meta = zarr.open_group(final, mode="r").attrs.get(ATTR, {})
-            if meta.get("complete"):
+            meta = zarr.open_group(zarr_url(final), mode="r").attrs.get(ATTR, {})
+            if meta.get("complete") and (isinstance(final, Path) or (final / MANIFEST).exists()):
                 wanted = _identity(recipe, deep, traverse, req)
                 differ = [k for k in wanted if json.loads(json.dumps(wanted[k], default=str)) != meta.get(k)]
                 if differ:
@@ -267,7 +272,7 @@ def _check_moments(moments: np.ndarray, source: RowSource) -> None:
                          "(values too large for the recipe's PCA)")
 
 
-def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
+def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path | Remote,
            req: BuildRequest) -> dict[str, Any]:
     t_start = time.perf_counter()
     timings = Timings(req.quiet)
@@ -275,16 +280,15 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
                  recipe.fas_rows("query", traverse.query.n_rows))
     layout = req.layout or recipe.layout
     provenance_key = _identity(recipe, deep, traverse, req)
-    partial = PartialOutput(final, provenance_key)
+    partial = output_for(final, provenance_key)
     resumed = partial.open()
     if resumed and not req.quiet:
         log.info(f"resuming the unfinished build in {partial.path}")
     store = str(partial.path)
-    work = partial.path / ".work"
-    work.mkdir(exist_ok=True)
+    work = partial.work
     d = recipe.dim
     with dask_client(req.scheduler, req.workers) as client:
-        if not partial.done("fit"):
+        if not (partial.done("fit") and (work / "fas_query.npy").is_file()):  # a new client refits
             group = zarr.open_group(store, mode="a", zarr_format=3)
             with timings.stage("fit transforms (Deep1B exact PCA, FAS PCA, noise model)"):
                 moments = reduce_pass(work, "Deep1B moments", chunk_bounds(lay.n_deep, recipe.chunk_rows),
@@ -318,10 +322,11 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path,
     group.attrs[ATTR] = {**provenance_key, "complete": True, "versions": _versions(), "seed": recipe.seed,
                          "layout": {"kind": layout, "n_deep1b": lay.n_deep, "n_fas_ref": lay.n_fas_ref,
                                     "n_fas_query": lay.n_fas_query, **extra}}
-    (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},
-                                                        indent=1, default=str))
+    partial.write_text("build.json", json.dumps({k: v for k, v in summary.items() if k != "store"},
+                                                indent=1, default=str))
     partial.publish()
-    summary["bytes_on_disk"] = sum(f.stat().st_size for f in final.rglob("*") if f.is_file())
+    summary["bytes_on_disk"] = (sum(final.files().values()) if isinstance(final, Remote)
+                                else sum(f.stat().st_size for f in final.rglob("*") if f.is_file()))
     return summary
 
 
@@ -337,7 +342,7 @@ def _write_positions(group: zarr.Group, traverse: Traverse, lay: Layout) -> None
         group[name][:] = data
 
 
-def _write_full(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, timings: Timings) -> None:
+def _write_full(group: zarr.Group, writer: ChunkWriter, partial: Output, timings: Timings) -> None:
     """Pass 2 of the full layout: every row of every array, one chunk per task."""
     lay, recipe, d = writer.layout, writer.recipe, writer.recipe.dim
     if not partial.done("arrays"):
@@ -357,7 +362,7 @@ def _write_full(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, 
         run_tasks(tasks, "write chunks")
 
 
-def _write_and_mark(writer: ChunkWriter, a: int, b: int, partial: PartialOutput, unit: str) -> None:
+def _write_and_mark(writer: ChunkWriter, a: int, b: int, partial: Output, unit: str) -> None:
     writer(a, b)
     partial.mark(unit)
 

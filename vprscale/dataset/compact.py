@@ -19,7 +19,6 @@ has the same addresses, lists and matches as an index of the full store of the s
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import dask
@@ -29,7 +28,7 @@ import zarr
 from vprscale.core.blocks import BLOCK, chunk_bounds
 from vprscale.core.passes import reduce_pass
 from vprscale.core.progress import Timings, compute
-from vprscale.core.publish import PartialOutput
+from vprscale.core.publish import Output
 from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, codecs, gt_of
 from vprscale.dataset.store import MODEL, load_model
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors, project
@@ -86,11 +85,11 @@ def _queries_of_block(writer: ChunkWriter, a: int, frames: np.ndarray) -> list[n
     return [q[frames - a] for q in qs]
 
 
-def write_compact(group: zarr.Group, writer: ChunkWriter, partial: PartialOutput, timings: Timings,
+def write_compact(group: zarr.Group, writer: ChunkWriter, partial: Output, timings: Timings,
                   ref_moments: np.ndarray, lengths: tuple[int, ...], quiet: bool) -> dict[str, Any]:
     """Passes 2 and 3 of a compact build, and the evaluated query windows; the layout's attributes."""
     lay, recipe = writer.layout, writer.recipe
-    work = Path(partial.path) / ".work"
+    work = partial.work
     bounds = chunk_bounds(lay.n_ref, recipe.chunk_rows)
     hasher = CoarseHasher(k=2).fit_pca(ref_moments)
     if not partial.done("model"):

@@ -30,8 +30,9 @@ import numpy as np
 
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import crc32c_of
+from vprscale.core.objects import public
 from vprscale.core.publish import check_writable, exclusive, keep_beside
-from vprscale.core.ranged import Plan, download, finish, probe, public, read_range
+from vprscale.core.ranged import Plan, download, finish, probe, read_range
 
 log = logging.getLogger(__name__)
 

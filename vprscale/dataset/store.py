@@ -18,19 +18,21 @@ import zarr
 
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest, made_since_manifests, read_record, remake
+from vprscale.core.objects import Remote, location, zarr_url
 from vprscale.method.coarsehash import CoarseHasher
 
 ATTR = "vprscale"
 MODEL = ("mean", "components", "centres", "explained_variance", "ranges")  # a compact store's CoarseHash model
 
 
-def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.Group:
-    """Open a published Zarr store, refusing one that is missing or not marked complete."""
-    p = Path(path)
+def open_complete_group(path: str | os.PathLike | Remote, kind: str = "dataset") -> zarr.Group:
+    """Open a published Zarr store (a local path or a URL), refusing one that is missing or not
+    marked complete."""
+    p = path if isinstance(path, Remote) else location(path)
     if not (p / "zarr.json").is_file():
         raise InputError(f"{p}: not a vprscale {kind} store (no zarr.json)")
     try:
-        group = zarr.open_group(p.resolve(), mode="r")  # absolute: Dask workers may run in another directory
+        group = zarr.open_group(zarr_url(p), mode="r")
         meta = group.attrs.get(ATTR, {})
     except (ValueError, TypeError, KeyError) as exc:  # zarr's errors for a broken zarr.json
         raise InputError(f"{p / 'zarr.json'}: not readable Zarr metadata ({str(exc).splitlines()[0][:200]})") from None
@@ -40,7 +42,7 @@ def open_complete_group(path: str | os.PathLike, kind: str = "dataset") -> zarr.
     return group
 
 
-def _remake(store: Path, meta: dict[str, Any], kind: str) -> str | None:
+def _remake(store: Path | Remote, meta: dict[str, Any], kind: str) -> str | None:
     """How to re-create a store published with a manifest (None for one built before 0.3, which
     had none): the command its ``build.json`` records. A store of your own data (no recipe
     versions recorded) is 0.3 or later by birth."""

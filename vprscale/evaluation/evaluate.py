@@ -26,6 +26,7 @@ from vprscale.compared.encoding import load_encoding, stored_encoding
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.objects import Remote, shown
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, shared
@@ -61,7 +62,7 @@ MAX_FAISS_K = 1 << 14  # references a FAISS frame may retrieve (the lists of eve
 class EvalRequest:
     """What ``vprscale eval`` was asked for."""
 
-    store: Path
+    store: Path | Remote  # a local store, or one on object storage
     indexes: list[Path] = field(default_factory=list)  # one index, or one per width of a d sweep
     noises: list[str] | None = None  # the store's query sets by name (None: every one the store holds)
     lengths: list[int] = field(default_factory=lambda: [1, 50, 100])
@@ -267,7 +268,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             fit_s = time.perf_counter() - t_fit
             method_fit_s = _fit_methods(plugged, ref, req.quiet) if plugged else {}
             rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, plugged)
-            columns = {"scale": meta["recipe"]["scale"], "store": str(Path(req.store).resolve()),
+            columns = {"scale": meta["recipe"]["scale"], "store": shown(req.store),
                        "store_identity": identity}
             record = provenance(inputs={"store_identity": identity, "indexes": [
                 {"path": str(Path(p).resolve()), "store_identity": i.meta["store"]["identity"], "d": i.d, "k": i.k}

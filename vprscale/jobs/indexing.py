@@ -23,6 +23,7 @@ import vprscale
 from vprscale.core.blocks import chunk_bounds
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.objects import Remote, location, shown
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside
@@ -60,7 +61,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
     ``eval/`` folder, only with ``force``, and they are then kept beside the new index in
     ``<index>.previous-eval/`` (they belong to the old one).
     """
-    store = Path(store)
+    store = location(store)
     group = open_complete_group(store)
     layout = store_layout(group)
     if layout["kind"] == "compact":
@@ -74,6 +75,9 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         n_ref, dim = group["ref"].shape
         hasher = CoarseHasher(d=d, k=k)
         d_eff = hasher._check(n_ref, dim)
+    if out is None and isinstance(store, Remote):
+        raise InputError(f"{store}: give --out, a local folder for the index (an index is memory-mapped where it "
+                         "is used: it is written on a local disk)")
     final = Path(out) if out else default_index_dir(store, d_eff, k)
     if not final.resolve().name:
         raise InputError(f"--out {out}: names no directory to write the index into; give a new folder's path")
@@ -126,7 +130,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         list_bytes = file_bytes(*(partial.path / ENGINE_FILES[n] for n in ("ids", "occupied", "starts")))
         built = store / "build.json"
         extra = {
-            "store": {"path": str(store.resolve()), "identity": identity, "layout": layout["kind"],
+            "store": {"path": shown(store), "identity": identity, "layout": layout["kind"],
                       "scale": group.attrs[ATTR]["recipe"]["scale"], "rescale": group.attrs[ATTR].get("rescale", True),
                       "built": json.loads(built.read_text()) if built.is_file() else {}},
             "storage": storage_table(int(n_ref), d_eff, k, int(dim), disk),
@@ -134,7 +138,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
                       "partitions": lists["partitions"]},
             "timings_s": timings.stages, "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
             "versions": {"vprscale": vprscale.__version__},
-            "provenance": provenance(inputs={"store": str(store.resolve()), "store_identity": identity}),
+            "provenance": provenance(inputs={"store": shown(store), "store_identity": identity}),
         }
         extra["parts"] = index_parts(partial.path)  # index.json and the manifest are counted where shown
         meta = write_meta(partial.path, hasher, n_ref, lists["layout"], extra)

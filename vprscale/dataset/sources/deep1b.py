@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
-from vprscale.core.ranged import public
+from vprscale.core.objects import public
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 

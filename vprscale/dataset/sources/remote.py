@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
-from vprscale.core.ranged import probe, public, read_range
+from vprscale.core.objects import public
+from vprscale.core.ranged import probe, read_range
 from vprscale.dataset.sources.base import RowSource
 
 URL = re.compile(r"^https?://", re.IGNORECASE)

@@ -1,0 +1,212 @@
+"""Outputs on object storage: a real S3 endpoint (moto's server) on 127.0.0.1, started and
+stopped with the tests; stores written there by URL, read back by URL, and a Dask cluster
+whose workers share no directory with the client or each other."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vprscale.cli import main
+from vprscale.core.errors import InputError
+from vprscale.core.objects import ObjectOutput, Remote
+
+moto_server = pytest.importorskip("moto.server")
+pytest.importorskip("s3fs")
+
+BUCKET = "vprscale-test"
+CREDENTIALS = {"AWS_ACCESS_KEY_ID": "testing-key-id", "AWS_SECRET_ACCESS_KEY": "testing-secret-never-shown",
+               "AWS_DEFAULT_REGION": "us-east-1"}
+
+
+@pytest.fixture(scope="module")
+def endpoint() -> Iterator[str]:
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    yield f"http://{host}:{port}"
+    server.stop()
+
+
+@pytest.fixture
+def s3(endpoint, monkeypatch, tmp_path) -> dict[str, str]:
+    """The environment of a job that writes to the test endpoint (a fresh bucket per test)."""
+    import boto3
+
+    env = {"AWS_ENDPOINT_URL": endpoint, **CREDENTIALS, "VPRSCALE_CACHE": str(tmp_path / "cache")}
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    client = boto3.client("s3", endpoint_url=endpoint)
+    if BUCKET in [b["Name"] for b in client.list_buckets().get("Buckets", [])]:
+        for obj in client.list_objects_v2(Bucket=BUCKET).get("Contents", []):
+            client.delete_object(Bucket=BUCKET, Key=obj["Key"])
+    else:
+        client.create_bucket(Bucket=BUCKET)
+    import s3fs
+
+    s3fs.S3FileSystem.clear_instance_cache()
+    return env
+
+
+def _objects(prefix: str) -> dict[str, int]:
+    return Remote(prefix).files()
+
+
+def _manifest_crcs(files: dict) -> dict[str, str]:
+    """The manifest's checksums of a store's arrays and metadata (build.json holds timings)."""
+    return {rel: e["crc32c"] for rel, e in files.items() if rel != "build.json"}
+
+
+def test_a_store_built_to_s3_holds_the_same_bytes_and_is_read_back_by_url(s3, sources, tiny_store, capsys):
+    """``build --out s3://…`` writes through zarr's own store, no local copy: the same object
+    bytes as the local build (every chunk's CRC32C), the manifest written last and the job's
+    bookkeeping gone; ``verify`` and the store reader open it by URL."""
+    from vprscale.dataset.store import open_complete_group
+
+    recipe = tiny_store.parent.parent / "tiny.toml"
+    url = f"s3://{BUCKET}/data"
+    assert main(["build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]),
+                 "--out", url, "-q"]) == 0
+    names = _objects(f"{url}/tiny.zarr")
+    assert "manifest.json" in names and not [n for n in names if n.startswith((".done", ".job"))]
+    remote = json.loads(Remote(f"{url}/tiny.zarr/manifest.json").read_text())["files"]
+    local = json.loads((tiny_store / "manifest.json").read_text())["files"]
+    assert _manifest_crcs(remote) == _manifest_crcs(local)
+    assert main(["verify", f"{url}/tiny.zarr"]) == 0
+    assert f"{len(remote)} files with their sizes and checksums" in capsys.readouterr().out
+    group = open_complete_group(f"{url}/tiny.zarr")
+    np.testing.assert_array_equal(group["query_qm2"][:100], open_complete_group(tiny_store)["query_qm2"][:100])
+    assert main(["build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]),
+                 "--out", url]) == 0
+    assert "is complete" in capsys.readouterr().err  # a second run finds it whole and does nothing
+
+
+def test_a_store_whose_manifest_was_never_written_is_not_opened(s3, sources, tiny_store, capsys):
+    """On object storage the manifest, written last, is what makes an output complete: a job
+    killed before it leaves objects no reader takes for a store, and ``verify`` says so."""
+    from vprscale.dataset.store import open_complete_group
+
+    recipe = tiny_store.parent.parent / "tiny.toml"
+    url = f"s3://{BUCKET}/data"
+    assert main(["build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]),
+                 "--out", url, "-q"]) == 0
+    Remote(f"{url}/tiny.zarr/manifest.json").fs.rm_file(f"{BUCKET}/data/tiny.zarr/manifest.json")
+    with pytest.raises(InputError, match="complete only once its manifest"):
+        open_complete_group(f"{url}/tiny.zarr")
+    assert main(["verify", f"{url}/tiny.zarr"]) == 2
+    assert "manifest" in capsys.readouterr().err
+
+
+def test_a_rebuild_resumes_from_the_markers_it_left(s3, tmp_path):
+    """A job's key and done-markers live beside its objects: the same job resumes (from any
+    client), another job starts over, and publishing leaves only the output and its manifest."""
+    final = Remote(f"s3://{BUCKET}/out/x.zarr")
+    first = ObjectOutput(final, {"job": 1})
+    assert not first.open()
+    (final / "a").write_bytes(b"chunk")
+    first.mark("chunk-0")
+    again = ObjectOutput(final, {"job": 1})
+    assert again.open() and again.done("chunk-0") and not again.done("chunk-1")
+    other = ObjectOutput(final, {"job": 2})
+    assert not other.open() and not other.done("chunk-0") and not (final / "a").exists()
+    (final / "b").write_bytes(b"rows")
+    other.publish()
+    assert set(final.files()) == {"b", "manifest.json"}
+
+
+def test_force_keeps_the_replaced_output_beside(s3):
+    """``--force`` on object storage moves the complete output to ``<name>.previous`` (then
+    ``.previous.1``, …) before writing the new one, as it keeps it beside on a local disk."""
+    final = Remote(f"s3://{BUCKET}/out/x.zarr")
+    for n in range(3):
+        job = ObjectOutput(final, {"job": n})
+        job.open()
+        (final / "v").write_bytes(str(n).encode())
+        job.publish()
+    assert (final / "v").read_bytes() == b"2"
+    assert Remote(f"s3://{BUCKET}/out/x.zarr.previous/v").read_bytes() == b"1"
+    assert Remote(f"s3://{BUCKET}/out/x.zarr.previous.1/v").read_bytes() == b"0"
+
+
+@pytest.mark.parametrize(("out", "words"), [
+    ("s3://no-such-bucket-here/data", "not found"),
+    ("nosuchscheme://x/y", "not a URL vprscale can open"),
+])
+def test_a_bad_output_url_is_one_line_before_any_work(s3, recipe, out, words, capsys):
+    assert main(["build", "--scale", str(recipe), "--out", out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_credentials_reach_no_output_or_record(s3, sources, tiny_store):
+    """The secret key is read by the storage client from the environment; no object written
+    (the store's metadata, build.json, the manifest) holds it."""
+    recipe = tiny_store.parent.parent / "tiny.toml"
+    url = f"s3://{BUCKET}/data"
+    assert main(["build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]),
+                 "--out", url, "-q"]) == 0
+    root = Remote(f"{url}/tiny.zarr")
+    for rel in root.files():
+        if rel.endswith(".json"):
+            text = (root / rel).read_text()
+            assert CREDENTIALS["AWS_SECRET_ACCESS_KEY"] not in text and CREDENTIALS["AWS_ACCESS_KEY_ID"] not in text
+
+
+def _start(cmd: list[str], cwd: Path, env: dict[str, str]) -> subprocess.Popen:
+    return subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+def test_a_cluster_whose_workers_share_no_disk_builds_the_same_bytes(s3, sources, tiny_store, tmp_path):
+    """A ``dask scheduler`` and two ``dask worker`` processes, each started in its own empty
+    directory: the sources are fetched by URL (an HTTP server on 127.0.0.1), the store is
+    written to S3, and every object equals the local build's."""
+    from .test_fetch import Server
+
+    data = sources["fbin"].read_bytes()
+    server = Server(lambda a, b: data[a:b], len(data))
+    env = {**os.environ, **s3}
+    procs = []
+    try:
+        sched_dir = tmp_path / "scheduler"
+        sched_dir.mkdir()
+        address = sched_dir / "scheduler.json"
+        procs.append(_start([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                             "--port", "0", "--no-dashboard", "--scheduler-file", str(address)], sched_dir, env))
+        for w in range(2):
+            folder = tmp_path / f"worker{w}"
+            folder.mkdir()
+            procs.append(_start([sys.executable, "-m", "distributed.cli.dask_worker", "--scheduler-file",
+                                 str(address), "--nthreads", "1", "--no-dashboard", "--local-directory",
+                                 str(folder)], folder, {**env, "VPRSCALE_CACHE": str(folder / "cache")}))
+        deadline = time.monotonic() + 60
+        while not address.is_file() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        scheduler = json.loads(address.read_text())["address"]
+        client_dir = tmp_path / "client"
+        client_dir.mkdir()
+        recipe = tmp_path / "client" / "tiny.toml"
+        recipe.write_text((tiny_store.parent.parent / "tiny.toml").read_text())
+        url = f"s3://{BUCKET}/cluster"
+        run = subprocess.run([sys.executable, "-m", "vprscale.cli", "build", "--scale", str(recipe), "--deep1b",
+                              server.url, "--fas", str(sources["fas"]), "--out", url, "--scheduler", scheduler,
+                              "-q"], cwd=client_dir, env=env, capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr
+    finally:
+        for p in reversed(procs):  # the workers first: they would wait for a scheduler that left
+            p.kill()
+            p.wait(timeout=30)
+        server.close()
+    remote = json.loads(Remote(f"{url}/tiny.zarr/manifest.json").read_text())["files"]
+    local = json.loads((tiny_store / "manifest.json").read_text())["files"]
+    differ = {k for k in local if k != "build.json" and remote.get(k) != local[k]}
+    assert differ <= {"zarr.json"}  # the sources' records name the URL read, not the local file
+    assert [p for p in (tmp_path / "worker0").rglob("*.zarr")] == []  # nothing of the store on a worker's disk
