@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -17,7 +18,8 @@ import pytest
 
 from vprscale.cli import main
 from vprscale.core.errors import InputError
-from vprscale.core.objects import ObjectOutput, Remote
+from vprscale.core.objects import Remote
+from vprscale.core.publish import ObjectOutput
 
 moto_server = pytest.importorskip("moto.server")
 pytest.importorskip("s3fs")
@@ -210,3 +212,32 @@ def test_a_cluster_whose_workers_share_no_disk_builds_the_same_bytes(s3, sources
     differ = {k for k in local if k != "build.json" and remote.get(k) != local[k]}
     assert differ <= {"zarr.json"}  # the sources' records name the URL read, not the local file
     assert [p for p in (tmp_path / "worker0").rglob("*.zarr")] == []  # nothing of the store on a worker's disk
+
+
+def test_an_index_on_s3_is_used_from_a_verified_copy_in_the_cache(s3, tiny_store, tmp_path, capsys):
+    """``index --out s3://…`` is made in the cache (it is memory-mapped while written) and uploaded,
+    its manifest last; a command given its URL reads a local copy, fetched once and checked byte
+    for byte against that manifest: a changed object is refused by name, a re-published index
+    is fetched again."""
+    url = f"s3://{BUCKET}/idx/tiny.index"
+    assert main(["index", str(tiny_store), "--d", "12", "--out", url, "-q"]) == 0
+    remote = Remote(url)
+    assert "manifest.json" in remote.files() and "index.json" in remote.files()
+    cache = Path(s3["VPRSCALE_CACHE"])
+    capsys.readouterr()
+    assert main(["occupancy", url, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["d"] == 12
+    for copy in cache.glob("outputs/*"):
+        shutil.rmtree(copy)
+    codes = next(rel for rel in remote.files() if rel.endswith(".npy") and remote.files()[rel] > 1000)
+    original = (remote / codes).read_bytes()
+    (remote / codes).write_bytes(original[:-1] + bytes([original[-1] ^ 1]))  # same size, one bit
+    assert main(["occupancy", url]) == 2
+    assert "checksum differs" in capsys.readouterr().err
+    (remote / codes).write_bytes(original)
+    assert main(["index", str(tiny_store), "--d", "10", "--out", url, "-q", "--force"]) == 0
+    capsys.readouterr()
+    assert main(["occupancy", url, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["d"] == 10  # the re-published index, not the cached copy
+    assert main(["eval", str(tiny_store), url, "--L", "1"]) == 2
+    assert "--out" in capsys.readouterr().err

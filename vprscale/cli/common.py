@@ -115,6 +115,17 @@ def _flag_urls(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[str
             if is_url(v)]
 
 
+def local_output(spec: str) -> Path:
+    """An output a command reads from local files (an index is memory-mapped): its path, or for a
+    URL its verified copy in the cache (fetched once; again only when it was re-published)."""
+    if not is_url(spec):
+        return Path(spec)
+    from vprscale.core.localcopy import local_copy
+    from vprscale.core.objects import Remote
+
+    return local_copy(Remote(spec))
+
+
 def _owner(path: Path) -> Path | None:
     """The vprscale store or index that ``path`` lies inside (symlinks followed), if any."""
     for parent in path.resolve().parents:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vprscale.cli.common import csv_of, positive_int, write_summary
+from vprscale.cli.common import csv_of, local_output, positive_int, write_summary
 from vprscale.core.errors import InputError
-from vprscale.core.objects import location
+from vprscale.core.objects import is_url, location, public
 
 INPUTS = ('store', 'index')  # the flags naming what it reads: no output may be written over them
 
@@ -71,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
     from vprscale.evaluation.evaluate import EvalRequest, check_request, evaluate
     from vprscale.jobs.indexing import sweep_indexes
 
-    req = EvalRequest(store=location(args.store), indexes=[Path(args.index)] if args.index else [],
+    if args.index and is_url(args.index) and not args.out:
+        raise InputError(f"--out: give a folder for the evaluation of {public(args.index)} (an index on object "
+                         "storage is read from a copy in the cache, which is no place for results)")
+    req = EvalRequest(store=location(args.store), indexes=[local_output(args.index)] if args.index else [],
                       noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
                       z=args.z, baseline_queries=args.baseline_queries,
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,

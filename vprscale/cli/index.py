@@ -50,6 +50,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {secs:8.1f} s  {name}")
     print(f"  peak memory {meta['peak_rss_bytes'] / 2**30:.2f} GiB")
     print(format_storage(meta["storage"]))
-    print(format_parts(index_parts(Path(meta["index"])), meta["n_ref"], meta["d"], meta["k"]))
+    print(format_parts(meta["parts_published"], meta["n_ref"], meta["d"], meta["k"]))
     write_summary(args, meta)
     return 0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from vprscale.cli.common import bounded_int, positive_int, write_summary
+from vprscale.cli.common import bounded_int, local_output, positive_int, write_summary
 from vprscale.protocol import MAX_BEST
 
 INPUTS = ('index', 'queries')  # the flags naming what it reads: no output may be written over them
@@ -29,6 +29,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.jobs.localise import localise
 
-    summary = localise(args.index, args.queries, args.L, mode=args.mode, out=args.out or "-", top=args.top)
+    summary = localise(local_output(args.index), args.queries, args.L, mode=args.mode, out=args.out or "-",
+                       top=args.top)
     write_summary(args, summary)
     return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from vprscale.cli.common import positive_int
+from vprscale.cli.common import local_output, positive_int
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
@@ -20,6 +20,6 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.evaluation.occupancy import format_occupancy, occupancy
 
-    occ = occupancy(args.index, top=args.top)
+    occ = occupancy(local_output(args.index), top=args.top)
     print(json.dumps(occ) if args.json else format_occupancy(occ))
     return 0

@@ -1,14 +1,10 @@
 """Outputs and inputs on object storage (``s3://``, ``gs://``, ``az://``, ``memory://`` … any
-fsspec scheme), and how an output is published there.
+fsspec scheme), named by URL.
 
-A local path keeps :mod:`vprscale.core.publish`'s lifecycle: a hidden work copy renamed into
-place. Object storage has neither rename nor locks, so an output is written in place, under
-its final prefix, and its manifest, written last, is what makes it complete: every reader
-refuses an output on object storage without one (:func:`vprscale.core.manifest.check_manifest`),
-so a killed job never leaves something that looks whole. The job's key and done-markers are
-objects beside its files (``.job.json``, ``.done/``), so a re-run resumes from any client;
-what only the client needs (a streamed pass's checkpoint, the fitted FAS rows) lives in a
-local work folder under the cache (``$VPRSCALE_CACHE``), rebuilt if a new client lacks it.
+How an output is published there (in place, completed by its manifest written last) is
+:class:`vprscale.core.publish.ObjectOutput`'s; this module is the location itself: a
+:class:`Remote` path on an fsspec filesystem, the errors of a storage as one line each, and
+where the client keeps what it can always remake (:func:`cache_root`).
 
 Credentials are never handled here: each filesystem finds them as it always does (for S3 the
 ``AWS_*`` environment, ``~/.aws``, an instance role; ``AWS_ENDPOINT_URL`` for another
@@ -17,11 +13,8 @@ endpoint), and a URL is shown and recorded without user, password or query (:fun
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import re
-import shutil
 import urllib.parse
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -32,7 +25,6 @@ from vprscale.core.errors import InputError
 
 SCHEME = re.compile(r"^([a-z][a-z0-9+.-]*)://", re.IGNORECASE)
 BOOKKEEPING = (".job.json", ".done/", ".work/")
-MANIFEST = "manifest.json"  # the name core.manifest writes; the commit point of an output here
 
 
 def is_url(spec: str | os.PathLike | None) -> bool:
@@ -199,87 +191,3 @@ def check_bucket(root: Remote, flag: str) -> None:
             root.fs.rm_file(probe.path)
     except InputError as exc:
         raise InputError(f"{flag} {exc}") from None
-
-
-class ObjectOutput:
-    """The lifecycle of one output on object storage; the same calls as
-    :class:`~vprscale.core.publish.PartialOutput` (``open``, ``done``, ``mark``, ``publish``).
-
-    ``path`` is the URL the work is written to: the output's own. An output there that is
-    complete (its manifest present) is moved to ``<name>.previous`` before a new job starts
-    writing (``--force``; a copy on the storage's side), as a local ``--force`` keeps it.
-    """
-
-    def __init__(self, final: Remote, key: dict[str, Any]) -> None:
-        self.final = final
-        self.path = final.url
-        self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
-        self._done: set[str] = set()
-        self.work = cache_root() / "work" / hashlib.sha256(final.url.encode()).hexdigest()[:16]
-
-    def recover(self) -> bool:
-        """Remove bookkeeping a job killed after its manifest left behind. Publishing here has no
-        later steps, so there is never a publish to finish: False."""
-        if (self.final / MANIFEST).exists():
-            for name in BOOKKEEPING:
-                (self.final / name.rstrip("/")).remove()
-        return False
-
-    def open(self) -> bool:
-        """Resume the job if its key is the one stored beside the output; else start it over
-        (an older complete output moved aside). True if resumed."""
-        job = self.final / ".job.json"
-        try:
-            stored = json.loads(job.read_text()) if job.exists() else None
-        except ValueError:
-            stored = None
-        if stored == self.key and not (self.final / MANIFEST).exists():
-            self._done = set((self.final / ".done").files())
-            self.work.mkdir(parents=True, exist_ok=True)
-            return True
-        if (self.final / MANIFEST).exists():
-            keep_beside(self.final)
-        self.final.remove()
-        shutil.rmtree(self.work, ignore_errors=True)
-        self.work.mkdir(parents=True)
-        job.write_text(json.dumps(self.key, sort_keys=True, indent=1))
-        return False
-
-    def done(self, unit: str) -> bool:
-        return unit in self._done
-
-    def mark(self, unit: str) -> None:
-        (self.final / ".done" / unit).write_bytes(b"")
-        self._done.add(unit)
-
-    def write_text(self, name: str, text: str) -> None:
-        (self.final / name).write_text(text)
-
-    def publish(self) -> None:
-        """Write the manifest (the commit point), then remove the job's bookkeeping."""
-        from vprscale.core.manifest import write_manifest
-
-        write_manifest(self.final)
-        self.recover()
-        shutil.rmtree(self.work, ignore_errors=True)
-
-
-def keep_beside(path: Remote) -> Remote:
-    """Copy a complete output to ``<name>.previous`` (an earlier copy there moves on to
-    ``.previous.N``, as :func:`vprscale.core.publish.keep_beside` numbers them), then remove it."""
-    kept = path.with_name(f"{path.name}.previous")
-    if kept.exists():
-        taken = [int(name.rpartition(".")[2]) for name in _siblings(kept) if name.rpartition(".")[2].isdigit()]
-        moved = kept.with_name(f"{kept.name}.{max(taken, default=0) + 1}")
-        kept.copy_to(moved)
-        kept.remove()
-    path.copy_to(kept)
-    path.remove()
-    return kept
-
-
-def _siblings(path: Remote) -> list[str]:
-    """Names beside ``path`` that start with its name and a dot."""
-    with storage_errors(path.url):
-        names = [n.rpartition("/")[2] for n in path.fs.ls(path.parent.path, detail=False)]
-    return [n for n in names if n.startswith(f"{path.name}.")]

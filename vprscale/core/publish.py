@@ -1,15 +1,23 @@
-"""Lifecycle of an output directory: lock, work in a hidden partial copy, publish atomically.
+"""Lifecycle of an output: lock, work in a hidden partial copy, publish atomically.
 
 A build (or an index) writes into ``.<name>.partial`` beside its final path, records each
 finished unit of work as a marker file, and only when everything is written sets
 ``complete`` and renames the partial copy into place. So a reader never finds an
 incomplete output at the public path, a killed job resumes from its markers, and
 ``--force`` replaces an existing output only once the new one is whole.
+
+On object storage (no rename, no lock) an output is written in place under its final prefix
+and its manifest, written last, is what makes it complete (:class:`ObjectOutput`): every
+reader refuses an output there without one, so a killed job never leaves something that
+looks whole. Its key and done-markers are objects beside its files (``.job.json``,
+``.done/``), so a re-run resumes from any client; what only the client needs (a pass's
+checkpoint, the fitted FAS rows) lives in a local work folder under the cache.
 """
 
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import shutil
@@ -20,8 +28,8 @@ from typing import Any
 from filelock import FileLock, Timeout
 
 from vprscale.core.errors import InputError
-from vprscale.core.manifest import write_manifest
-from vprscale.core.objects import ObjectOutput, Remote, check_bucket
+from vprscale.core.manifest import NAME, write_manifest
+from vprscale.core.objects import BOOKKEEPING, Remote, cache_root, check_bucket, storage_errors
 
 NAME_BYTES = 255  # the longest file name POSIX filesystems take
 MARKS = (".partial", ".sealed", ".lock", ".old", ".previous.999")  # what publishing adds to a name, at most
@@ -217,6 +225,88 @@ def keep_beside(path: Path, kept: Path | None = None) -> Path:
         kept.rename(kept.with_name(f"{kept.name}.{max(taken, default=0) + 1}"))
     path.rename(kept)
     return kept
+
+
+class ObjectOutput:
+    """The lifecycle of one output on object storage; the same calls as
+    :class:`~vprscale.core.publish.PartialOutput` (``open``, ``done``, ``mark``, ``publish``).
+
+    ``path`` is the URL the work is written to: the output's own. An output there that is
+    complete (its manifest present) is moved to ``<name>.previous`` before a new job starts
+    writing (``--force``; a copy on the storage's side), as a local ``--force`` keeps it.
+    """
+
+    def __init__(self, final: Remote, key: dict[str, Any]) -> None:
+        self.final = final
+        self.path = final.url
+        self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
+        self._done: set[str] = set()
+        self.work = cache_root() / "work" / hashlib.sha256(final.url.encode()).hexdigest()[:16]
+
+    def recover(self) -> bool:
+        """Remove bookkeeping a job killed after its manifest left behind. Publishing here has no
+        later steps, so there is never a publish to finish: False."""
+        if (self.final / NAME).exists():
+            for name in BOOKKEEPING:
+                (self.final / name.rstrip("/")).remove()
+        return False
+
+    def open(self) -> bool:
+        """Resume the job if its key is the one stored beside the output; else start it over
+        (an older complete output moved aside). True if resumed."""
+        job = self.final / ".job.json"
+        try:
+            stored = json.loads(job.read_text()) if job.exists() else None
+        except ValueError:
+            stored = None
+        if stored == self.key and not (self.final / NAME).exists():
+            self._done = set((self.final / ".done").files())
+            self.work.mkdir(parents=True, exist_ok=True)
+            return True
+        if (self.final / NAME).exists():
+            keep_remote_beside(self.final)
+        self.final.remove()
+        shutil.rmtree(self.work, ignore_errors=True)
+        self.work.mkdir(parents=True)
+        job.write_text(json.dumps(self.key, sort_keys=True, indent=1))
+        return False
+
+    def done(self, unit: str) -> bool:
+        return unit in self._done
+
+    def mark(self, unit: str) -> None:
+        (self.final / ".done" / unit).write_bytes(b"")
+        self._done.add(unit)
+
+    def write_text(self, name: str, text: str) -> None:
+        (self.final / name).write_text(text)
+
+    def publish(self) -> None:
+        """Write the manifest (the commit point), then remove the job's bookkeeping."""
+        write_manifest(self.final)
+        self.recover()
+        shutil.rmtree(self.work, ignore_errors=True)
+
+
+def keep_remote_beside(path: Remote) -> Remote:
+    """Copy a complete output to ``<name>.previous`` (an earlier copy there moves on to
+    ``.previous.N``, as :func:`keep_beside` numbers them), then remove it."""
+    kept = path.with_name(f"{path.name}.previous")
+    if kept.exists():
+        taken = [int(name.rpartition(".")[2]) for name in _siblings(kept) if name.rpartition(".")[2].isdigit()]
+        moved = kept.with_name(f"{kept.name}.{max(taken, default=0) + 1}")
+        kept.copy_to(moved)
+        kept.remove()
+    path.copy_to(kept)
+    path.remove()
+    return kept
+
+
+def _siblings(path: Remote) -> list[str]:
+    """Names beside ``path`` that start with its name and a dot."""
+    with storage_errors(path.url):
+        names = [n.rpartition("/")[2] for n in path.fs.ls(path.parent.path, detail=False)]
+    return [n for n in names if n.startswith(f"{path.name}.")]
 
 
 Output = PartialOutput | ObjectOutput  # an output being written, on a local disk or on object storage

@@ -23,6 +23,7 @@ import vprscale
 from vprscale.core.blocks import chunk_bounds
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.localcopy import cache_folder, upload
 from vprscale.core.objects import Remote, location, shown
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
@@ -48,7 +49,7 @@ def _hash_chunk(x: np.ndarray, mean: np.ndarray, comp: np.ndarray,
     return h, err.astype(np.float32)  # errors are compared in float32, as a compact store keeps them
 
 
-def default_index_dir(store: Path, d: int, k: int) -> Path:
+def default_index_dir(store: Path | Remote, d: int, k: int) -> Path | Remote:
     return store.parent / f"{store.name.removesuffix('.zarr')}-d{d}-k{k}.index"
 
 
@@ -75,13 +76,17 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         n_ref, dim = group["ref"].shape
         hasher = CoarseHasher(d=d, k=k)
         d_eff = hasher._check(n_ref, dim)
-    if out is None and isinstance(store, Remote):
-        raise InputError(f"{store}: give --out, a local folder for the index (an index is memory-mapped where it "
-                         "is used: it is written on a local disk)")
-    final = Path(out) if out else default_index_dir(store, d_eff, k)
+    remote = location(out) if out is not None else (default_index_dir(store, d_eff, k) if isinstance(store, Remote)
+                                                     else None)
+    remote = remote if isinstance(remote, Remote) else None
+    # an index is memory-mapped while it is written and where it is used: one for object storage is
+    # made in the local cache, then uploaded (core/localcopy)
+    final = cache_folder(remote) if remote else Path(out) if out else default_index_dir(store, d_eff, k)
     if not final.resolve().name:
         raise InputError(f"--out {out}: names no directory to write the index into; give a new folder's path")
     check_writable(final.parent)
+    if remote:
+        check_writable(remote.parent)
     identity = store_identity(group)
     timings = Timings(quiet)
     t0 = time.perf_counter()
@@ -145,7 +150,10 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         if (final / "eval").is_dir():  # only with force (checked above): the old evaluations are kept beside
             keep_beside(final / "eval", final.with_name(f"{final.name}.previous-eval"))
         partial.publish()
-    return {"index": str(final), **meta}
+    parts = index_parts(final)  # as published: index.json and the manifest counted
+    if remote:
+        upload(final, remote)
+    return {"index": str(remote or final), **meta, "parts_published": parts}
 
 
 def upgrade_index(path: str | Path, quiet: bool = False) -> dict[str, Any]:
