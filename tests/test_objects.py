@@ -241,3 +241,25 @@ def test_an_index_on_s3_is_used_from_a_verified_copy_in_the_cache(s3, tiny_store
     assert json.loads(capsys.readouterr().out)["d"] == 10  # the re-published index, not the cached copy
     assert main(["eval", str(tiny_store), url, "--L", "1"]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+def test_an_evaluation_on_s3_is_read_back_by_results_and_sql(s3, tiny_store, tiny_index, tmp_path, capsys):
+    """``eval --out s3://…`` uploads the published evaluation (manifest last); ``results`` and
+    ``sql`` read it by URL, the same rows as a local evaluation of the same grid; a second
+    evaluation into it is refused without ``--force`` and, with it, keeps the first beside."""
+    url = f"s3://{BUCKET}/runs/tiny"
+    grid = ["--L", "1", "--noise", "qm1", "--no-baseline", "-q"]
+    assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", url]) == 0
+    assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", str(tmp_path / "local")]) == 0
+    assert {"manifest.json", "eval.json", "results.parquet"} <= set(Remote(url).files())
+    capsys.readouterr()
+    assert main(["sql", url, "SELECT count(*) AS n FROM results", "--csv"]) == 0
+    remote_rows = capsys.readouterr().out
+    assert main(["sql", str(tmp_path / "local"), "SELECT count(*) AS n FROM results", "--csv"]) == 0
+    assert remote_rows == capsys.readouterr().out and remote_rows.split()[-1] != "0"
+    assert main(["results", url, "--where", "L = 1", "--csv"]) == 0
+    assert "coarsehash" in capsys.readouterr().out
+    assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", url]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", url, "--force"]) == 0
+    assert "eval.json" in Remote(f"{url}.previous").files()

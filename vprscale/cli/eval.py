@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from vprscale.cli.common import csv_of, local_output, positive_int, write_summary
 from vprscale.core.errors import InputError
@@ -80,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,
                       faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
                       flat_noise=args.flat_noise,
-                      deep1b=args.deep1b, fas=args.fas, out=Path(args.out) if args.out else None,
+                      deep1b=args.deep1b, fas=args.fas, out=location(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
                       force=args.force, radii_m=args.radius_m)
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound

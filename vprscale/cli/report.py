@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vprscale.cli.common import write_summary
+from vprscale.cli.common import local_output, write_summary
 
 INPUTS = ('results', 'index')  # the flags naming what it reads: no output may be written over them
 
@@ -25,7 +25,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.evaluation.report import write_report
 
-    rep = write_report(args.results, Path(args.out), extra_indexes=args.index, force=args.force)
+    rep = write_report([str(local_output(p)) for p in args.results], Path(args.out),
+                       extra_indexes=[str(local_output(p)) for p in args.index], force=args.force)
     print(f"wrote {rep['report']} and {len(rep['figures'])} figure files")
     write_summary(args, rep)
     return 0

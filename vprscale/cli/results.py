@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from vprscale.cli.common import positive_float
+from vprscale.cli.common import local_output, positive_float
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
@@ -93,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
 
     from vprscale.evaluation.results import eval_folder, load_tables
     from vprscale.evaluation.sql import format_table, sandbox
+
+    args.paths = [str(local_output(p)) for p in args.paths]  # by URL: a verified copy in the cache
 
     if args.where is None:  # every row: read as it is, no SQL engine needed
         import pyarrow as pa

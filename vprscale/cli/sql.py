@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vprscale.cli.common import bounded_int, positive_float
+from vprscale.cli.common import bounded_int, local_output, positive_float
+from vprscale.core.objects import is_url
 
 MAX_SQL_THREADS = 256
 
@@ -29,7 +30,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 
 
 def _is_path(text: str) -> bool:
-    """Whether a word names something on disk; a statement longer than a file name may be is not."""
+    """Whether a word names something on disk or by URL; a statement longer than a file name may be is not."""
+    if is_url(text):
+        return True
     try:
         return Path(text).exists()
     except (OSError, ValueError):  # ENAMETOOLONG, a NUL byte
@@ -40,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     paths, query = args.paths, None
     if len(paths) > 1 and not _is_path(paths[-1]):  # the last word is the statement, not a folder
         paths, query = paths[:-1], paths[-1]
+    paths = [str(local_output(p)) for p in paths]
     if query is None:
         from vprscale.cli.sqlshell import shell
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -26,10 +27,11 @@ from vprscale.compared.encoding import load_encoding, stored_encoding
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.localcopy import cache_folder, upload
 from vprscale.core.objects import Remote, shown
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, shared
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, keep_remote_beside, shared
 from vprscale.dataset.references import reference_rows
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
@@ -82,7 +84,7 @@ class EvalRequest:
     radii_m: list[float] | None = None  # radii in metres (a store with positions): results_m.parquet
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
-    out: Path | None = None
+    out: Path | Remote | None = None  # a URL's evaluation is made in the cache, then uploaded
     workers: int = 2
     scheduler: str | None = None
     quiet: bool = False
@@ -234,8 +236,16 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 raise InputError(f"{path}: index expects {idx.components.shape[1]}-d descriptors, "
                                  f"the store holds {dim}-d")
             indexes.append((path, idx))
-        out = Path(req.out) if req.out else (index_paths[0] / "eval" if len(index_paths) == 1 else
-                                             req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
+        remote = req.out if isinstance(req.out, Remote) else None
+        if remote is not None:  # made in the cache, uploaded once published (core/localcopy)
+            check_writable(remote.parent)
+            if (remote / "eval.json").exists() and not req.force:
+                raise InputError(_HOLDS.format(out=remote))
+        out = cache_folder(remote) if remote else Path(req.out) if req.out else (
+            index_paths[0] / "eval" if len(index_paths) == 1 else
+            req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
+        if remote is not None:
+            shutil.rmtree(out, ignore_errors=True)  # an earlier copy in the cache is not this run's output
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out}: is a file, not a directory for the evaluation")
         if out.is_dir() and any(out.iterdir()) and not (out / "eval.json").is_file():
@@ -294,7 +304,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             if req.force and (out / "eval.json").is_file():  # the previous evaluation is kept, not replaced
                 keep_beside(out)
             partial.publish()  # the three files appear together, by one rename
-    return {"out": str(out), "rows": len(rows), "queries": len(queries), "z": z,
+        if remote is not None:
+            if (remote / "eval.json").exists():  # with --force: the previous evaluation is kept beside
+                keep_remote_beside(remote)
+            upload(out, remote)
+    return {"out": str(remote or out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
 
 
