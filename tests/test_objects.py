@@ -263,3 +263,20 @@ def test_an_evaluation_on_s3_is_read_back_by_results_and_sql(s3, tiny_store, tin
     assert "--force" in capsys.readouterr().err
     assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", url, "--force"]) == 0
     assert "eval.json" in Remote(f"{url}.previous").files()
+
+
+def test_an_endpoint_that_does_not_answer_is_one_line(s3, recipe, monkeypatch, capsys):
+    """The storage client's own errors (here: a refused connection) are the storage's, not a bug."""
+    import socket
+
+    import s3fs
+
+    with socket.socket() as sock:  # a port that was free a moment ago: nothing listens there
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{port}")
+    monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    s3fs.S3FileSystem.clear_instance_cache()
+    assert main(["build", "--scale", str(recipe), "--out", f"s3://{BUCKET}/data"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "storage failed" in err and len(err.splitlines()) == 1

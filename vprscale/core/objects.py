@@ -25,6 +25,7 @@ from vprscale.core.errors import InputError
 
 SCHEME = re.compile(r"^([a-z][a-z0-9+.-]*)://", re.IGNORECASE)
 BOOKKEEPING = (".job.json", ".done/", ".work/")
+CLIENTS = ("botocore", "aiobotocore", "s3fs", "gcsfs", "google", "adlfs", "azure", "aiohttp")  # storage clients
 
 
 def is_url(spec: str | os.PathLike | None) -> bool:
@@ -80,6 +81,11 @@ def storage_errors(url: str) -> Iterator[None]:
         raise InputError(f"{shown}: access denied ({_first_line(exc)}); the credentials come from the storage's "
                          "usual environment and configuration (for S3: AWS_* variables, ~/.aws)") from None
     except (OSError, ValueError) as exc:
+        raise InputError(f"{shown}: the storage failed: {_first_line(exc)}") from None
+    except Exception as exc:
+        if not type(exc).__module__.startswith(CLIENTS):
+            raise
+        # the storage client's own errors: an endpoint that does not answer, a bad region or configuration
         raise InputError(f"{shown}: the storage failed: {_first_line(exc)}") from None
 
 

@@ -193,7 +193,8 @@ def print_plan(p: dict[str, Any], out: Path | Remote) -> None:
         print(f"  {kind + ' rows':<11} {rows:>15,}   (Deep1B {rows - fas:,} + FAS {fas:,})")
     print(f"  reads       {_gib(p['bytes_read']):>15}   from {p['deep1b']} and {p['fas']}")
     print(f"  writes      {_gib(p['bytes_written_max']):>15}   at most (before compression)")
-    print(f"  disk free   {_gib(p['disk_free']):>15}")
+    free = "object storage" if math.isinf(p["disk_free"]) else _gib(p["disk_free"])
+    print(f"  disk free   {free:>15}")
     print(f"  memory      {_gib(p['memory_estimate']):>15}   peak, estimated")
     print(f"  time        {p['seconds_estimate']:>13.0f} s   estimated from measured throughput")
 
