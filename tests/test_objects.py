@@ -280,3 +280,37 @@ def test_an_endpoint_that_does_not_answer_is_one_line(s3, recipe, monkeypatch, c
     assert main(["build", "--scale", str(recipe), "--out", f"s3://{BUCKET}/data"]) == 2
     err = capsys.readouterr().err.strip()
     assert "storage failed" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("layout", ["full", "compact"])
+def test_a_sharded_store_holds_the_same_arrays_in_fewer_objects(s3, sources, tiny_store, tmp_path, layout):
+    """``--shard-chunks 2``: each array's chunks two to a shard (recorded in its zarr.json), each
+    shard written whole by one task; the arrays equal the unsharded build's, on S3 in half the
+    objects, and the index fitted from it equals the one fitted from the unsharded store."""
+    import zarr
+
+    from vprscale.jobs.indexing import build_index
+
+    recipe = tiny_store.parent.parent / "tiny.toml"
+    flags = ["--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]), "--layout", layout,
+             "-q"]
+    url = f"s3://{BUCKET}/sharded"
+    assert main(["build", *flags, "--out", str(tmp_path / "plain")]) == 0
+    assert main(["build", *flags, "--out", url, "--shard-chunks", "2"]) == 0
+    plain, sharded = zarr.open_group(tmp_path / "plain" / "tiny.zarr", mode="r"), zarr.open_group(
+        f"{url}/tiny.zarr", mode="r")
+    big = "ref" if layout == "full" else "ref_hash"
+    assert sharded[big].shards == (2 * plain[big].chunks[0], *plain[big].chunks[1:])
+    assert plain[big].shards is None
+    for name in plain.array_keys():
+        np.testing.assert_array_equal(sharded[name][:], plain[name][:], err_msg=name)
+    objects = [n for n in Remote(f"{url}/tiny.zarr").files() if n.startswith(f"{big}/c/")]
+    files = [p for p in (tmp_path / "plain" / "tiny.zarr" / big / "c").rglob("*") if p.is_file()]
+    assert len(objects) == -(-len(files) // 2)
+    d = 12 if layout == "full" else None  # a compact store holds its own width's addresses
+    indexes = [build_index(store, d=d, out=tmp_path / name, quiet=True) for store, name in
+               ((tmp_path / "plain" / "tiny.zarr", "a.index"), (f"{url}/tiny.zarr", "b.index"))]
+    crcs = [json.loads((tmp_path / n / "manifest.json").read_text())["files"] for n in ("a.index", "b.index")]
+    assert {k: v for k, v in crcs[0].items() if k != "index.json"} == {k: v for k, v in crcs[1].items()
+                                                                        if k != "index.json"}
+    assert indexes[0]["occupied"] == indexes[1]["occupied"]

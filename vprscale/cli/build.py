@@ -40,6 +40,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--force", action="store_true", help="rebuild a complete store (replaced only when done)")
     p.add_argument("--no-rescale", dest="rescale", action="store_false",
                    help="skip the variance rescaling of Deep1B (ablation of Fig. 4d; writes <scale>-norescale.zarr)")
+    p.add_argument("--shard-chunks", type=positive_int, default=None, metavar="N",
+                   help="store N chunks per zarr shard (one object each on object storage, written whole by one "
+                        "task); default: the recipe's, 1 (unsharded) unless it says otherwise (docs/storage.md)")
     p.add_argument("--layout", choices=["full", "compact"], default=None,
                    help="full: every row of every array; compact: only what the index and the evaluation read "
                         "(default: the recipe's; compact at 100M and 1B)")
@@ -56,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     summary = build(BuildRequest(scale=args.scale, out=args.out, deep1b=args.deep1b, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
                                  force=args.force, fas_dim=args.fas_dim, rescale=args.rescale,
-                                 layout=args.layout))
+                                 layout=args.layout, shard_chunks=args.shard_chunks))
     if not summary.get("dry_run") and not summary.get("skipped"):
         print(format_summary(summary))
     write_summary(args, summary)

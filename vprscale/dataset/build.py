@@ -10,6 +10,7 @@ task, so tasks never race and a resumed build simply rewrites unfinished chunks.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -38,9 +39,9 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import Output, check_writable, exclusive, output_for
 from vprscale.dataset import compact
 from vprscale.dataset.homogenise import window_mean
-from vprscale.dataset.layout import ChunkWriter, Layout, codecs
+from vprscale.dataset.layout import ChunkWriter, Layout, codecs, grid
 from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
-from vprscale.dataset.recipe import Recipe, load_recipe
+from vprscale.dataset.recipe import MAX_CHUNK_ROWS, Recipe, load_recipe
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.deep1b import open_deep1b
 from vprscale.dataset.sources.fas import Traverse, open_fas
@@ -75,6 +76,7 @@ class BuildRequest:
     rescale: bool = True
     quiet: bool = False
     layout: str | None = None  # "full" or "compact"; default: the recipe's
+    shard_chunks: int | None = None  # chunks per zarr shard; default: the recipe's (1: unsharded)
 
 
 def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
@@ -172,7 +174,7 @@ def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path | Remote
     passes = 2 if layout == "full" else 3
     read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * passes + 4 * traverse.ref.dim * (
         traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3)
-    chunk_mem = recipe.chunk_rows * d * (8 + 8 + 4 * 6)
+    chunk_mem = (recipe.shard_rows if layout == "full" else recipe.chunk_rows) * d * (8 + 8 + 4 * 6)
     fas_mem = 4 * traverse.ref.dim * (8192 * 3 + 128 * 4) + 8 * traverse.ref.dim * 128 * 3
     hist_mem = 8 * d_hash * (1 << 14) * 24 if layout == "compact" else 0  # per-chunk histograms of a group
     return {"scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref, "query_rows": lay.n_query,
@@ -202,6 +204,11 @@ def print_plan(p: dict[str, Any], out: Path | Remote) -> None:
 def build(req: BuildRequest) -> dict[str, Any]:
     """Run (or plan) a build; returns the summary that the CLI prints."""
     recipe = load_recipe(req.scale)
+    if req.shard_chunks is not None:
+        if req.shard_chunks < 1 or recipe.chunk_rows * req.shard_chunks > MAX_CHUNK_ROWS:
+            raise InputError(f"--shard-chunks {req.shard_chunks}: must be from 1 to "
+                             f"{MAX_CHUNK_ROWS // recipe.chunk_rows} (shards of at most {MAX_CHUNK_ROWS:,} rows)")
+        recipe = dataclasses.replace(recipe, shard_chunks=req.shard_chunks)
     deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
     out = location(req.out)
     if isinstance(out, Path):
@@ -348,16 +355,16 @@ def _write_full(group: zarr.Group, writer: ChunkWriter, partial: Output, timings
     lay, recipe, d = writer.layout, writer.recipe, writer.recipe.dim
     if not partial.done("arrays"):
         for name, rows in (("ref", lay.n_ref), ("query_qm1", lay.n_query), ("query_qm2", lay.n_query)):
-            group.create_array(name, shape=(rows, d), chunks=(recipe.chunk_rows, d), dtype="f4",
+            group.create_array(name, shape=(rows, d), **grid(recipe, (rows, d)), dtype="f4",
                                overwrite=True, **codecs("descriptors"))
-        group.create_array("gt", shape=(lay.n_query,), chunks=(recipe.chunk_rows,), dtype="i8",
+        group.create_array("gt", shape=(lay.n_query,), **grid(recipe, (lay.n_query,)), dtype="i8",
                            overwrite=True, **codecs("labels"))
         for name, rows in (("ref_part", lay.n_ref), ("query_part", lay.n_query)):
-            group.create_array(name, shape=(rows,), chunks=(recipe.chunk_rows,), dtype="u1",
+            group.create_array(name, shape=(rows,), **grid(recipe, (rows,)), dtype="u1",
                                overwrite=True, **codecs("labels"))
         partial.mark("arrays")
     tasks = [dask.delayed(_write_and_mark)(writer, a, b, partial, f"chunk-{c}")
-             for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.chunk_rows))
+             for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.shard_rows))
              if not partial.done(f"chunk-{c}")]
     with timings.stage(f"write {len(tasks)} chunks (homogenise, project, rescale, noise)"):
         run_tasks(tasks, "write chunks")

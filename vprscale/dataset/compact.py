@@ -29,7 +29,7 @@ from vprscale.core.blocks import BLOCK, chunk_bounds
 from vprscale.core.passes import reduce_pass
 from vprscale.core.progress import Timings, compute
 from vprscale.core.publish import Output
-from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, codecs, gt_of
+from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, codecs, grid, gt_of
 from vprscale.dataset.store import MODEL, load_model
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors, project
 from vprscale.method.lists import address_dtype
@@ -59,13 +59,18 @@ class _HashWriter:
         self.dtype = address_dtype(hasher.d_, hasher.k)
 
     def __call__(self, a: int, b: int) -> None:
-        hs = self.hasher
-        x = self.writer.ref_rows(a, b)
-        _, h, err, _ = hash_descriptors(x, hs.mean_, hs.components_, hs.centres_)
+        """Rows ``[a, b)`` (a chunk, or a shard of chunks written whole), computed a chunk at a time."""
+        hs, step = self.hasher, self.writer.recipe.chunk_rows
+        h, err, base = np.empty(b - a, self.dtype), np.empty(b - a, np.float32), np.empty(b - a, np.float32)
+        for s, e in chunk_bounds(b - a, step):
+            x = self.writer.ref_rows(a + s, a + e)
+            _, addresses, errors, _ = hash_descriptors(x, hs.mean_, hs.components_, hs.centres_)
+            h[s:e], err[s:e] = addresses, errors  # cast as the arrays store them
+            base[s:e] = baseline_map(x, hs.mean_, hs.components_)
         group = zarr.open_group(self.store, mode="r+")
-        group["ref_hash"][a:b] = h.astype(self.dtype)
-        group["ref_err"][a:b] = err.astype(np.float32)
-        group["base_x1"][a:b] = baseline_map(x, hs.mean_, hs.components_)
+        group["ref_hash"][a:b] = h
+        group["ref_err"][a:b] = err
+        group["base_x1"][a:b] = base
 
 
 def baseline_map(x: np.ndarray, mean: np.ndarray, components: np.ndarray) -> np.ndarray:
@@ -102,13 +107,14 @@ def write_compact(group: zarr.Group, writer: ChunkWriter, partial: Output, timin
             model.create_array(name, data=np.asarray(getattr(hasher, f"{name}_"), np.float64))
         model.attrs.update({"d": hasher.d_, "k": hasher.k, "bins": hasher.bins})
         for name, dtype in (("ref_hash", address_dtype(hasher.d_, hasher.k)), ("ref_err", "f4"), ("base_x1", "f4")):
-            group.create_array(name, shape=(lay.n_ref,), chunks=(recipe.chunk_rows,), dtype=dtype, overwrite=True,
+            group.create_array(name, shape=(lay.n_ref,), **grid(recipe, (lay.n_ref,)), dtype=dtype, overwrite=True,
                                compressors=None)
         partial.mark("model")
     else:
         hasher = load_model(group)
     with timings.stage("hash every reference (addresses, errors, baseline map)"):
-        reduce_pass(work, "hash references", bounds, _HashWriter(str(partial.path), writer, hasher),
+        reduce_pass(work, "hash references", chunk_bounds(lay.n_ref, recipe.shard_rows),
+                    _HashWriter(str(partial.path), writer, hasher),
                     lambda s, _: s, None, quiet=quiet)
     z = recipe.query_stride
     if not partial.done("queries"):

@@ -36,6 +36,16 @@ def codecs(kind: str) -> dict[str, Any]:
     return {"compressors": [zarr.codecs.BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")]}
 
 
+def grid(recipe: Recipe, shape: tuple[int, ...]) -> dict[str, Any]:
+    """The chunk shape of a per-row array (``chunk_rows`` whole rows), and with a sharded recipe its
+    shard shape (``shard_chunks`` chunks: one object on object storage, written whole by one task).
+    Zarr records both in the array's metadata; every reader takes either form."""
+    chunks = (recipe.chunk_rows, *shape[1:])
+    if recipe.shard_chunks == 1:
+        return {"chunks": chunks}
+    return {"chunks": chunks, "shards": (recipe.shard_rows, *shape[1:])}
+
+
 @dataclass
 class Layout:
     """Row counts of the dataset."""

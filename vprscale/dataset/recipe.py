@@ -20,6 +20,7 @@ _FIELDS: dict[str, type | tuple[type, ...]] = {
 }
 MAX_CHUNK_ROWS = 1 << 21  # 768 MiB of 96-d float32 per array and task
 _OPTIONAL: dict[str, tuple[str, ...]] = {"layout": ("full", "compact")}
+_OPTIONAL_INT = ("shard_chunks",)
 
 
 def recipe_dir() -> Path:
@@ -60,6 +61,14 @@ class Recipe:
     seed: int
     chunk_rows: int
     layout: str = "full"  # "compact" keeps only what the index and the evaluation read (100M and up)
+    # chunks per zarr shard (one object or file holding that many chunks, written whole by one task);
+    # 1: unsharded, a file per chunk (the raw fast path of local stores)
+    shard_chunks: int = 1
+
+    @property
+    def shard_rows(self) -> int:
+        """Rows of one stored shard: what one writing task writes whole."""
+        return self.chunk_rows * self.shard_chunks
 
     def fas_rows(self, which: str, available: int) -> int:
         """Rows of the FAS reference or query traverse kept ("all" or a count)."""
@@ -67,7 +76,12 @@ class Recipe:
         return available if want == "all" else int(want)
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The recipe as a store records it; ``shard_chunks`` only when sharded, so a store built
+        before sharding existed keeps its identity."""
+        d = asdict(self)
+        if d["shard_chunks"] == 1:
+            del d["shard_chunks"]
+        return d
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], origin: str) -> Recipe:
@@ -76,13 +90,16 @@ class Recipe:
                 raise InputError(f"{origin}: missing key '{key}'")
             if not isinstance(data[key], kind) or isinstance(data[key], bool):
                 raise InputError(f"{origin}: key '{key}' has the wrong type ({type(data[key]).__name__})")
-        unknown = set(data) - set(_FIELDS) - set(_OPTIONAL)
+        unknown = set(data) - set(_FIELDS) - set(_OPTIONAL) - set(_OPTIONAL_INT)
         if unknown:
             raise InputError(f"{origin}: unknown key(s) {sorted(unknown)}")
         for key, choices in _OPTIONAL.items():
             if key in data and data[key] not in choices:
                 raise InputError(f"{origin}: key '{key}' must be one of {', '.join(choices)}, got {data[key]!r}")
-        r = cls(**{k: data[k] for k in _FIELDS}, **{k: data[k] for k in _OPTIONAL if k in data})
+        for key in _OPTIONAL_INT:
+            if key in data and (not isinstance(data[key], int) or isinstance(data[key], bool) or data[key] < 1):
+                raise InputError(f"{origin}: key '{key}' must be a positive whole number, got {data[key]!r}")
+        r = cls(**{k: data[k] for k in _FIELDS}, **{k: data[k] for k in (*_OPTIONAL, *_OPTIONAL_INT) if k in data})
         for key in ("fas_ref_rows", "fas_query_rows"):
             v = getattr(r, key)
             if isinstance(v, str) and v != "all" or isinstance(v, int) and v <= 0:
@@ -105,6 +122,9 @@ class Recipe:
                              f"(a chunk of {r.chunk_rows * r.dim * 4 / 2**30:,.0f} GiB per array and task)")
         if r.dim <= 0:
             raise InputError(f"{origin}: dim must be positive")
+        if r.shard_rows > MAX_CHUNK_ROWS:
+            raise InputError(f"{origin}: a shard of {r.shard_chunks} chunks of {r.chunk_rows:,} rows is more than "
+                             f"{MAX_CHUNK_ROWS:,} rows (one task writes a shard whole)")
         return r
 
 
