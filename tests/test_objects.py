@@ -241,6 +241,10 @@ def test_an_index_on_s3_is_used_from_a_verified_copy_in_the_cache(s3, tiny_store
     assert json.loads(capsys.readouterr().out)["d"] == 10  # the re-published index, not the cached copy
     assert main(["eval", str(tiny_store), url, "--L", "1"]) == 2
     assert "--out" in capsys.readouterr().err
+    out = tmp_path / "run"
+    assert main(["eval", str(tiny_store), url, "--L", "1", "--noise", "qm1", "--no-baseline", "--out", str(out),
+                 "-q"]) == 0
+    assert json.loads((out / "eval.json").read_text())["indexes"] == [url]  # the URL, not the cache copy
 
 
 def test_an_evaluation_on_s3_is_read_back_by_results_and_sql(s3, tiny_store, tiny_index, tmp_path, capsys):

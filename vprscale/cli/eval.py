@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out: give a folder for the evaluation of {public(args.index)} (an index on object "
                          "storage is read from a copy in the cache, which is no place for results)")
     req = EvalRequest(store=location(args.store), indexes=[local_output(args.index)] if args.index else [],
+                      index_urls=[public(args.index) if is_url(args.index) else None] if args.index else [],
                       noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
                       z=args.z, baseline_queries=args.baseline_queries,
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,

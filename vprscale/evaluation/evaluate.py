@@ -66,6 +66,7 @@ class EvalRequest:
 
     store: Path | Remote  # a local store, or one on object storage
     indexes: list[Path] = field(default_factory=list)  # one index, or one per width of a d sweep
+    index_urls: list[str | None] = field(default_factory=list)  # where each was read from, if a URL (a cache copy)
     noises: list[str] | None = None  # the store's query sets by name (None: every one the store holds)
     lengths: list[int] = field(default_factory=lambda: [1, 50, 100])
     modes: list[str] = field(default_factory=lambda: ["paper", "aligned"])
@@ -281,8 +282,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             columns = {"scale": meta["recipe"]["scale"], "store": shown(req.store),
                        "store_identity": identity}
             record = provenance(inputs={"store_identity": identity, "indexes": [
-                {"path": str(Path(p).resolve()), "store_identity": i.meta["store"]["identity"], "d": i.d, "k": i.k}
-                for p, i in indexes]}, workers=req.workers, repeats=req.repeats)
+                {"path": where, "store_identity": i.meta["store"]["identity"], "d": i.d, "k": i.k}
+                for where, (_, i) in zip(_index_sources(req), indexes, strict=True)]},
+                workers=req.workers, repeats=req.repeats)
             _write_parquet(partial.path / "results.parquet", rows, columns, record)
             _write_parquet(partial.path / "queries.parquet", queries, columns, record)
             if rows_m:
@@ -292,7 +294,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "radii_m": req.radii_m, "lengths": req.lengths, "modes": req.modes,
                        "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
-                       "indexes": [str(Path(p).resolve()) for p in index_paths],
+                       "indexes": _index_sources(req),
                        "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
                                             "bytes_per_place": c.bytes_per_place,
                                             "encoding": str(stored[c.factory]) if stored[c.factory] else None}
@@ -310,6 +312,13 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             upload(out, remote)
     return {"out": str(remote or out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
+
+
+def _index_sources(req: EvalRequest) -> list[str]:
+    """Where the evaluated indexes were read from, as the evaluation records them: a URL for one
+    on object storage (read from its copy in the cache), else the absolute path."""
+    urls = req.index_urls if len(req.index_urls) == len(req.indexes) else [None] * len(req.indexes)
+    return [url or str(Path(p).resolve()) for p, url in zip(req.indexes, urls, strict=True)]
 
 
 def _default_k(idx: Index) -> int:
