@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from vprscale.cli.common import write_summary
 
@@ -25,7 +24,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.jobs.encoding import encode_store
 
-    summary = encode_store(Path(args.store), args.compare or [], deep1b=args.deep1b, fas=args.fas,
+    summary = encode_store(args.store, args.compare or [], deep1b=args.deep1b, fas=args.fas,
                            workers=args.workers, scheduler=args.scheduler, force=args.force)
     for factory, m in summary["methods"].items():
         done = "up to date, kept" if m.get("skipped") else f"{m['wall_s']:,.1f} s, {m['code_bytes']} B a code"

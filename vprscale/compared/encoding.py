@@ -45,6 +45,7 @@ from faiss.contrib.ondisk import merge_ondisk
 
 from vprscale.compared.faisscodes import FaissCodes
 from vprscale.core.errors import InputError
+from vprscale.core.localcopy import local_copy
 from vprscale.core.manifest import check_manifest, remake
 from vprscale.core.objects import Remote
 
@@ -74,12 +75,12 @@ def _faiss_quiet() -> Iterator[None]:
         os.close(null)
 
 
-def encodings_dir(store: Path) -> Path:
+def encodings_dir(store: Path | Remote) -> Path | Remote:
     """Where the encodings of ``store`` live: ``<store without .zarr>.faiss`` beside it."""
     return store.with_name(f"{store.name.removesuffix('.zarr')}.faiss")
 
 
-def encoding_dir(store: Path, factory: str) -> Path:
+def encoding_dir(store: Path | Remote, factory: str) -> Path | Remote:
     """The directory of one FAISS method's encoding of ``store`` (its factory string, file-safe)."""
     return encodings_dir(store) / re.sub(r"[^A-Za-z0-9]+", "_", factory).strip("_")
 
@@ -105,11 +106,12 @@ def describe(factory: str, identity: str, n_ref: int, train_rows: int, record: d
 
 def stored_encoding(store: Path | Remote, factory: str, identity: str) -> Path | None:
     """The published encoding of ``factory`` for this store, if there is one; a stale one is refused.
-    A store on object storage has none (``vprscale encode`` writes beside a local store): the
-    evaluation then trains and encodes the code itself."""
-    if isinstance(store, Remote):
-        return None
+    One beside a store on object storage is read from its verified copy in the cache."""
     out = encoding_dir(store, factory)
+    if isinstance(out, Remote):
+        if not (out / "encoding.json").is_file():
+            return None
+        out = local_copy(out)
     meta_file = out / "encoding.json"
     if not meta_file.is_file():
         return None

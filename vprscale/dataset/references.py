@@ -21,6 +21,7 @@ import zarr
 
 from vprscale.core.blocks import chunk_bounds
 from vprscale.core.errors import InputError
+from vprscale.core.objects import Remote, zarr_url
 from vprscale.core.zarrio import rows_of
 from vprscale.dataset.build import open_sources
 from vprscale.dataset.layout import ChunkWriter, Layout
@@ -34,8 +35,8 @@ _CHECKED = ("deep1b_mean", "deep1b_scale")  # fitted transforms that must come o
 class StoredRows:
     """Reference rows ``[a, b)`` of a full store, read from its ``ref`` (opened in the task)."""
 
-    def __init__(self, store: Path) -> None:
-        self.store = str(store)
+    def __init__(self, store: Path | Remote) -> None:
+        self.store = zarr_url(store)
 
     def __call__(self, a: int, b: int) -> np.ndarray:
         return np.asarray(zarr.open_group(self.store, mode="r")["ref"][a:b], np.float32)
@@ -83,7 +84,7 @@ def reference_reader(store: Path, group: zarr.Group, deep1b: str | None = None,
         if not np.array_equal(np.asarray(refit[name], np.float64), t[name][:]):
             raise InputError(f"{store}: its sources no longer give its transforms ({name} differs); "
                              "rebuild the store")
-    writer = ChunkWriter(str(store), deep, recipe, layout, t["deep1b_mean"][:],
+    writer = ChunkWriter(zarr_url(store), deep, recipe, layout, t["deep1b_mean"][:],
                          t["deep1b_components"][:].T * t["deep1b_scale"][:], t["noise_mean"][:], t["noise_std"][:],
                          traverse.gt, merge.fas_ref_, merge.fas_query_)
     return RecomputedRows(writer), chunk_bounds(layout.n_ref, recipe.chunk_rows)

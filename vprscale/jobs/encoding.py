@@ -41,6 +41,10 @@ from vprscale.compared.encoding import (
 from vprscale.compared.faisscodes import ENCODE_ROWS, FaissCodes, training_rows
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
+from vprscale.core.localcopy import cache_folder, upload
+from vprscale.core.manifest import NAME as MANIFEST
+from vprscale.core.manifest import read_record
+from vprscale.core.objects import Remote, cache_root, location
 from vprscale.core.passes import reduce_pass
 from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.core.provenance import provenance
@@ -92,7 +96,7 @@ def _sample(work: Path, read: Any, bounds: list[tuple[int, int]], rows: np.ndarr
     return np.concatenate([p for p in parts if p.size])
 
 
-def encode_store(store: Path, factories: list[str], deep1b: str | None = None, fas: str | None = None,
+def encode_store(store: str | Path | Remote, factories: list[str], deep1b: str | None = None, fas: str | None = None,
                  workers: int = 2, scheduler: str | None = None, force: bool = False,
                  quiet: bool = False) -> dict[str, Any]:
     """Encode the references of ``store`` with each FAISS ``factory``; a summary per method."""
@@ -100,6 +104,7 @@ def encode_store(store: Path, factories: list[str], deep1b: str | None = None, f
         raise InputError("encode: give at least one --compare FACTORY")
     if len(set(factories)) != len(factories):
         raise InputError(f"--compare: {next(f for f in factories if factories.count(f) > 1)} given twice")
+    store = store if isinstance(store, Remote) else location(store)
     group = open_complete_group(store)
     meta = group.attrs[ATTR]
     dim, identity = int(meta["recipe"]["dim"]), store_identity(group)
@@ -109,28 +114,41 @@ def encode_store(store: Path, factories: list[str], deep1b: str | None = None, f
         if m.ivf is not None and m.ivf.nlist > n_ref:
             raise InputError(f"--compare {f}: {m.ivf.nlist:,} inverted lists for {n_ref:,} references")
     check_writable(encoding_dir(store, factories[0]).parent)
+    if isinstance(store, Remote):  # FAISS writes files: an encoding there is made in the cache, then uploaded
+        check_writable(cache_root())
     timings = Timings(quiet)
     summary: dict[str, Any] = {"store": str(store), "n_ref": n_ref, "methods": {}}
     t0 = time.perf_counter()
     with dask_client(scheduler, workers) as client:
         read, bounds = reference_reader(store, group, deep1b, fas)  # refits a compact store's transforms as its build
         for f in factories:
-            out = encoding_dir(store, f)
+            target = encoding_dir(store, f)
+            remote = target if isinstance(target, Remote) else None
+            out = cache_folder(remote) if remote else target
             with exclusive(out):
                 key = {"encode": f, "store_identity": identity}
                 partial_out = PartialOutput(out, key)
                 if partial_out.recover() and not quiet:
                     log.info(f"{out}: finished publishing the encoding a killed run had completed")
-                if (out / "encoding.json").is_file() and not force:
-                    if json.loads((out / "encoding.json").read_text()).get("store_identity") == identity:
-                        summary["methods"][f] = {"out": str(out), "skipped": True}
-                        continue
+                if _encoded(target, identity) and not force:
+                    summary["methods"][f] = {"out": str(target), "skipped": True}
+                    continue
                 partial_out.open()
                 summary["methods"][f] = _encode_one(f, methods[f], partial_out, read, bounds, dim, identity,
                                                    workers, timings, quiet)
+                if remote:
+                    upload(out, remote)
+                    summary["methods"][f]["out"] = str(remote)
         summary["peak_rss_bytes"] = cluster_peak_rss(client)
     summary["wall_s"] = time.perf_counter() - t0
     return summary
+
+
+def _encoded(out: Path | Remote, identity: str) -> bool:
+    """Whether ``out`` holds a published encoding of this store (on object storage: with its manifest)."""
+    if not (out / "encoding.json").is_file() or (isinstance(out, Remote) and not (out / MANIFEST).is_file()):
+        return False
+    return read_record(out / "encoding.json").get("store_identity") == identity
 
 
 def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, read: Any,
