@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
-from vprscale.core.objects import public
+from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 
@@ -125,15 +125,15 @@ class FbinSource(RowSource):
 
 
 def open_deep1b(path: str | os.PathLike) -> RowSource:
-    """An fvecs file, a directory of fvecs chunks, or an ``.fbin`` file, local or at an http(s)
-    URL (read by byte ranges where it lives)."""
-    from vprscale.dataset.sources.remote import RemoteFbinSource, is_url
+    """An fvecs file, a directory of fvecs chunks, or an ``.fbin`` file, local or by URL (http(s),
+    or object storage, where a prefix of fvecs chunk objects is a directory): read by byte ranges
+    where it lives."""
+    from vprscale.dataset.sources.remote import RemoteFbinSource, RemoteFvecsSource
 
     if is_url(path):
-        if not str(path).split("?", 1)[0].endswith(".fbin"):
-            raise InputError(f"{public(str(path))}: a Deep1B source given by URL must be an .fbin file (read by byte "
-                             "ranges); fetch fvecs chunks first (vprscale fetch)")
-        return RemoteFbinSource(str(path))
+        if str(path).split("?", 1)[0].endswith(".fbin"):
+            return RemoteFbinSource(str(path))
+        return RemoteFvecsSource(str(path))
     p = Path(path)
     if p.is_file() and p.suffix in {".fbin", ".u8bin"} or p.name.endswith(".fbin"):
         return FbinSource(p)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import cache_root, is_url, public
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 
@@ -79,25 +80,31 @@ def _npy_header(fh) -> tuple[tuple, bool, np.dtype]:
     return read(fh)
 
 
-def _cache_dir() -> Path:
-    return Path(os.environ.get("VPRSCALE_CACHE", Path.home() / ".cache" / "vprscale"))
+def open_fas(path: str | os.PathLike, quiet: bool = False) -> Traverse:
+    """Open and validate an FAS100K ``.npz`` (shapes, dtypes, ``0 ≤ gt < len(ref)``), a local file
+    or a URL (fetched once into the cache: the FAS PCA reads it whole several times)."""
+    if is_url(path):
+        from vprscale.dataset.sources.remote import fetched_copy
 
-
-def open_fas(path: str | os.PathLike) -> Traverse:
-    """Open and validate an FAS100K ``.npz`` (shapes, dtypes, ``0 ≤ gt < len(ref)``)."""
+        local, fp = fetched_copy(str(path), quiet)
+        return _open_npz(local, fp, public(str(path)))
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: no such file")
+    return _open_npz(p, file_fingerprint(p), str(p))
+
+
+def _open_npz(p: Path, fp: dict[str, Any], shown: str) -> Traverse:
+    """:func:`open_fas` of a local file, ``shown`` as ``shown`` and fingerprinted as ``fp``."""
     try:
         zf = zipfile.ZipFile(p)
     except zipfile.BadZipFile as exc:
-        raise InputError(f"{p}: not an .npz (zip) file: {exc}") from None
-    fp = file_fingerprint(p)
+        raise InputError(f"{shown}: not an .npz (zip) file: {exc}") from None
     with zf, open(p, "rb") as fh:
         members = {i.filename.removesuffix(".npy"): i for i in zf.infolist()}
         for key in ("arr_0", "arr_1", "arr_2", "arr_3", "arr_4"):
             if key not in members:
-                raise InputError(f"{p}: missing array {key}")
+                raise InputError(f"{shown}: missing array {key}")
 
         def descriptors(key: str) -> NpyMemberSource:
             info = members[key]
@@ -105,7 +112,7 @@ def open_fas(path: str | os.PathLike) -> Traverse:
                 offset, shape, fortran, dtype = _member_layout(zf, fh, info)
                 target = p
             else:
-                target = _cache_dir() / f"{fp['sha256_head_tail'][:16]}-{fp['bytes']}" / f"{key}.npy"
+                target = cache_root() / f"{fp['sha256_head_tail'][:16]}-{fp['bytes']}" / f"{key}.npy"
                 if not target.is_file() or target.stat().st_size != info.file_size:  # missing, or cut short
                     target.parent.mkdir(parents=True, exist_ok=True)
                     tmp = target.with_suffix(".tmp")
@@ -120,8 +127,8 @@ def open_fas(path: str | os.PathLike) -> Traverse:
                     shape, fortran, dtype = _npy_header(cf)
                     offset = cf.tell()
             if len(shape) != 2 or np.dtype(dtype) != np.dtype("<f4"):
-                raise InputError(f"{p}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
-            return NpyMemberSource(target, offset, shape, fortran, f"{p}:{key}", {**fp, "member": key})
+                raise InputError(f"{shown}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
+            return NpyMemberSource(target, offset, shape, fortran, f"{shown}:{key}", {**fp, "member": key})
 
         ref, query = descriptors("arr_0"), descriptors("arr_1")
         small = {}
@@ -129,18 +136,18 @@ def open_fas(path: str | os.PathLike) -> Traverse:
             try:
                 small[k] = np.load(zf.open(members[k]), allow_pickle=False)
             except ValueError as exc:  # a pickled (object) array, or not an .npy member at all
-                raise InputError(f"{p}: {k} is not a plain numeric array ({str(exc).splitlines()[0]})") from None
+                raise InputError(f"{shown}: {k} is not a plain numeric array ({str(exc).splitlines()[0]})") from None
     if ref.dim != query.dim:
-        raise InputError(f"{p}: arr_0 has {ref.dim} columns but arr_1 has {query.dim}")
+        raise InputError(f"{shown}: arr_0 has {ref.dim} columns but arr_1 has {query.dim}")
     gt, ref_pos, query_pos = small["arr_2"], small["arr_3"], small["arr_4"]
     if gt.ndim != 1 or gt.shape[0] != query.n_rows or not np.issubdtype(gt.dtype, np.integer):
-        raise InputError(f"{p}: arr_2 must be {query.n_rows} integer ground-truth indices, "
+        raise InputError(f"{shown}: arr_2 must be {query.n_rows} integer ground-truth indices, "
                          f"got shape {gt.shape} dtype {gt.dtype}")
     bad = np.flatnonzero((gt < 0) | (gt >= ref.n_rows))
     if bad.size:
-        raise InputError(f"{p}: arr_2 row {int(bad[0])}: ground truth {int(gt[bad[0]])} "
+        raise InputError(f"{shown}: arr_2 row {int(bad[0])}: ground truth {int(gt[bad[0]])} "
                          f"outside [0, {ref.n_rows})")
     for key, pos, n in (("arr_3", ref_pos, ref.n_rows), ("arr_4", query_pos, query.n_rows)):
         if pos.ndim != 2 or pos.shape[0] != n:
-            raise InputError(f"{p}: {key} must hold {n} positions (n × 2 or n × 3), got shape {pos.shape}")
+            raise InputError(f"{shown}: {key} must hold {n} positions (n × 2 or n × 3), got shape {pos.shape}")
     return Traverse(ref, query, gt.astype(np.int64), ref_pos, query_pos)
