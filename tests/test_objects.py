@@ -408,3 +408,87 @@ def test_a_build_from_sources_on_object_storage_equals_the_local_build(s3, sourc
     capsys.readouterr()
     assert main(flags[:-1]) == 0
     assert "is complete" in capsys.readouterr().err
+
+
+class CuttableProxy:
+    """A TCP forwarder to the S3 endpoint on 127.0.0.1 that can be cut: every open connection is
+    then closed and new ones are refused at once, as when a network goes away mid-job."""
+
+    def __init__(self, target: str) -> None:
+        import socket
+        import threading
+
+        host, port = target.removeprefix("http://").split(":")
+        self.target = (host, int(port))
+        self.cut = threading.Event()
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.server.getsockname()[1]}"
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        import socket
+        import threading
+
+        while True:
+            try:
+                client, _ = self.server.accept()
+            except OSError:
+                return
+            if self.cut.is_set():
+                client.close()
+                continue
+            upstream = socket.create_connection(self.target)
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    def _pump(self, src, dst) -> None:
+        src.settimeout(0.1)
+        try:
+            while not self.cut.is_set():
+                try:
+                    data = src.recv(1 << 16)
+                except TimeoutError:
+                    continue
+                if not data:
+                    break
+                dst.sendall(data)
+        except OSError:
+            pass
+        for s in (src, dst):
+            s.close()
+
+    def close(self) -> None:
+        self.server.close()
+
+
+@pytest.mark.slow
+def test_a_build_whose_storage_goes_away_stops_in_one_line_and_resumes(s3, sources, tiny_store, tmp_path):
+    """The connection to the storage is cut once the job has started writing: exit 2, one line
+    saying the work is kept; the same command then resumes the job (its key and markers are on the
+    storage) and the store holds the same bytes as the local build."""
+    proxy = CuttableProxy(s3["AWS_ENDPOINT_URL"])
+    env = {**os.environ, **s3, "AWS_ENDPOINT_URL": proxy.url, "AWS_MAX_ATTEMPTS": "1"}
+    recipe = tiny_store.parent.parent / "tiny.toml"
+    url = f"s3://{BUCKET}/cut"
+    cmd = [sys.executable, "-m", "vprscale.cli", "build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]),
+           "--fas", str(sources["fas"]), "--out", url]
+    try:
+        job = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while not Remote(f"{url}/tiny.zarr/.job.json").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        proxy.cut.set()
+        _, err = job.communicate(timeout=300)
+        assert job.returncode == 2, err
+        last = err.strip().splitlines()[-1]
+        assert "storage failed" in last and "resume" in last and "Traceback" not in err
+        assert "manifest.json" not in Remote(f"{url}/tiny.zarr").files()  # nothing that looks complete
+        proxy.cut.clear()
+        again = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        assert again.returncode == 0, again.stderr
+        assert "resuming the unfinished build" in again.stderr, again.stderr
+    finally:
+        proxy.close()
+    remote = json.loads(Remote(f"{url}/tiny.zarr/manifest.json").read_text())["files"]
+    local = json.loads((tiny_store / "manifest.json").read_text())["files"]
+    assert _manifest_crcs(remote) == _manifest_crcs(local)

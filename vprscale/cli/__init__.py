@@ -36,6 +36,7 @@ from vprscale.cli import (
 from vprscale.cli.common import EXIT_FAILURE, EXIT_USAGE, HelpFormatter, check_outputs, disk_full, shared_flags
 from vprscale.cli.examples import epilog
 from vprscale.core.errors import InputError, JobFailed
+from vprscale.core.objects import storage_failure
 from vprscale.core.provenance import set_command
 
 COMMANDS = (fetch, synth, build, index, encode, eval, report, results, methods, verify, run, bench, sql, localise,
@@ -137,6 +138,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"vprscale {args.command}: failed: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     except OSError as exc:
+        if storage_failure(exc):
+            return _storage_failed(args, exc)
         if not disk_full(exc, args):  # the system's failure, not the input's: one line, exit 1, work kept
             if level <= logging.DEBUG:
                 traceback.print_exception(exc, file=sys.stderr)
@@ -152,9 +155,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, not a traceback
+        if storage_failure(exc):
+            return _storage_failed(args, exc)
         return _bug(args, exc, level)
     finally:
         set_command([])  # this command's line is not the provenance of what the process makes next
+
+
+def _storage_failed(args: argparse.Namespace, exc: BaseException) -> int:
+    """Object storage failed under a job (an endpoint gone, a connection dropped past the client's
+    retries): one line and exit 2, as a dropped download is; what was marked done stays for the re-run."""
+    what = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+    print(f"vprscale {args.command}: error: the storage failed: {what}; finished work is kept: run the same "
+          "command again to resume", file=sys.stderr)
+    return EXIT_USAGE
 
 
 def _bug(args: argparse.Namespace, exc: BaseException, level: int) -> int:

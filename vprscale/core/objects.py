@@ -83,10 +83,23 @@ def storage_errors(url: str) -> Iterator[None]:
     except (OSError, ValueError) as exc:
         raise InputError(f"{shown}: the storage failed: {_first_line(exc)}") from None
     except Exception as exc:
-        if not type(exc).__module__.startswith(CLIENTS):
+        if not storage_failure(exc):
             raise
         # the storage client's own errors: an endpoint that does not answer, a bad region or configuration
         raise InputError(f"{shown}: the storage failed: {_first_line(exc)}") from None
+
+
+def storage_failure(exc: BaseException) -> bool:
+    """Whether an error came from a storage client (raised by it, or by fsspec translating one of
+    its errors): the storage's failure (an endpoint gone, a connection dropped), not vprscale's."""
+    seen: BaseException | None = exc
+    for _ in range(8):  # the chain of causes is short; a cycle is not followed
+        if seen is None:
+            return False
+        if type(seen).__module__.startswith(CLIENTS):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 def _first_line(exc: BaseException) -> str:
@@ -138,15 +151,23 @@ class Remote:
     def with_name(self, name: str) -> Remote:
         return self.parent / name
 
+    def _fresh(self) -> None:
+        """Forget what the filesystem listed of this place before: another process (a Dask worker,
+        the job's own earlier run) may have written it since, and a cached listing would hide that."""
+        self.fs.invalidate_cache(self.path)
+
     def is_file(self) -> bool:
+        self._fresh()
         with storage_errors(self.url):
             return self.fs.isfile(self.path)
 
     def exists(self) -> bool:
+        self._fresh()
         with storage_errors(self.url):
             return self.fs.exists(self.path)
 
     def read_bytes(self) -> bytes:
+        self._fresh()
         with storage_errors(self.url):
             return self.fs.cat_file(self.path)
 
@@ -166,7 +187,7 @@ class Remote:
 
     def files(self) -> dict[str, int]:
         """Every object under this prefix: its name relative to it, and its size (one listing)."""
-        self.fs.invalidate_cache(self.path)  # a listing cached before this job's writes would miss them
+        self._fresh()
         with storage_errors(self.url):
             found = self.fs.find(self.path, detail=True)
         start = len(self.path) + 1
