@@ -18,6 +18,7 @@ import pytest
 
 from vprscale.cli import main
 from vprscale.core.errors import InputError
+from vprscale.core.localcopy import local_copy
 from vprscale.core.objects import Remote
 from vprscale.core.publish import ObjectOutput
 
@@ -202,6 +203,12 @@ def test_a_cluster_whose_workers_share_no_disk_builds_the_same_bytes(s3, sources
                               server.url, "--fas", str(sources["fas"]), "--out", url, "--scheduler", scheduler,
                               "-q"], cwd=client_dir, env=env, capture_output=True, text=True, timeout=600)
         assert run.returncode == 0, run.stderr
+        for step in (["index", f"{url}/tiny.zarr", "--d", "12"],
+                     ["eval", f"{url}/tiny.zarr", f"{url}/tiny-d12-k2.index", "--L", "1,50", "--noise", "qm1",
+                      "--no-baseline", "--out", f"{url}/run"]):
+            run = subprocess.run([sys.executable, "-m", "vprscale.cli", *step, "--scheduler", scheduler, "-q"],
+                                 cwd=client_dir, env=env, capture_output=True, text=True, timeout=600)
+            assert run.returncode == 0, run.stderr
     finally:
         for p in reversed(procs):  # the workers first: they would wait for a scheduler that left
             p.kill()
@@ -212,6 +219,20 @@ def test_a_cluster_whose_workers_share_no_disk_builds_the_same_bytes(s3, sources
     differ = {k for k in local if k != "build.json" and remote.get(k) != local[k]}
     assert differ <= {"zarr.json"}  # the sources' records name the URL read, not the local file
     assert [p for p in (tmp_path / "worker0").rglob("*.zarr")] == []  # nothing of the store on a worker's disk
+    index = json.loads(Remote(f"{url}/tiny-d12-k2.index/manifest.json").read_text())["files"]
+    here = tmp_path / "tiny.index"
+    assert main(["index", str(tiny_store), "--d", "12", "--out", str(here), "-q"]) == 0
+    assert {k: v for k, v in index.items() if k != "index.json"} == {
+        k: v for k, v in json.loads((here / "manifest.json").read_text())["files"].items() if k != "index.json"}
+    assert main(["eval", str(tiny_store), str(here), "--L", "1,50", "--noise", "qm1", "--no-baseline", "--out",
+                 str(tmp_path / "run"), "-q"]) == 0
+    import pyarrow.parquet as pq
+
+    answers = []
+    for where in (local_copy(Remote(f"{url}/run")), tmp_path / "run"):
+        q = pq.read_table(where / "queries.parquet").to_pandas()
+        answers.append(q.sort_values(["L", "mode", "t"])[["L", "mode", "t", "match", "score"]].reset_index(drop=True))
+    assert answers[0].equals(answers[1])  # every answer of the cluster's evaluation equals the local one's
 
 
 def test_an_index_on_s3_is_used_from_a_verified_copy_in_the_cache(s3, tiny_store, tmp_path, capsys):
