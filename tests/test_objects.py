@@ -288,6 +288,11 @@ def test_an_evaluation_on_s3_is_read_back_by_results_and_sql(s3, tiny_store, tin
     assert "--force" in capsys.readouterr().err
     assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", url, "--force"]) == 0
     assert "eval.json" in Remote(f"{url}.previous").files()
+    report = f"s3://{BUCKET}/reports/tiny"
+    assert main(["report", url, "--out", report, "-q"]) == 0
+    assert {"report.md", "report.html", "manifest.json"} <= set(Remote(report).files())
+    assert (Remote(report) / "report.md").read_text().startswith("#")
+    assert main(["report", url, "--out", report, "-q"]) == 2  # a report is replaced only with --force
 
 
 def test_an_endpoint_that_does_not_answer_is_one_line(s3, recipe, monkeypatch, capsys):

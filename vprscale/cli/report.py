@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from vprscale.cli.common import local_output, write_summary
+from vprscale.core.objects import location
 
 INPUTS = ('results', 'index')  # the flags naming what it reads: no output may be written over them
 
@@ -25,7 +25,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.evaluation.report import write_report
 
-    rep = write_report([str(local_output(p)) for p in args.results], Path(args.out),
+    rep = write_report([str(local_output(p)) for p in args.results], location(args.out),
                        extra_indexes=[str(local_output(p)) for p in args.index], force=args.force)
     print(f"wrote {rep['report']} and {len(rep['figures'])} figure files")
     write_summary(args, rep)

@@ -21,8 +21,11 @@ import pandas as pd  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from vprscale.core.errors import InputError  # noqa: E402
+from vprscale.core.localcopy import cache_folder, upload  # noqa: E402
+from vprscale.core.manifest import write_manifest  # noqa: E402
+from vprscale.core.objects import Remote  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
-from vprscale.core.publish import check_writable, exclusive, keep_beside  # noqa: E402
+from vprscale.core.publish import check_writable, exclusive, keep_beside, keep_remote_beside  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
@@ -315,14 +318,17 @@ def _check_replaceable(out: Path, force: bool) -> None:
                          f"{out.name}.previous/")
 
 
-def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] | None = None,
+def write_report(results: list[str | Path], out: Path | Remote, extra_indexes: list[str] | None = None,
                  force: bool = False) -> dict[str, Any]:
     """Write the figures and ``report.md`` into ``out``; returns their paths.
 
     The report is drawn in a hidden folder beside ``out`` and renamed into place when whole, so
     ``out`` never holds half a report; an existing report is replaced only with ``force``, and is
-    then kept beside as ``<out>.previous``.
+    then kept beside as ``<out>.previous``. On object storage it is drawn in the cache and
+    uploaded with a manifest, written last, as every output there is.
     """
+    if isinstance(out, Remote):
+        return _write_remote(results, out, extra_indexes, force)
     out = Path(out)
     check_writable(out.parent)  # before any work: the report is drawn beside out and renamed into place
     with exclusive(out):
@@ -339,6 +345,22 @@ def write_report(results: list[str | Path], out: Path, extra_indexes: list[str] 
         if out.exists():
             keep_beside(out)
         work.rename(out)
+    return {"report": str(out / "report.md"), "figures": [str(out / Path(f).name) for f in rep["figures"]]}
+
+
+def _write_remote(results: list[str | Path], out: Remote, extra_indexes: list[str] | None,
+                  force: bool) -> dict[str, Any]:
+    check_writable(out.parent)
+    if (out / "report.md").exists() and not force:
+        raise InputError(f"--out {out}: holds a report; --force replaces it (the old one is kept beside, as "
+                         f"{out.name}.previous)")
+    local = cache_folder(out)
+    shutil.rmtree(local, ignore_errors=True)  # a copy left in the cache is not this run's report
+    rep = write_report(results, local, extra_indexes)
+    write_manifest(local)
+    if (out / "report.md").exists():
+        keep_remote_beside(out)
+    upload(local, out)
     return {"report": str(out / "report.md"), "figures": [str(out / Path(f).name) for f in rep["figures"]]}
 
 
