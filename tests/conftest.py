@@ -34,6 +34,14 @@ def kmeans_1d_exact(column: np.ndarray, k: int) -> np.ndarray:
     return kmeans_1d(values, counts, k)
 
 
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    """Each test its own ``$VPRSCALE_CACHE``: a FAS fit (or a fetched copy) cached by one test must
+    not stand in for the computation another test checks (same bytes for any workers, a bad file).
+    Session fixtures, built before, use the default cache."""
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "vprscale-cache"))
+
+
 SMALL_FAS = FasParams(dim=128, n_ref=3000, n_query=2000, segment_frames=(150, 500))
 DEEP_ROWS = 70_000
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import zarr
@@ -130,3 +132,31 @@ def test_same_bytes_whatever_chunk_size_workers_and_layout(built, sources, tmp_p
     base = {k: g[k][:] for k in ARRAYS} | {"components": g["transforms/deep1b_components"][:]}
     for k in base:
         assert base[k].tobytes() == other[k].tobytes(), k
+
+
+def test_the_fas_fit_is_computed_once_per_source_and_never_stale(sources, tmp_path, monkeypatch):
+    """A second build keeping the same FAS rows takes the FAS PCA, noise model and projected rows
+    from the cache (the solver is not run: here it would fail) and writes the same bytes; a build
+    keeping other FAS rows, or from another FAS file, does not take them."""
+    from vprscale.method.pca import RandomizedPCA
+
+    recipe = write_recipe(tmp_path / "tiny.toml")
+    run_build(recipe, tmp_path / "a", sources)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the FAS PCA was computed again")
+
+    monkeypatch.setattr(RandomizedPCA, "fit_project", refuse)
+    monkeypatch.setattr(RandomizedPCA, "fit", refuse)
+    monkeypatch.setattr(RandomizedPCA, "fit_transform", refuse)
+    run_build(recipe, tmp_path / "b", sources, rescale=False)  # the ablation shares it
+    run_build(write_recipe(tmp_path / "wide.toml", chunk_rows=32768), tmp_path / "c", sources)
+    assert _arrays(tmp_path / "a" / "tiny.zarr")["ref"].tobytes() == _arrays(tmp_path / "c" / "tiny.zarr")[
+        "ref"].tobytes()
+    with pytest.raises(AssertionError, match="computed again"):
+        run_build(write_recipe(tmp_path / "fewer.toml", fas_ref_rows=2000), tmp_path / "d", sources)
+    other = tmp_path / "fas2.npz"
+    shutil.copy(sources["fas"], other)
+    with pytest.raises(AssertionError, match="computed again"):
+        build(BuildRequest(scale=str(recipe), out=tmp_path / "e", deep1b=str(sources["fbin"]), fas=str(other),
+                           quiet=True))

@@ -12,6 +12,7 @@ import numpy as np
 
 from vprscale.core.blocks import BLOCK, block_spans
 from vprscale.core.progress import compute
+from vprscale.dataset import fascache
 from vprscale.dataset.gaussian import block_standard_normal
 from vprscale.dataset.sources.fas import Traverse
 from vprscale.method.pca import ExactPCA, RandomizedPCA, block_moments
@@ -56,6 +57,42 @@ class MergeTransform:
         and the FAS traverse."""
         self.deep_moments_ = deep_moments
         self.deep_pca_ = ExactPCA(self.dim).fit_moments(deep_moments)
+        cached = fascache.load(self._fas_key(traverse))
+        if cached is None:
+            self._fit_fas(traverse)
+            fascache.save(self._fas_key(traverse), self._fas_arrays())
+        else:
+            self._set_fas(cached)
+        fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
+        self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_) if self.rescale else np.ones(self.dim)
+        return self
+
+    def _fas_key(self, traverse: Traverse) -> dict:
+        """What the FAS part of the fit depends on: the traverse, the rows kept, D and the seed."""
+        return {"traverse": traverse.fingerprint(), "n_fas_ref": self.n_fas_ref, "n_fas_query": self.n_fas_query,
+                "dim": self.dim, "seed": self.seed}
+
+    def _fas_arrays(self) -> dict[str, np.ndarray]:
+        return {"fas_mean": self.fas_pca_.mean_, "fas_components": self.fas_pca_.components_,
+                "fas_variance": self.fas_pca_.explained_variance_, "noise_pca_mean": self.noise_pca_.mean_,
+                "noise_pca_components": self.noise_pca_.components_,
+                "noise_pca_variance": self.noise_pca_.explained_variance_, "fas_ref": self.fas_ref_,
+                "fas_query": self.fas_query_, "noise_mean": self.noise_mean_, "noise_std": self.noise_std_}
+
+    def _set_fas(self, a: dict[str, np.ndarray]) -> None:
+        self.fas_pca_ = _fitted(RandomizedPCA(self.dim, seed=self.seed), a["fas_mean"], a["fas_components"],
+                                a["fas_variance"], len(a["fas_ref"]))
+        same = np.array_equal(a["noise_pca_components"], a["fas_components"])
+        self.noise_pca_ = self.fas_pca_ if same else _fitted(
+            RandomizedPCA(self.dim, seed=self.seed), a["noise_pca_mean"], a["noise_pca_components"],
+            a["noise_pca_variance"], None)
+        self.fas_ref_, self.fas_query_ = a["fas_ref"], a["fas_query"]
+        self.noise_mean_, self.noise_std_ = a["noise_mean"], a["noise_std"]
+
+    def _fit_fas(self, traverse: Traverse) -> None:
+        """Steps 3 and 5: the FAS PCA of the kept references, the noise PCA, the kept FAS rows
+        projected and the noise model, from the traverse alone (so every scale that keeps the same
+        FAS rows shares them: :mod:`~vprscale.dataset.fascache`)."""
         self.fas_pca_ = RandomizedPCA(self.dim, seed=self.seed)
         if self.n_fas_ref == traverse.ref.n_rows:
             # The PCA of the kept rows is the noise PCA: the queries are projected in its last
@@ -70,9 +107,6 @@ class MergeTransform:
             self.fas_ref_ = self.fas_pca_.fit_transform(traverse.ref.head(self.n_fas_ref).to_dask(_FAS_CHUNK))
             self.noise_pca_ = RandomizedPCA(self.dim, seed=self.seed).fit(traverse.ref.to_dask(_FAS_CHUNK))
             self.fas_query_, self.noise_mean_, self.noise_std_ = self._queries(traverse)
-        fas_std = self.fas_ref_.astype(np.float64).std(axis=0)
-        self.scale_ = fas_std / np.sqrt(self.deep_pca_.explained_variance_) if self.rescale else np.ones(self.dim)
-        return self
 
     @property
     def deep_matrix_(self) -> np.ndarray:
@@ -111,6 +145,16 @@ class MergeTransform:
         results = compute(*parts, desc="FAS query pass")
         delta = np.concatenate([r[1] for r in results])
         return np.concatenate([r[0] for r in results]), delta.mean(axis=0), delta.std(axis=0)
+
+
+def _fitted(pca: RandomizedPCA, mean: np.ndarray, components: np.ndarray, variance: np.ndarray,
+            n: int | None) -> RandomizedPCA:
+    """A randomized PCA as its fit left it, from its cached attributes."""
+    pca.mean_, pca.components_, pca.explained_variance_ = mean, components, variance
+    pca.n_features_in_ = components.shape[1]
+    if n is not None:
+        pca.n_samples_ = n
+    return pca
 
 
 def project_rows(h: np.ndarray, mean: np.ndarray, matrix: np.ndarray) -> np.ndarray:
