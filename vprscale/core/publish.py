@@ -241,7 +241,9 @@ class ObjectOutput:
         self.path = final.url
         self.key = json.loads(json.dumps(key, sort_keys=True, default=str))
         self._done: set[str] = set()
-        self.work = cache_root() / "work" / hashlib.sha256(final.url.encode()).hexdigest()[:16]
+        # the client's own part of the work, of this job only: another job's checkpoints are never read
+        job = json.dumps({"url": final.url, "key": self.key}, sort_keys=True)
+        self.work = cache_root() / "work" / hashlib.sha256(job.encode()).hexdigest()[:16]
 
     def recover(self) -> bool:
         """Remove bookkeeping a job killed after its manifest left behind. Publishing here has no
