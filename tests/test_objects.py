@@ -312,6 +312,7 @@ def test_an_endpoint_that_does_not_answer_is_one_line(s3, recipe, monkeypatch, c
     assert "storage failed" in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.filterwarnings("ignore:Object at:UserWarning")  # zarr lists build.json and the manifest beside arrays
 @pytest.mark.parametrize("layout", ["full", "compact"])
 def test_a_sharded_store_holds_the_same_arrays_in_fewer_objects(s3, sources, tiny_store, tmp_path, layout):
     """``--shard-chunks 2``: each array's chunks two to a shard (recorded in its zarr.json), each
