@@ -519,3 +519,21 @@ def test_a_build_whose_storage_goes_away_stops_in_one_line_and_resumes(s3, sourc
     remote = json.loads(Remote(f"{url}/tiny.zarr/manifest.json").read_text())["files"]
     local = json.loads((tiny_store / "manifest.json").read_text())["files"]
     assert _manifest_crcs(remote) == _manifest_crcs(local)
+
+
+def test_fas_rows_by_url_are_read_where_the_client_copy_is_not(s3, sources, tmp_path, monkeypatch):
+    """A FAS100K task sent to a worker that shares no disk with the client (here: the client's
+    copy gone, another cache) opens the URL itself and reads the same rows."""
+    import pickle
+
+    from vprscale.dataset.sources.fas import open_fas
+
+    _upload(sources["fas"], f"s3://{BUCKET}/src/fas.npz")
+    local = open_fas(str(sources["fas"]))
+    remote = open_fas(f"s3://{BUCKET}/src/fas.npz", quiet=True)
+    sent = pickle.dumps(remote.query)
+    shutil.rmtree(Path(s3["VPRSCALE_CACHE"]) / "sources")
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "worker-cache"))
+    worker_side = pickle.loads(sent)
+    np.testing.assert_array_equal(worker_side.read(100, 300), local.query.read(100, 300))
+    assert (tmp_path / "worker-cache" / "sources").is_dir()  # its own copy, fetched once

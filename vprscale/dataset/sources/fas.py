@@ -40,18 +40,25 @@ class Traverse:
 
 
 class NpyMemberSource(RowSource):
-    """A 2-D float32 ``.npy`` array at a byte offset of a file (a stored zip member)."""
+    """A 2-D float32 ``.npy`` array at a byte offset of a file (a stored zip member).
+
+    Of a file given by URL (``origin``), the file is this machine's copy in the cache; a task on
+    a Dask worker that shares no disk with the client finds no such file and opens the URL
+    itself, fetching its own copy once."""
 
     def __init__(self, path: Path, offset: int, shape: tuple[int, int], fortran: bool,
-                 name: str, fingerprint: dict[str, Any]) -> None:
+                 name: str, fingerprint: dict[str, Any], origin: str | None = None) -> None:
         if fortran:
             raise InputError(f"{name}: Fortran-ordered arrays are not supported")
-        self.path, self.offset = path, offset
+        self.path, self.offset, self.origin = path, offset, origin
         self.n_rows, self.dim = shape
         self.name = name
         self._fp = fingerprint
 
     def _read(self, start: int, stop: int) -> np.ndarray:
+        if self.origin is not None and not self.path.is_file():
+            here = open_fas(self.origin, quiet=True)
+            return (here.ref if self._fp["member"] == "arr_0" else here.query).read(start, stop)
         mm = np.memmap(self.path, dtype="<f4", mode="r", offset=self.offset + 4 * start * self.dim,
                        shape=(stop - start, self.dim))
         out = np.array(mm, dtype=np.float32)
@@ -87,15 +94,16 @@ def open_fas(path: str | os.PathLike, quiet: bool = False) -> Traverse:
         from vprscale.dataset.sources.remote import fetched_copy
 
         local, fp = fetched_copy(str(path), quiet)
-        return _open_npz(local, fp, public(str(path)))
+        return _open_npz(local, fp, public(str(path)), str(path))
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: no such file")
     return _open_npz(p, file_fingerprint(p), str(p))
 
 
-def _open_npz(p: Path, fp: dict[str, Any], shown: str) -> Traverse:
-    """:func:`open_fas` of a local file, ``shown`` as ``shown`` and fingerprinted as ``fp``."""
+def _open_npz(p: Path, fp: dict[str, Any], shown: str, origin: str | None = None) -> Traverse:
+    """:func:`open_fas` of a local file, shown as ``shown`` and fingerprinted as ``fp`` (a copy of
+    the file at URL ``origin``, if given)."""
     try:
         zf = zipfile.ZipFile(p)
     except zipfile.BadZipFile as exc:
@@ -128,7 +136,7 @@ def _open_npz(p: Path, fp: dict[str, Any], shown: str) -> Traverse:
                     offset = cf.tell()
             if len(shape) != 2 or np.dtype(dtype) != np.dtype("<f4"):
                 raise InputError(f"{shown}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
-            return NpyMemberSource(target, offset, shape, fortran, f"{shown}:{key}", {**fp, "member": key})
+            return NpyMemberSource(target, offset, shape, fortran, f"{shown}:{key}", {**fp, "member": key}, origin)
 
         ref, query = descriptors("arr_0"), descriptors("arr_1")
         small = {}

@@ -10,6 +10,7 @@ import hashlib
 import os
 import re
 import struct
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -139,7 +140,7 @@ def fetched_copy(url: str, quiet: bool = False) -> tuple[Path, dict[str, Any]]:
     target = cache_root() / "sources" / key / (ranges.name.rpartition("/")[2] or "source")
     if not (target.is_file() and target.stat().st_size == size):
         target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+        tmp = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.tmp")  # tasks fetch at once
         bar = None if quiet else ChunkProgress(f"fetch {ranges.name}", -(-size // PART), unit="parts")
         try:
             with open(tmp, "wb") as fh:
