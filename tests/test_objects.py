@@ -408,7 +408,7 @@ def test_deep1b_rows_read_from_object_storage_equal_the_files(s3, sources):
     data = bytearray(chunks[0].read_bytes())
     data[4 * 97 * 10 : 4 * 97 * 10 + 4] = (95).to_bytes(4, "little")  # record 10 says d = 95
     Remote(f"s3://{BUCKET}/bad/base_00").write_bytes(bytes(data))
-    with pytest.raises(InputError, match=r"base_00: offset 3,880: record dimension 95"):
+    with pytest.raises(InputError, match=r"base_00: offset 3880: record dimension 95"):
         open_deep1b(f"s3://{BUCKET}/bad").read(0, 100)
     with pytest.raises(InputError, match="no fvecs object there"):
         open_deep1b(f"s3://{BUCKET}/nothing-here")

@@ -6,8 +6,8 @@ for every rung of the ladder and for the no-rescale ablation. They are computed 
 source and kept under ``$VPRSCALE_CACHE/fas-fit/``, keyed by what they depend on: the
 traverse's fingerprint (a file's size, time and sampled hash, or the generator's parameters),
 the FAS rows kept, D, the seed, and the code that computes them (the bytes of the PCA and
-merge modules), so a changed source, recipe or solver never meets a stale entry. A hit gives
-the very arrays the fit would, so the store's bytes are the same either way.
+merge modules, :func:`code_digest`), so a changed source, recipe or solver never meets a
+stale entry. A hit gives the very arrays the fit would: the store's bytes are the same.
 """
 
 from __future__ import annotations
@@ -26,19 +26,16 @@ from vprscale.core.objects import cache_root
 FORMAT = 1
 
 
-def _code_digest() -> str:
-    """The bytes of the modules that compute the cached arrays."""
-    from vprscale.dataset import merge
-    from vprscale.method import pca
-
+def code_digest(*files: str | os.PathLike) -> str:
+    """The bytes of the modules that compute the cached arrays (the caller names them)."""
     h = hashlib.sha256()
-    for module in (pca, merge):
-        h.update(Path(module.__file__).read_bytes())
+    for f in files:
+        h.update(Path(f).read_bytes())
     return h.hexdigest()
 
 
 def _path(key: dict[str, Any]) -> Path:
-    text = json.dumps({"format": FORMAT, "code": _code_digest(), **key}, sort_keys=True, default=str)
+    text = json.dumps({"format": FORMAT, **key}, sort_keys=True, default=str)
     return cache_root() / "fas-fit" / f"{hashlib.sha256(text.encode()).hexdigest()[:24]}.npz"
 
 

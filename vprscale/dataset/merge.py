@@ -6,6 +6,8 @@ chunk (steps 6–7) by pure numpy kernels, so workers receive only a few small m
 
 from __future__ import annotations
 
+import inspect
+
 import dask
 import numba
 import numpy as np
@@ -70,7 +72,8 @@ class MergeTransform:
     def _fas_key(self, traverse: Traverse) -> dict:
         """What the FAS part of the fit depends on: the traverse, the rows kept, D and the seed."""
         return {"traverse": traverse.fingerprint(), "n_fas_ref": self.n_fas_ref, "n_fas_query": self.n_fas_query,
-                "dim": self.dim, "seed": self.seed}
+                "dim": self.dim, "seed": self.seed,
+                "code": fascache.code_digest(__file__, inspect.getfile(RandomizedPCA))}
 
     def _fas_arrays(self) -> dict[str, np.ndarray]:
         return {"fas_mean": self.fas_pca_.mean_, "fas_components": self.fas_pca_.components_,

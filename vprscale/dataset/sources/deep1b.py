@@ -18,6 +18,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fingerprint import file_fingerprint
+from vprscale.dataset.sources.fvecs import read_fvecs
 
 
 class FvecsSource(RowSource):
@@ -63,28 +64,11 @@ class FvecsSource(RowSource):
         return d
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        out = np.empty((stop - start, self.dim), dtype=np.float32)
-        first = int(np.searchsorted(self.starts, start, side="right")) - 1
-        for i in range(first, len(self.files)):
-            f_lo, f_hi = int(self.starts[i]), int(self.starts[i + 1])
-            if f_lo >= stop:
-                break
-            lo, hi = max(start, f_lo) - f_lo, min(stop, f_hi) - f_lo
-            if hi <= lo:
-                continue
-            rec = np.memmap(self.files[i], dtype="<i4", mode="r", shape=(f_hi - f_lo, self.dim + 1))
-            part = rec[lo:hi]
-            dims = part[:, 0]
-            bad = np.flatnonzero(dims != self.dim)
-            if bad.size:
-                row = lo + int(bad[0])
-                raise InputError(
-                    f"{self.files[i]}: offset {row * 4 * (self.dim + 1)}: record dimension "
-                    f"{int(dims[bad[0]])}, expected {self.dim}"
-                )
-            out[max(start, f_lo) - start : min(stop, f_hi) - start] = part[:, 1:].view("<f4")
-            del rec, part
-        return out
+        def records(i: int, lo: int, hi: int) -> np.ndarray:
+            rows = int(self.starts[i + 1] - self.starts[i])
+            return np.memmap(self.files[i], dtype="<i4", mode="r", shape=(rows, self.dim + 1))[lo:hi]
+
+        return read_fvecs(self.starts, self.dim, start, stop, records, lambda i: str(self.files[i]))
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "fvecs", "rows": self.n_rows, "dim": self.dim,

@@ -21,6 +21,7 @@ from vprscale.core.objects import Remote, cache_root, public, storage_errors
 from vprscale.core.progress import ChunkProgress
 from vprscale.core.ranged import probe, read_range
 from vprscale.dataset.sources.base import RowSource
+from vprscale.dataset.sources.fvecs import read_fvecs
 
 HTTP = re.compile(r"^https?://", re.IGNORECASE)
 PART = 64 << 20  # bytes a request of a whole-file fetch asks for
@@ -104,23 +105,12 @@ class RemoteFvecsSource(RowSource):
         self.n_rows = int(self.starts[-1])
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        out = np.empty((stop - start, self.dim), np.float32)
         record = 4 * (self.dim + 1)
-        first = int(np.searchsorted(self.starts, start, side="right")) - 1
-        for i in range(first, len(self.parts)):
-            f_lo, f_hi = int(self.starts[i]), int(self.starts[i + 1])
-            if f_lo >= stop:
-                break
-            lo, hi = max(start, f_lo) - f_lo, min(stop, f_hi) - f_lo
-            if hi <= lo:
-                continue
-            rec = np.frombuffer(self.parts[i].read(lo * record, hi * record), "<i4").reshape(hi - lo, self.dim + 1)
-            bad = np.flatnonzero(rec[:, 0] != self.dim)
-            if bad.size:
-                raise InputError(f"{self.parts[i].name}: offset {(lo + int(bad[0])) * record:,}: record dimension "
-                                 f"{int(rec[bad[0], 0])}, expected {self.dim}")
-            out[f_lo + lo - start : f_lo + hi - start] = rec[:, 1:].view("<f4")
-        return out
+
+        def records(i: int, lo: int, hi: int) -> np.ndarray:
+            return np.frombuffer(self.parts[i].read(lo * record, hi * record), "<i4").reshape(hi - lo, self.dim + 1)
+
+        return read_fvecs(self.starts, self.dim, start, stop, records, lambda i: self.parts[i].name)
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "fvecs", "rows": self.n_rows, "dim": self.dim,
