@@ -16,24 +16,25 @@ import logging
 import shutil
 from pathlib import Path
 
-from vprscale.core.errors import InputError
-from vprscale.core.manifest import NAME, check_manifest, read_manifest
+from vprscale.core.manifest import NAME, check_manifest, read_manifest, remote_manifest
 from vprscale.core.objects import Remote, cache_root, storage_errors
+from vprscale.core.publish import keep_remote_beside
 
 log = logging.getLogger(__name__)
 
 
-def cache_folder(remote: Remote) -> Path:
-    """The local folder that holds ``remote``'s copy (named by its URL's digest, then its name)."""
-    return cache_root() / "outputs" / hashlib.sha256(remote.url.encode()).hexdigest()[:16] / remote.name
+def cache_folder(remote: Remote, fresh: bool = False) -> Path:
+    """The local folder that holds ``remote``'s copy (named by its URL's digest, then its name);
+    ``fresh``: emptied first, for an output about to be made there (an earlier copy is not it)."""
+    folder = cache_root() / "outputs" / hashlib.sha256(remote.url.encode()).hexdigest()[:16] / remote.name
+    if fresh:
+        shutil.rmtree(folder, ignore_errors=True)
+    return folder
 
 
 def local_copy(remote: Remote) -> Path:
     """A verified local copy of a published output on object storage (fetched if missing or stale)."""
-    manifest = read_manifest(remote)
-    if manifest is None:
-        raise InputError(f"{remote}: no {NAME}: on object storage an output is complete only once its manifest is "
-                         "written (its job did not finish, or this is not a vprscale output)")
+    manifest = remote_manifest(remote)
     target = cache_folder(remote)
     if read_manifest(target) == manifest:
         check_manifest(target)
@@ -55,12 +56,15 @@ def local_copy(remote: Remote) -> Path:
     return target
 
 
-def upload(local: Path, remote: Remote) -> None:
+def upload(local: Path, remote: Remote, keep: bool = False) -> None:
     """Publish a complete local output to ``remote``: every file its manifest lists, then the
-    manifest; an older output there is removed first (a reader finds none, not a mix)."""
+    manifest. An older output there is removed first (a reader finds none, not a mix), or with
+    ``keep`` a complete one is moved beside (``<name>.previous``), as ``--force`` keeps it locally."""
     manifest = read_manifest(local)
     if manifest is None:
         raise RuntimeError(f"{local}: uploaded before it was published")  # a bug: callers publish first
+    if keep and read_manifest(remote) is not None:
+        keep_remote_beside(remote)
     (remote / NAME).remove()
     remote.remove()
     with storage_errors(remote.url):

@@ -166,13 +166,19 @@ def check_manifest(root: Root, full: bool = False, only: str | None = None, budg
     return checked
 
 
-def _check_remote(root: Remote, full: bool, only: str | None, budget: int) -> int:
-    """:func:`check_manifest` of an output on object storage: sizes from one listing; no manifest,
-    no output (it is written last: without it the output was never completed)."""
+def remote_manifest(root: Remote) -> dict[str, Any]:
+    """The manifest of an output on object storage; none, no output (written last: without it the
+    output was never completed)."""
     manifest = read_manifest(root)
     if manifest is None:
         raise InputError(f"{root}: no {NAME}: on object storage an output is complete only once its manifest is "
                          "written (its job did not finish, or this is not a vprscale output)")
+    return manifest
+
+
+def _check_remote(root: Remote, full: bool, only: str | None, budget: int) -> int:
+    """:func:`check_manifest` of an output on object storage: sizes from one listing."""
+    manifest = remote_manifest(root)
     sizes = root.files()
     checked, summed = 0, 0
     for rel, entry in sorted(manifest["files"].items(), key=lambda item: (item[1]["bytes"], item[0])):

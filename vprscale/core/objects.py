@@ -134,12 +134,6 @@ class Remote:
     def __repr__(self) -> str:
         return f"Remote({public(self.url)!r})"
 
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, Remote) and other.url == self.url
-
-    def __hash__(self) -> int:
-        return hash(self.url)
-
     @property
     def name(self) -> str:
         return self.url.rpartition("/")[2]

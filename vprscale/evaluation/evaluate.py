@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import time
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -31,7 +30,7 @@ from vprscale.core.localcopy import cache_folder, upload
 from vprscale.core.objects import Remote, shown
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, keep_remote_beside, shared
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, shared
 from vprscale.dataset.references import reference_rows
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
@@ -242,11 +241,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             check_writable(remote.parent)
             if (remote / "eval.json").exists() and not req.force:
                 raise InputError(_HOLDS.format(out=remote))
-        out = cache_folder(remote) if remote else Path(req.out) if req.out else (
+        out = cache_folder(remote, fresh=True) if remote else Path(req.out) if req.out else (
             index_paths[0] / "eval" if len(index_paths) == 1 else
             req.store.parent / f"{req.store.name.removesuffix('.zarr')}-dsweep.eval")
-        if remote is not None:
-            shutil.rmtree(out, ignore_errors=True)  # an earlier copy in the cache is not this run's output
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out}: is a file, not a directory for the evaluation")
         if out.is_dir() and any(out.iterdir()) and not (out / "eval.json").is_file():
@@ -307,9 +304,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 keep_beside(out)
             partial.publish()  # the three files appear together, by one rename
         if remote is not None:
-            if (remote / "eval.json").exists():  # with --force: the previous evaluation is kept beside
-                keep_remote_beside(remote)
-            upload(out, remote)
+            upload(out, remote, keep=True)  # with --force: the previous evaluation is kept beside
     return {"out": str(remote or out), "rows": len(rows), "queries": len(queries), "z": z,
             "table": _summary_table(rows)}
 

@@ -25,7 +25,7 @@ from vprscale.core.localcopy import cache_folder, upload  # noqa: E402
 from vprscale.core.manifest import write_manifest  # noqa: E402
 from vprscale.core.objects import Remote  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
-from vprscale.core.publish import check_writable, exclusive, keep_beside, keep_remote_beside  # noqa: E402
+from vprscale.core.publish import check_writable, exclusive, keep_beside  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
@@ -354,13 +354,10 @@ def _write_remote(results: list[str | Path], out: Remote, extra_indexes: list[st
     if (out / "report.md").exists() and not force:
         raise InputError(f"--out {out}: holds a report; --force replaces it (the old one is kept beside, as "
                          f"{out.name}.previous)")
-    local = cache_folder(out)
-    shutil.rmtree(local, ignore_errors=True)  # a copy left in the cache is not this run's report
+    local = cache_folder(out, fresh=True)
     rep = write_report(results, local, extra_indexes)
     write_manifest(local)
-    if (out / "report.md").exists():
-        keep_remote_beside(out)
-    upload(local, out)
+    upload(local, out, keep=True)
     return {"report": str(out / "report.md"), "figures": [str(out / Path(f).name) for f in rep["figures"]]}
 
 

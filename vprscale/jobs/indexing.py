@@ -76,12 +76,11 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         n_ref, dim = group["ref"].shape
         hasher = CoarseHasher(d=d, k=k)
         d_eff = hasher._check(n_ref, dim)
-    remote = location(out) if out is not None else (default_index_dir(store, d_eff, k) if isinstance(store, Remote)
-                                                     else None)
-    remote = remote if isinstance(remote, Remote) else None
+    target = location(out) if out is not None else default_index_dir(store, d_eff, k)
+    remote = target if isinstance(target, Remote) else None
     # an index is memory-mapped while it is written and where it is used: one for object storage is
     # made in the local cache, then uploaded (core/localcopy)
-    final = cache_folder(remote) if remote else Path(out) if out else default_index_dir(store, d_eff, k)
+    final = cache_folder(remote) if remote else target
     if not final.resolve().name:
         raise InputError(f"--out {out}: names no directory to write the index into; give a new folder's path")
     check_writable(final.parent)
