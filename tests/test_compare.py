@@ -25,7 +25,7 @@ from threadpoolctl import threadpool_limits
 from vprscale.cli import main
 from vprscale.compared import rabitq
 from vprscale.compared.codescore import REF_LEVEL_BYTES, _smallest, score_windows
-from vprscale.compared.faisscodes import ENCODE_ROWS, ID_BYTES, FaissCodes, FrameTerms, training_rows
+from vprscale.compared.faisscodes import ENCODE_ROWS, ID_BYTES, FaissCodes, FrameTerms, _plain_twin, training_rows
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import N_BEST
 
@@ -283,6 +283,31 @@ def test_table_scores_equal_decoded_vector_scores(factory, form):
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6 * want.max())
 
 
+def _fitted(factory: str, seed: int) -> tuple[FaissCodes, np.ndarray, np.ndarray]:
+    """``factory`` trained on and holding 4,000 rows about their mean (as whitened descriptors lie),
+    and 40 query rows near some of them; k = 8, nprobe = 16."""
+    rng = np.random.default_rng(seed)
+    ref = rng.standard_normal((4000, 32)).astype(np.float32)
+    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.3
+    codes = FaissCodes(factory, 32, k=8, nprobe=16)
+    codes.train(ref)
+    codes.start(len(ref))
+    codes.encode(ref)
+    codes.finish()
+    return codes, ref, query
+
+
+def _one_frame_scores(codes: FaissCodes, query: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One-frame window scores of each query row's places ``ids``, flattened: ``(places, scores)``;
+    each place is its own window's match."""
+    cand = ids.reshape(-1)
+    centres = np.repeat(np.arange(len(query)), ids.shape[1])
+    top, scores = codes.score(centres, 1, cand, np.arange(len(cand)), np.ones(len(cand), np.int64),
+                              codes.frame_terms(query))
+    np.testing.assert_array_equal(top[:, 0], cand)
+    return cand, scores[:, 0]
+
+
 @pytest.mark.parametrize("factory, form", [("RQ3x8_Nqint8", "tables"), ("LSQ4x5_Nqint4", "tables"),
                                            ("PRQ2x2x4_Nqint8", "tables"), ("RQ2x8_Ncqint8", "tables"),
                                            ("IVF16,RQ3x8_Nqint8", "residual"),
@@ -297,14 +322,7 @@ def test_table_terms_are_faiss_own_distances(factory, form):
     own search ranks by (the quantised norm, not the decoded vector's; RaBitQ's estimator,
     with the frame unquantised: ``qb = 0``), for the places FAISS returns, and a window's
     score is the sum of its terms."""
-    rng = np.random.default_rng(4)  # rows about their mean (RaBitQ's flat centre), as whitened descriptors lie
-    ref = rng.standard_normal((4000, 32)).astype(np.float32)
-    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.3
-    codes = FaissCodes(factory, 32, k=8, nprobe=16)
-    codes.train(ref)
-    codes.start(len(ref))
-    codes.encode(ref)
-    codes.finish()
+    codes, ref, query = _fitted(factory, 4)
     assert codes.form == form
     if form == "factors":
         codes.inner.qb = 0
@@ -334,27 +352,62 @@ def test_ivf_fast_scan_pq_is_scored_from_tables(factory, form):
     as residual records or as product codes with the list number aside (FAISS cannot decode
     them: its ``sa_decode`` crashes), each term the exact ``‖y − x̂‖²`` of the place FAISS's
     search returned."""
-    rng = np.random.default_rng(5)
-    ref = rng.standard_normal((4000, 32)).astype(np.float32)
-    query = ref[1000:1040] + rng.standard_normal((40, 32)).astype(np.float32) * 0.3
-    codes = FaissCodes(factory, 32, k=8, nprobe=16)
-    codes.train(ref)
-    codes.start(len(ref))
-    codes.encode(ref)
-    codes.finish()
+    codes, ref, query = _fitted(factory, 5)
     assert codes.form == form and not codes.records_on_disk
     plain = faiss.IndexIVFPQ(codes.inner.quantizer, 32, 16, 8, 4)
     plain.pq, plain.by_residual, plain.is_trained = codes.inner.pq, codes.inner.by_residual, True
     decoded = plain.sa_decode(codes.inner.sa_encode(ref))
     _, ids = codes.search(query)
     assert (ids >= 0).all()
-    terms = codes.frame_terms(query)
-    cand = ids.reshape(-1)
-    centres = np.repeat(np.arange(len(query)), ids.shape[1])
-    top, scores = codes.score(centres, 1, cand, np.arange(len(cand)), np.ones(len(cand), np.int64), terms)
-    np.testing.assert_array_equal(top[:, 0], cand)
+    cand, scores = _one_frame_scores(codes, query, ids)
     exact = ((np.repeat(query, ids.shape[1], axis=0).astype(np.float64) - decoded[cand]) ** 2).sum(axis=1)
-    np.testing.assert_allclose(scores[:, 0], exact, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(scores, exact, rtol=1e-5, atol=1e-4)
+
+@pytest.mark.parametrize("factory", ["IVF16,RQ4x4fs_Nrq2x4", "RQ4x4fs_Nrq2x4", "IVF16,LSQ4x4fs_Nlsq2x4",
+                                     "IVF16,PRQ2x2x4fs_Nrq2x4"])
+def test_fast_scan_additive_codes_are_scored_from_tables(factory):
+    """FAISS's fast-scan additive quantisers search 8-bit quantised tables and leave ``‖y‖²`` out
+    of their distances; their codes are plain additive codes with a 2x4-bit norm. The windows
+    read them from float tables (the list number aside), each term the distance the plain
+    index over the same codes ranks by (float tables, the quantised norm), and the search's
+    distances get ``‖y‖²`` back: FAISS's ranking, distances comparable across frames."""
+    codes, ref, query = _fitted(factory, 6)
+    assert codes.form == "tables" and codes.codes.shape == (len(ref), codes.subs.columns)
+    plain = _plain_twin(codes.inner)  # the same codes, searched with float tables
+    standalone = codes.inner.sa_encode(ref)
+    if codes.ivf is not None:
+        plain.add_sa_codes(standalone, np.arange(len(ref)))
+        plain.nprobe = 16
+    else:
+        plain.add_sa_codes(standalone)
+    plain_dist, plain_ids = plain.search(query, 8)
+    dist, ids = codes.search(query)
+    assert (np.isin(ids, plain_ids).mean()) > 0.8  # the 8-bit tables rank nearly as the float ones
+    fs_dist = codes.searched.search(query, 8)[0]
+    np.testing.assert_allclose(dist, fs_dist + (query.astype(np.float64) ** 2).sum(axis=1)[:, None], rtol=1e-6)
+    _, scores = _one_frame_scores(codes, query, plain_ids)
+    rounding = 1e-6 * ((query**2).sum(axis=1).max() + (ref**2).sum(axis=1).max())
+    np.testing.assert_allclose(scores, plain_dist.reshape(-1), rtol=1e-5, atol=rounding)
+
+
+@pytest.mark.parametrize("factory", ["IVF16,RQ4x4fsr_Nrq2x4", "IVF16,PRQ2x2x4fsr_Nrq2x4"])
+def test_residual_fast_scan_additive_codes_are_scored_from_residual_tables(factory):
+    """A residual fast-scan additive code keeps the residual's codebooks and the whole vector's
+    norm: its windows read residual records whose list term is ``‖x̂‖² − ‖c_l‖²``, and a term is
+    ``‖y‖² − 2⟨y, x̂⟩ + ‖x̂‖²`` with FAISS's own reconstruction ``x̂`` and the code's norm, for the
+    places FAISS's search returns (whose 8-bit tables give nearly the same distances)."""
+    codes, ref, query = _fitted(factory, 7)
+    assert codes.form == "residual"
+    dist, ids = codes.search(query)
+    cand, scores = _one_frame_scores(codes, query, ids)
+    standalone = codes.inner.sa_encode(ref[cand])
+    decoded = codes.inner.sa_decode(standalone).astype(np.float64)
+    norm = codes.subs.norms[codes.subs.indices(standalone[:, codes.ivf.coarse_code_size() :])[:, -1]]
+    y = np.repeat(query, ids.shape[1], axis=0).astype(np.float64)
+    exact = (y**2).sum(axis=1) - 2 * (y * decoded).sum(axis=1) + norm
+    np.testing.assert_allclose(scores, exact, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(dist.reshape(-1), exact, rtol=0.05)  # FAISS's 8-bit tables
+
 
 @pytest.mark.parametrize("factory", ["RQ3x8", "IVF16,RQ2x8_Nfloat", "LSQ2x8_Nfloat", "RaBitQ4"])
 def test_codes_without_tables_are_decoded(factory):
@@ -597,7 +650,8 @@ def test_recall_at_n_ranks_at_least_n_whatever_the_operating_point(compared, dir
 
 
 @pytest.mark.parametrize("factory", ["RaBitQfs", "IVF16,RaBitQfs", "IVF16,PQ4x4fs", "IVF16,RaBitQ", "LSQ2x8",
-                                     "PRQ2x2x6", "HNSW16", "PCA8,HNSW16"])
+                                     "PRQ2x2x6", "IVF16,RQ4x4fs_Nrq2x4", "IVF16,LSQ2x4fsr_Nlsq2x4", "HNSW16",
+                                     "PCA8,HNSW16"])
 def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     """RaBitQ (flat, IVF, fast-scan: built from a plain twin holding the standalone codes),
     additive quantisers (LSQ's codes depend on the rows encoded together: encoded in blocks
@@ -619,6 +673,8 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     own = faiss_own(factory, train, ref)
     dist, ids = codes.search(query)
     own_dist, own_ids = own.search(query, 7)
+    if isinstance(codes.inner, (faiss.IndexIVFAdditiveQuantizerFastScan, faiss.IndexAdditiveQuantizerFastScan)):
+        own_dist = own_dist + (query.astype(np.float64) ** 2).sum(axis=1)[:, None]  # FAISS leaves ‖y‖² out
     np.testing.assert_array_equal(ids, own_ids)
     np.testing.assert_allclose(dist, own_dist, rtol=1e-5, atol=1e-5)
     if "HNSW" in factory:
@@ -630,8 +686,11 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     elif codes.form == "factors":  # RaBitQ's records: signs, list number, two float32 factors
         assert codes.codes.shape == (len(ref), rabitq.record_width(16, codes.inner.sa_code_size() - 10))
         assert codes.vectors.shape == (0, 0)
-    elif codes.form == "tables":  # an IVF fast-scan PQ of the rows: its indices, the list number aside
-        assert codes.codes.shape == (len(ref), codes.inner.pq.M) and codes.vectors.shape == (0, 0)
+    elif codes.form == "tables":  # an IVF fast-scan code of the rows: its indices, the list number aside
+        assert codes.codes.shape == (len(ref), codes.subs.columns) and codes.vectors.shape == (0, 0)
+    elif codes.form == "residual":  # a residual fast-scan code's records: indices, list number, term's level
+        width = codes.subs.columns + codes.ivf.coarse_code_size() + REF_LEVEL_BYTES
+        assert codes.codes.shape == (len(ref), width) and codes.vectors.shape == (0, 0)
     else:
         assert codes.vectors.shape == (len(ref), codes.inner.d)
 

@@ -13,8 +13,10 @@ import pytest
 from vprscale.cli import main
 from vprscale.compared.encoding import GRAPH, LISTS, SEARCHED, WINDOW, encoding_dir
 
-# 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records; a graph
-FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "PCA16,IVF32,RaBitQ", "HNSW16"]
+# 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records, a fast-scan
+# additive quantiser's codes; a graph
+FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RQ4x4fs_Nrq2x4", "PCA16,IVF32,RaBitQ",
+             "HNSW16"]
 
 
 @pytest.fixture

@@ -112,17 +112,69 @@ def _ivf_rabitq_twin(fast: Any) -> Any:
     return plain
 
 
+def _aq_twin(fast: Any) -> Any:
+    return faiss.IndexAdditiveQuantizer(fast.d, fast.aq, fast.metric_type)
+
+
+def _ivf_aq_twin(fast: Any) -> Any:
+    """A plain IVF index over the fast-scan one's additive quantiser, holding its standalone codes
+    as bytes. FAISS builds an IVF fast-scan AQ index only from a plain one that is not by
+    residual (the fast-scan codes keep the norm of the whole vector, not of the residual): to
+    the copy the bytes are the same either way, and :meth:`FaissCodes._fast_scan_copy` gives
+    the copy the original's ``by_residual``."""
+    plain = faiss.IndexIVFAdditiveQuantizer(fast.aq, fast.quantizer, fast.d, fast.nlist, fast.metric_type)
+    plain.code_size = fast.aq.code_size
+    lists = faiss.ArrayInvertedLists(fast.nlist, plain.code_size)
+    plain.replace_invlists(lists, True)
+    lists.this.disown()  # the plain index owns its lists now
+    plain.by_residual = False
+    return plain
+
+
+class _FastScan(NamedTuple):
+    """How a fast-scan code is built from standalone codes: the plain twin that takes them, the
+    FAISS class whose constructor packs the twin's codes into a fast-scan copy, and the fields
+    that constructor does not carry over from the trained original."""
+
+    twin: Callable[[Any], Any]
+    copy: Callable[[Any, int], Any]
+    kept: tuple[str, ...] = ()
+
+
 _RABITQ = (faiss.IndexRaBitQ, faiss.IndexRaBitQFastScan, faiss.IndexIVFRaBitQ, faiss.IndexIVFRaBitQFastScan)
-_TWINS: dict[type, Callable[[Any], Any]] = {faiss.IndexPQFastScan: _pq_twin, faiss.IndexRaBitQFastScan: _rabitq_twin,
-                                            faiss.IndexIVFPQFastScan: _ivf_pq_twin,
-                                            faiss.IndexIVFRaBitQFastScan: _ivf_rabitq_twin}
+_AQ_FAST_SCAN = (faiss.IndexAdditiveQuantizerFastScan, faiss.IndexIVFAdditiveQuantizerFastScan)
+_AQ_KEPT = ("rescale_norm", "norm_scale")
+_FAST_SCANS: dict[type, _FastScan] = {
+    faiss.IndexPQFastScan: _FastScan(_pq_twin, faiss.IndexPQFastScan),
+    faiss.IndexRaBitQFastScan: _FastScan(_rabitq_twin, faiss.IndexRaBitQFastScan),
+    faiss.IndexIVFPQFastScan: _FastScan(_ivf_pq_twin, faiss.IndexIVFPQFastScan),
+    faiss.IndexIVFRaBitQFastScan: _FastScan(_ivf_rabitq_twin, faiss.IndexIVFRaBitQFastScan),
+    faiss.IndexAdditiveQuantizerFastScan: _FastScan(_aq_twin, faiss.IndexAdditiveQuantizerFastScan, _AQ_KEPT),
+    faiss.IndexIVFAdditiveQuantizerFastScan: _FastScan(_ivf_aq_twin, faiss.IndexIVFAdditiveQuantizerFastScan,
+                                                       ("by_residual", *_AQ_KEPT)),
+}
+
+
+def _fast_scan(inner: Any) -> _FastScan | None:
+    """How the fast-scan ``inner`` is built from standalone codes (``None``: it cannot be)."""
+    return next((how for cls, how in _FAST_SCANS.items() if isinstance(inner, cls)), None)
 
 
 def _plain_twin(inner: Any) -> Any:
     """An empty plain index like the fast-scan ``inner`` (trained), to take its standalone codes."""
-    plain = _TWINS[type(inner)](inner)
+    plain = _fast_scan(inner).twin(inner)
     plain.is_trained = True
     return plain
+
+
+def graph_rows(index: Any) -> np.ndarray:
+    """The rows a linked graph (``HNSW32``, or a transform then one) holds in its flat storage,
+    as bytes (places, 4·D): a view of FAISS's memory (memory-mapped when read so), not a copy."""
+    inner = _innermost(index)
+    storage = faiss.downcast_index(inner.storage)
+    rows = faiss.rev_swig_ptr(storage.get_xb(), inner.ntotal * inner.d).reshape(inner.ntotal, inner.d)
+    rows.flags.writeable = False  # a memory-mapped graph's pages are read-only
+    return rows.view(np.uint8)
 
 
 def _add_standalone(index: Any, codes: np.ndarray, start: int) -> None:
@@ -197,9 +249,10 @@ class FaissCodes:
         if index.metric_type != faiss.METRIC_L2:
             raise InputError(f"--compare {factory}: the index does not search by L2 distance")
         inner = _innermost(index)
-        if isinstance(inner, _FAST_SCAN) and not isinstance(inner, tuple(_TWINS)):
+        if isinstance(inner, _FAST_SCAN) and _fast_scan(inner) is None:
             raise InputError(f"--compare {factory}: FAISS's fast-scan form of this code cannot be built from "
-                             "standalone codes; the fast-scan forms compared are PQ…fs and RaBitQfs, flat or IVF")
+                             "standalone codes; the fast-scan forms compared are PQ…fs, RaBitQfs and the additive "
+                             "quantisers' …x4fs (RQ, LSQ and their product forms), flat or IVF")
         if isinstance(inner, faiss.IndexHNSW) and not isinstance(inner, faiss.IndexHNSWFlat):
             raise InputError(f"--compare {factory}: an HNSW graph is compared over the rows themselves (HNSW32, "
                              "or a transform then HNSW32), not over codes")
@@ -365,8 +418,15 @@ class FaissCodes:
         return np.ascontiguousarray(x, np.float32)
 
     def train(self, sample: np.ndarray) -> None:
-        """Train on ``sample`` with FAISS on the calling thread alone (its results change with its threads)."""
-        _one_thread(self.index.train, np.ascontiguousarray(sample, np.float32))
+        """Train on ``sample`` with FAISS on the calling thread alone (its results change with its
+        threads), at ``nprobe`` 1: FAISS's residual fast-scan additive quantisers estimate their
+        norm scale from each row's one nearest list but read ``nprobe`` lists of it."""
+        nprobe = self.nprobe
+        self.set_point(self.k, 1)
+        try:
+            _one_thread(self.index.train, np.ascontiguousarray(sample, np.float32))
+        finally:
+            self.set_point(self.k, nprobe)
 
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
@@ -512,7 +572,10 @@ class FaissCodes:
         plain twin that took its standalone codes (:meth:`add_codes`); the transforms of the
         chain, if any, go before it. The trained index stays as it was: it encodes and
         transforms."""
-        fast = type(self.inner)(self._twin, self.inner.bbs)
+        how = _fast_scan(self.inner)
+        fast = how.copy(self._twin, self.inner.bbs)
+        for field in how.kept:
+            setattr(fast, field, getattr(self.inner, field))
         self._twin = None  # the fast-scan copy holds the codes now
         if not self.chain:
             self.searched = fast
@@ -552,7 +615,18 @@ class FaissCodes:
         found = self._blocks(lambda b: self.searched.search(b, self.k), rows)
         if self.graph:
             self._walked = faiss.cvar.hnsw_stats.ndis / max(1, len(rows))
-        return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
+        dist, ids = np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
+        if self._norm_left_out:
+            y = np.concatenate(self._blocks(self._transform, rows))
+            dist = np.where(ids >= 0, dist + (y.astype(np.float64) ** 2).sum(axis=1)[:, None], dist).astype(np.float32)
+        return dist, ids
+
+    @property
+    def _norm_left_out(self) -> bool:
+        """Whether FAISS's search leaves the frame's ``‖y‖²`` out of its distances: its fast-scan
+        additive quantisers rank by ``‖x̂‖² − 2⟨y, x̂⟩``, the same places in the same order, and
+        :meth:`search` adds it back (a score is a squared distance, comparable across frames)."""
+        return isinstance(self.inner, _AQ_FAST_SCAN) and self.inner.metric_type == faiss.METRIC_L2
 
     @property
     def enumerable(self) -> bool:

@@ -17,7 +17,10 @@ plus the list's query-independent term (``per_list``) plus the frame's residual 
   norm(i_norm)``, one table per codebook and one for the norm's levels, the distance FAISS
   searches with. Over residuals the norm is ``‖ρ̂‖²`` and ``2⟨c_l, ρ̂⟩`` splits per codebook.
   Codes without a norm (``RQ3x8``: FAISS decodes them to search) or with a float32 one have no
-  such tables.
+  such tables. The fast-scan forms (``RQ4x4fs_Nrq2x4``: 4-bit codebooks, the norm in two 4-bit
+  levels) keep the same kind of code; over an inverted file by residual (``…fsr``) their norm is
+  the whole vector's, ``‖c_l + ρ̂‖²``: the distance is the frame's coarse distance, ``−‖c_l‖²``
+  plus the norm as the list's term, and the frame's ``−2⟨y, C_m[i_m]⟩``.
 """
 
 from __future__ import annotations
@@ -93,8 +96,8 @@ class AdditiveTables:
     field's); a narrower field's unused entries repeat its first, so a column's smallest and
     largest entries are its codes' own."""
 
-    def __init__(self, aq: Any, dim: int) -> None:
-        self.aq, self.dim = aq, dim
+    def __init__(self, aq: Any, dim: int, whole_norm: bool = False) -> None:
+        self.aq, self.dim, self.whole_norm = aq, dim, whole_norm  # whole_norm: residual codes, the vector's norm
         self.widths = [int(b) for b in faiss.vector_to_array(aq.nbits)] + [int(aq.norm_bits)]
         self.columns, self.ksub = len(self.widths), 1 << max(self.widths)
         self.books = self._codewords()
@@ -158,8 +161,15 @@ class AdditiveTables:
         return self._inner(y)
 
     def list_terms(self, centroids: np.ndarray) -> np.ndarray:
-        """Per list ``l``: ``2⟨c_l, C_m[k]⟩`` per codebook, and the norm column ``‖ρ̂‖²``'s levels."""
+        """Per list ``l``: ``2⟨c_l, C_m[k]⟩`` per codebook, and the norm column ``‖ρ̂‖²``'s levels;
+        when the code keeps the whole vector's norm, ``‖c_l + ρ̂‖² − ‖c_l‖²`` in the norm column
+        alone (the same sum, the cross terms inside the stored norm)."""
         terms = np.empty((len(centroids), self.columns, self.ksub), np.float32)
+        if self.whole_norm:
+            terms[:, :-1] = 0
+            own = (centroids.astype(np.float64) ** 2).sum(axis=1)
+            terms[:, -1] = self.norms[None, :] - own[:, None]
+            return terms
         terms[:, :-1] = 2 * np.einsum("ld,mkd->lmk", centroids, self.books)
         terms[:, -1] = self.norms[None, :]
         return terms
@@ -175,18 +185,20 @@ def _pad(rows: np.ndarray, n: int) -> np.ndarray:
 
 
 _PRODUCT = (faiss.IndexPQ, faiss.IndexPQFastScan, faiss.IndexIVFPQ, faiss.IndexIVFPQFastScan)
+_ADDITIVE = (faiss.IndexAdditiveQuantizer, faiss.IndexIVFAdditiveQuantizer, faiss.IndexAdditiveQuantizerFastScan,
+             faiss.IndexIVFAdditiveQuantizerFastScan)
 
 
 def has_tables(inner: Any) -> bool:
     """Whether a FAISS index's codes (flat or IVF; trained or not) have a tables view."""
     if isinstance(inner, _PRODUCT):
         return inner.pq.nbits <= MAX_INDEX_BITS
-    return (isinstance(inner, (faiss.IndexAdditiveQuantizer, faiss.IndexIVFAdditiveQuantizer))
-            and AdditiveTables.supports(inner.aq))
+    return isinstance(inner, _ADDITIVE) and AdditiveTables.supports(inner.aq)
 
 
 def tables_of(inner: Any) -> ProductTables | AdditiveTables:
     """The tables view of a trained FAISS index's codes (:func:`has_tables`)."""
     if isinstance(inner, _PRODUCT):
         return ProductTables(inner.pq)
-    return AdditiveTables(inner.aq, inner.aq.d)
+    whole_norm = isinstance(inner, faiss.IndexIVFAdditiveQuantizerFastScan) and inner.by_residual
+    return AdditiveTables(inner.aq, inner.aq.d, whole_norm)

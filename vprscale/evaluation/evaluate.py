@@ -12,6 +12,7 @@ import json
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -267,9 +268,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 raise InputError(_HOLDS.format(out=out))
             partial.open()
             t_fit = time.perf_counter()
-            for m in compared:
-                if stored[m.factory] is not None:  # encoded by vprscale encode: read, not redone
-                    load_encoding(stored[m.factory], m)
+            # encoded by vprscale encode: read, not redone; side by side (at 10M a graph and a fast-scan
+            # code's packed lists take tens of seconds each, FAISS and numpy mostly outside the GIL)
+            with ThreadPoolExecutor(req.workers) as pool:
+                list(pool.map(lambda m: load_encoding(stored[m.factory], m),
+                              [m for m in compared if stored[m.factory] is not None]))
             to_fit = [m for m in compared if stored[m.factory] is None]
             ref = reference_rows(req.store, group, req.deep1b, req.fas) if to_fit or plugged else None
             fit_codes(to_fit, ref, req.quiet) if to_fit else None

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -113,6 +114,7 @@ class Runner:
         if repeats < 1:
             raise ValueError(f"repeats = {repeats}: must be at least 1")
         self.workers, self.repeats = workers, repeats
+        self._timing: ThreadPoolExecutor | None = None  # the threads timing repeats run on side by side
 
     @contextmanager
     def _threads(self, alg: Algorithm, n: int) -> Iterator[None]:
@@ -125,6 +127,18 @@ class Runner:
             numba.set_num_threads(before[0])
             alg.threads = before[1]
 
+    def _repeated(self, alg: Algorithm, measure: Callable[[], float]) -> list[float]:
+        """``repeats`` results of ``measure`` (a CPU time of the calling thread, with the method on
+        one thread): side by side on up to ``workers`` threads when the method allows it
+        (:attr:`~vprscale.evaluation.algorithms.base.Algorithm.timed_side_by_side`); what another
+        thread does meanwhile does not enter a thread's own CPU time."""
+        if not alg.timed_side_by_side or min(self.workers, self.repeats) == 1:
+            return [measure() for _ in range(self.repeats)]
+        if self._timing is None:  # kept: a fresh thread's first calls cost more than a warm one's
+            self._timing = ThreadPoolExecutor(min(self.workers, self.repeats), thread_name_prefix="timing",
+                                              initializer=numba.set_num_threads, initargs=(1,))
+        return list(self._timing.map(lambda _: measure(), range(self.repeats)))
+
     def frames(self, alg: Algorithm, rows: np.ndarray) -> tuple[Any, FrameCost]:
         """The method's frame state for ``rows``, and what the per-frame work cost."""
         with self._threads(alg, 1):
@@ -135,7 +149,7 @@ class Runner:
             wall = (time.perf_counter() - t0) / max(1, len(rows)) * 1e6
         with self._threads(alg, 1):
             sample = rows[_timed(len(rows), TIMED_FRAMES, lambda p: _cpu_us(lambda: alg.frames(rows[p]), len(p)))]
-            cpu = [_cpu_us(lambda: alg.frames(sample), len(sample)) for _ in range(self.repeats)]
+            cpu = self._repeated(alg, lambda: _cpu_us(lambda: alg.frames(sample), len(sample)))
         if alg.answers_apart:  # the state came by another route: the deployed work's wall, on all workers
             wall = float(np.median(cpu)) / self.workers
         return state, FrameCost(cpu, wall, len(sample))
@@ -152,7 +166,7 @@ class Runner:
         with self._threads(alg, 1):  # the match and its score, as deployed (the 20-best list is the evaluation's)
             sample = pos[_timed(len(pos), TIMED_QUERIES,
                                 lambda p: _cpu_us(lambda: alg.localise(state, pos[p], L, mode, 1), len(p)))]
-            match = [_cpu_us(lambda: alg.localise(state, sample, L, mode, 1), len(sample)) for _ in frame.cpu_us]
+            match = self._repeated(alg, lambda: _cpu_us(lambda: alg.localise(state, sample, L, mode, 1), len(sample)))
         per_query = [m + f for m, f in zip(match, frame.cpu_us, strict=True)]
         n = len(pos)
         seconds = wall + n * frame.wall_us * 1e-6

@@ -70,6 +70,10 @@ class Algorithm(ABC):
     evenly spaced sample; None: all), for methods whose every query scans the whole map;
     ``noises`` the noise levels it runs on (None: all the evaluation's).
     ``threads`` is how many threads the runner lets it use (1 while it is being timed).
+    ``timed_side_by_side``: its :meth:`frames` and :meth:`localise` may run on several threads at
+    once (no state they change, no process-wide setting), so the runner times its repeats side
+    by side, each on a thread of its own (the built-in methods; a plugged one is timed one
+    repeat after another).
     """
 
     name: str
@@ -78,6 +82,7 @@ class Algorithm(ABC):
     noises: list[str] | None = None
     threads: int = 1
     answers_apart: bool = False  # the answers' frame state comes from answer_frames, not frames
+    timed_side_by_side: bool = False
 
     def runs_on(self, noise: str) -> bool:
         """Whether this method runs on query set ``noise`` (``noises``)."""

@@ -60,6 +60,7 @@ class Baseline(Algorithm):
     """
 
     name = "baseline"
+    timed_side_by_side = True
     bytes_per_place = float(FLOAT_BYTES)
 
     def __init__(self, base: BaselineMap, coarse: CoarseHash, dim: int, query_limit: int | None) -> None:

@@ -18,6 +18,7 @@ class CoarseHash(Algorithm):
     :class:`~vprscale.method.index.QueryFrames`."""
 
     name = "coarsehash"
+    timed_side_by_side = True
 
     def __init__(self, index: Index, dim: int) -> None:
         self.index, self.dim = index, dim

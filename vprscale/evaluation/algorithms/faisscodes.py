@@ -82,6 +82,8 @@ class FaissMethod(Algorithm):
     one from 1,000 about ±3; and ``flat_noise`` may run them on fewer noise levels.
     """
 
+    timed_side_by_side = True
+
     def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None,
                  k: int | None = None, nprobe: int | None = None, flat_noise: list[str] | None = None) -> None:
         self.codes = codes
@@ -118,11 +120,11 @@ class FaissMethod(Algorithm):
         return sequence_modes(L, requested)
 
     def frames(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each frame's top-k by FAISS's search, and its terms of the window scores."""
+        """Each frame's top-k by FAISS's search, and its terms of the window scores (the counted
+        operations are the answers' search's, :meth:`answer_frames`: the runner times this one on
+        several threads at once, and FAISS counts a graph's distances in one global tally)."""
         self._apply()
-        found = self.codes.search(rows)
-        self._frame_ops = self.codes.frame_ops()
-        return self._state(rows, *found)
+        return self._state(rows, *self.codes.search(rows))
 
     def _state(self, rows: np.ndarray, dist: np.ndarray, ids: np.ndarray, ranking: tuple | None = None) -> tuple:
         """The frame state of ``rows`` whose top-k are ``(dist, ids)``."""
