@@ -210,16 +210,17 @@ def write_graph(out: Path, factory: str, dim: int, progress: Callable[[int], Non
 def load_encoding(out: Path, codes: FaissCodes) -> None:
     """Give ``codes`` (a method not yet trained) the stored index and every reference's code:
     a residual IVF-PQ method its searched index on on-disk lists and its memory-mapped window
-    records (nothing read until searched), a graph the linked graph with its rows memory-mapped
-    (FAISS's search and the window scores read the same pages: 3.8 GB at 10M, once), any other
-    its trained index and codes in memory."""
+    records (nothing read until searched), a graph the linked graph in memory, whose rows the
+    window scores read too (3.8 GB at 10M, held once; in memory, not memory-mapped: a graph's
+    walk reads them at random, and pages evicted under memory pressure would be read again
+    from disk), any other its trained index and codes in memory."""
     if (out / SEARCHED).is_file():
         with _faiss_quiet():  # publishing renamed the directory FAISS wrote the lists' path into
             index = faiss.read_index(str(out / SEARCHED), faiss.IO_FLAG_ONDISK_SAME_DIR)
         codes.attach(index, np.load(out / WINDOW, mmap_mode="r"))
         return
-    if (out / GRAPH).is_file():  # its rows memory-mapped where the graph holds them, read once (not codes.npy)
-        index = faiss.read_index(str(out / GRAPH), faiss.IO_FLAG_MMAP_IFC)
+    if (out / GRAPH).is_file():  # the windows read the rows the graph holds (not codes.npy: not twice)
+        index = faiss.read_index(str(out / GRAPH))
         codes.attach(index, graph_rows(index))
         return
     codes.bind(faiss.read_index(str(out / "trained.faiss")))

@@ -169,11 +169,11 @@ def _plain_twin(inner: Any) -> Any:
 
 def graph_rows(index: Any) -> np.ndarray:
     """The rows a linked graph (``HNSW32``, or a transform then one) holds in its flat storage,
-    as bytes (places, 4·D): a view of FAISS's memory (memory-mapped when read so), not a copy."""
+    as bytes (places, 4·D): a read-only view of FAISS's memory, not a copy."""
     inner = _innermost(index)
     storage = faiss.downcast_index(inner.storage)
     rows = faiss.rev_swig_ptr(storage.get_xb(), inner.ntotal * inner.d).reshape(inner.ntotal, inner.d)
-    rows.flags.writeable = False  # a memory-mapped graph's pages are read-only
+    rows.flags.writeable = False  # the graph's own rows
     return rows.view(np.uint8)
 
 
