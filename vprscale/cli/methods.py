@@ -8,8 +8,9 @@ BUILT_IN = (
     ("coarsehash", "always", "CoarseHash, the paper's method, in paper and aligned modes (docs/method.md)"),
     ("baseline", "--baseline (on) / --no-baseline", "the paper's modified SeqSLAM under the same storage"),
     ("faiss:FACTORY", "--compare FACTORY", "any FAISS index_factory string, e.g. --compare PQ3, OPQ3,PQ3, "
-                                           "ITQ24,LSH, IVF4096,PQ3, PQ6x4fs, RaBitQ, IVF4096,RaBitQ, "
-                                           "RQ3x8_Nqint8, LSQ3x8, HNSW32 (docs/protocol.md)"),
+                                           "ITQ24,LSH, IVF4096,PQ3, PQ6x4fs, RaBitQ, IVF4096,RaBitQfs, "
+                                           "RQ3x8_Nqint8, IVF4096,RQ4x4fsr_Nrq2x4, LSQ3x8, HNSW32 "
+                                           "(docs/protocol.md)"),
     ("CLASS", "--method package.module:Class", "your own class of the small contract (docs/bring-your-own.md)"),
 )
 

@@ -400,31 +400,40 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
     steps = sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths)
                 for noise in req.noises for _, algos in methods for a in algos if a.runs_on(noise))
     bar = StepProgress("evaluate", steps, req.quiet)
-    for noise in req.noises:
+    # one method's frame state at a time (at 10M a method's is up to 1.5 GB a noise level: all of
+    # them at once held 6 GB), its runs' rows put back in the order noise, L, method, mode
+    runs: dict[tuple[int, int, int, int], tuple[list, list, list]] = {}
+    for n_i, noise in enumerate(req.noises):
         x_q = qs.rows(noise, frames)
-        for path, algos in methods:
-            prepared = []
-            for alg in (a for a in algos if a.runs_on(noise)):  # per-frame work on the frames it localises
-                bar.step(f"{noise} {alg.name}: per-frame work")
+        for p_i, (path, algos) in enumerate(methods):
+            for a_i, alg in enumerate(algos):
+                if not alg.runs_on(noise):
+                    continue
+                bar.step(f"{noise} {alg.name}: per-frame work")  # on the frames it localises
                 alg.prepare(noise, frames, x_q, {L: centres[L].t for L in req.lengths})
                 sample = {L: spread(len(centres[L].t), alg.query_limit) for L in req.lengths}
                 held = window_frames([centres[L].t[sample[L]] for L in req.lengths], req.lengths)
-                prepared.append((alg, sample, held, *runner.frames(alg, x_q[np.searchsorted(frames, held)])))
-            for L in req.lengths:
-                c = centres[L]
-                for alg, sample, held, state, frame_cost in prepared:
+                state, frame_cost = runner.frames(alg, x_q[np.searchsorted(frames, held)])
+                for l_i, L in enumerate(req.lengths):
+                    c = centres[L]
                     t = c.t[sample[L]]
                     truth, parts = qs.gt_at(t), qs.part_at(t)
                     pos = window_positions(held, t, L)
                     key = {"noise": noise, "L": L, "index": str(Path(path).resolve()), "fas_stride": c.fas_stride,
                            "method": alg.name, **alg.columns(), "bytes_per_place": alg.bytes_per_place}
+                    run = runs.setdefault((n_i, l_i, p_i, a_i), ([], [], []))
                     for mode in alg.modes(L, req.modes):
                         bar.step(f"{noise} {alg.name} L = {L}" + (f", {mode} mode" if mode else ""))
                         answer, timing = runner.localise(alg, state, pos, L, mode, frame_cost)
                         in_list = alg.in_list(state, pos, truth) if L == 1 else None
-                        metres = (rows_m, req.radii_m, qs.ref_pos_at, qs.pos_at(t)) if req.radii_m else None
-                        _emit(rows, queries, {**key, "mode": mode}, t, truth, parts, answer, timing, in_list,
+                        metres = (run[2], req.radii_m, qs.ref_pos_at, qs.pos_at(t)) if req.radii_m else None
+                        _emit(run[0], run[1], {**key, "mode": mode}, t, truth, parts, answer, timing, in_list,
                               weights if c.fas_stride is not None else None, metres)
+                del state  # before the next method's is made
+    for run in (runs[k] for k in sorted(runs)):
+        rows += run[0]
+        queries += run[1]
+        rows_m += run[2]
     bar.close()
     return rows, queries, rows_m
 
