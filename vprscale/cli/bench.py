@@ -20,6 +20,10 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--out", default="data/bench", help="build: output directory")
     p.add_argument("--deep1b", help="build: a Deep1B file (default: synthetic)")
     p.add_argument("--fas", help="build: a FAS100K .npz (default: synthetic)")
+    p.add_argument("--script", metavar="PREPROCDATA_PY",
+                   help="build: also run the paper authors' preProcData.py on the same --deep1b and --fas files, "
+                        "alternating with the build, and print the ratio of their times")
+    p.add_argument("--runs", type=positive_int, default=2, help="build --script: runs of each (default 2)")
     p.add_argument("--d", type=positive_int, help="index: hash digits (default ⌈log2 N_ref⌉)")
     p.add_argument("--index", help="eval, online, format: the index to evaluate")
     p.add_argument("--L", type=positive_int, default=100, help="online, codes: sequence length (default 100)")
@@ -35,7 +39,12 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 def run(args: argparse.Namespace) -> int:
     from vprscale.jobs import bench
 
-    if args.job == "build":
+    if args.job == "build" and args.script:
+        from vprscale.jobs.scriptbench import bench_against_script
+
+        print(bench_against_script(args.script, args.target, args.out, args.deep1b, args.fas, args.workers,
+                                   args.runs))
+    elif args.job == "build":
         print(bench.bench_build(args.target, args.out, args.deep1b, args.fas, args.workers))
     elif args.job == "index":
         print(bench.bench_index(args.target, args.d, args.workers))

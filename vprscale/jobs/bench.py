@@ -19,8 +19,12 @@ import numpy as np
 from vprscale.jobs.child import vprscale_argv
 
 
-def run_child(argv: list[str]) -> dict[str, Any]:
-    """Run ``vprscale ARGV`` in a child process; its summary, wall time and peak RSS."""
+def run_child(argv: list[str], fresh: Path | None = None) -> dict[str, Any]:
+    """Run ``vprscale ARGV`` in a child process; its summary, wall time and peak RSS. A build
+    is timed fresh: the store ``fresh`` an earlier run left is deleted first, because replacing
+    it (``--force`` deletes the old store once the new one is published) is not building."""
+    if fresh is not None and fresh.exists():
+        shutil.rmtree(fresh)
     with tempfile.TemporaryDirectory() as tmp:
         summary = Path(tmp) / "summary.json"
         t0 = time.perf_counter()
@@ -57,14 +61,10 @@ def io_floor(inputs: list[Path], write_bytes: int, where: Path) -> dict[str, flo
 
 
 def bench_build(scale: str, out: str, deep1b: str | None, fas: str | None, workers: int) -> str:
-    """Time a fresh build: a store left by an earlier run is deleted first, because replacing
-    it (``--force`` deletes the old store once the new one is published) is not building."""
-    old = Path(out) / f"{scale}.zarr"
-    if old.exists():
-        shutil.rmtree(old)
+    """Time a fresh build (:func:`run_child`)."""
     argv = ["build", "--scale", scale, "--out", out, "--workers", str(workers)]
     argv += (["--deep1b", deep1b] if deep1b else []) + (["--fas", fas] if fas else [])
-    r = run_child(argv)
+    r = run_child(argv, fresh=Path(out) / f"{scale}.zarr")
     s = r["summary"]
     inputs = []
     for p in filter(None, (deep1b, fas)):
