@@ -70,6 +70,7 @@ def test_same_addresses_lists_and_model(both_indexes):
                                       np.load(full / "model" / f"{name}.npy"), err_msg=name)
 
 
+@pytest.mark.slow
 def test_same_matches(both_indexes, compact_store, tiny_store, sources, tmp_path, small_training):
     """Every method, FAISS codes included (the compact store's references recomputed from its
     sources, the full store's read), answers the same on both layouts."""

@@ -35,6 +35,7 @@ def _codes(store: Path) -> dict[str, bytes]:
     return {f: np.load(encoding_dir(store, f) / "codes.npy").tobytes() for f in FACTORIES}
 
 
+@pytest.mark.slow
 def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path, monkeypatch, capfd):
     """An evaluation reading the stored encodings gives the answers, scores included, of one
     that encodes in its own process (IVF-PQ's searched on on-disk inverted lists merged from
