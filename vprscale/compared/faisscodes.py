@@ -612,14 +612,18 @@ class FaissCodes:
         """FAISS's top-k of each query row: ``(distances, ids)`` (ids −1 where fewer were found)."""
         if self.graph:
             faiss.cvar.hnsw_stats.reset()
-        found = self._blocks(lambda b: self.searched.search(b, self.k), rows)
+        found = self._blocks(self._search_block if self._norm_left_out else lambda b: self.searched.search(b, self.k),
+                             rows)
         if self.graph:
             self._walked = faiss.cvar.hnsw_stats.ndis / max(1, len(rows))
-        dist, ids = np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
-        if self._norm_left_out:
-            y = np.concatenate(self._blocks(self._transform, rows))
-            dist = np.where(ids >= 0, dist + (y.astype(np.float64) ** 2).sum(axis=1)[:, None], dist).astype(np.float32)
-        return dist, ids
+        return np.concatenate([d for d, _ in found]), np.concatenate([i for _, i in found])
+
+    def _search_block(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """FAISS's search of a block of rows, transformed once, with the ``‖y‖²`` its distances
+        leave out added back (:attr:`_norm_left_out`)."""
+        y = self._transform(rows)
+        dist, ids = self.searched_inner.search(y, self.k)
+        return np.where(ids >= 0, dist + (y.astype(np.float64) ** 2).sum(axis=1)[:, None], dist).astype(np.float32), ids
 
     @property
     def _norm_left_out(self) -> bool:

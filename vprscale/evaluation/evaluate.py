@@ -401,7 +401,7 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                 for noise in req.noises for _, algos in methods for a in algos if a.runs_on(noise))
     bar = StepProgress("evaluate", steps, req.quiet)
     # one method's frame state at a time (at 10M a method's is up to 1.5 GB a noise level: all of
-    # them at once held 6 GB), its runs' rows put back in the order noise, L, method, mode
+    # them at once held 6 GB), its runs' rows put back in the order noise, index, L, method, mode
     runs: dict[tuple[int, int, int, int], tuple[list, list, list]] = {}
     for n_i, noise in enumerate(req.noises):
         x_q = qs.rows(noise, frames)
@@ -421,7 +421,7 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                     pos = window_positions(held, t, L)
                     key = {"noise": noise, "L": L, "index": str(Path(path).resolve()), "fas_stride": c.fas_stride,
                            "method": alg.name, **alg.columns(), "bytes_per_place": alg.bytes_per_place}
-                    run = runs.setdefault((n_i, l_i, p_i, a_i), ([], [], []))
+                    run = runs.setdefault((n_i, p_i, l_i, a_i), ([], [], []))
                     for mode in alg.modes(L, req.modes):
                         bar.step(f"{noise} {alg.name} L = {L}" + (f", {mode} mode" if mode else ""))
                         answer, timing = runner.localise(alg, state, pos, L, mode, frame_cost)

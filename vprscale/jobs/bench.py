@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,22 +18,30 @@ import numpy as np
 from vprscale.jobs.child import vprscale_argv
 
 
-def run_child(argv: list[str], fresh: Path | None = None) -> dict[str, Any]:
-    """Run ``vprscale ARGV`` in a child process; its summary, wall time and peak RSS. A build
-    is timed fresh: the store ``fresh`` an earlier run left is deleted first, because replacing
-    it (``--force`` deletes the old store once the new one is published) is not building."""
+def spawn(argv: list[str], env: dict[str, str] | None = None) -> dict[str, Any]:
+    """Run the process ``argv`` (``env``: its environment, default this one's) to its end: its
+    exit code, wall time and peak RSS."""
+    t0 = time.perf_counter()
+    pid = os.spawnve(os.P_NOWAIT, argv[0], argv, os.environ if env is None else env)
+    _, status, usage = os.wait4(pid, 0)
+    return {"code": os.waitstatus_to_exitcode(status), "wall_s": time.perf_counter() - t0,
+            "peak_rss_bytes": usage.ru_maxrss * 1024}
+
+
+def run_child(argv: list[str], fresh: Path | None = None, env: dict[str, str] | None = None) -> dict[str, Any]:
+    """Run ``vprscale ARGV`` in a child process (:func:`spawn`); its summary, wall time and peak
+    RSS. A build is timed fresh: the store ``fresh`` an earlier run left is deleted first,
+    because replacing it (``--force`` deletes the old store once the new one is published) is
+    not building."""
     if fresh is not None and fresh.exists():
         shutil.rmtree(fresh)
     with tempfile.TemporaryDirectory() as tmp:
         summary = Path(tmp) / "summary.json"
-        t0 = time.perf_counter()
-        pid = os.spawnv(os.P_NOWAIT, sys.executable, vprscale_argv(*argv, "--summary", str(summary)))
-        _, status, usage = os.wait4(pid, 0)
-        wall = time.perf_counter() - t0
-        if os.waitstatus_to_exitcode(status) != 0:
+        r = spawn(vprscale_argv(*argv, "--summary", str(summary)), env)
+        if r["code"] != 0:
             raise SystemExit(f"bench: vprscale {' '.join(argv)} failed")
-        data = json.loads(summary.read_text()) if summary.is_file() else {}
-    return {"wall_s": wall, "peak_rss_bytes": usage.ru_maxrss * 1024, "summary": data}
+        r["summary"] = json.loads(summary.read_text()) if summary.is_file() else {}
+    return r
 
 
 def io_floor(inputs: list[Path], write_bytes: int, where: Path) -> dict[str, float]:

@@ -18,12 +18,11 @@ import os
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 from vprscale.core.errors import InputError
-from vprscale.jobs.bench import run_child
+from vprscale.jobs.bench import run_child, spawn
 
 SCRIPT_SCALES = {"20K": 20_000, "1M": 1_000_000, "10M": 10_000_000}  # Deep1B rows the script reads (its loadD1B)
 FVECS_ROW = 4 * 97  # a 96-d fvecs record: its dimension, then 96 float32
@@ -65,14 +64,11 @@ def _run_script(script: Path, deep1b: Path, fas: Path, scale: str) -> dict[str, 
         (root / "FAS").mkdir()
         (root / "Deep1B" / "base" / "base_00").symlink_to(deep1b.resolve())
         (root / "FAS" / "FAS_uniSam5_all.npz").symlink_to(fas.resolve())
-        argv = [sys.executable, "-c", _RUN_SCRIPT, str(script.resolve()), f"{root}/", scale, str(root / "out.npz")]
-        t0 = time.perf_counter()
-        pid = os.spawnv(os.P_NOWAIT, sys.executable, argv)
-        _, status, usage = os.wait4(pid, 0)
-        wall = time.perf_counter() - t0
-    if os.waitstatus_to_exitcode(status) != 0:
+        r = spawn([sys.executable, "-c", _RUN_SCRIPT, str(script.resolve()), f"{root}/", scale,
+                   str(root / "out.npz")])
+    if r["code"] != 0:
         raise InputError(f"bench build --script {script}: the script failed on these files (its error is above)")
-    return {"wall_s": wall, "peak_rss_bytes": usage.ru_maxrss * 1024}
+    return r
 
 
 def bench_against_script(script: str, scale: str, out: str, deep1b: str | None, fas: str | None, workers: int,
@@ -83,17 +79,10 @@ def bench_against_script(script: str, scale: str, out: str, deep1b: str | None, 
             "--deep1b", str(deep1b_path), "--fas", str(fas_path)]
     builds, scripts = [], []
     with tempfile.TemporaryDirectory(prefix="vprscale-cache-") as cache:
-        before = os.environ.get("VPRSCALE_CACHE")
-        os.environ["VPRSCALE_CACHE"] = cache  # the first build computes the FAS fit, the later ones find it
-        try:
-            for _ in range(runs):
-                builds.append(run_child(argv, fresh=Path(out) / f"{scale}.zarr"))
-                scripts.append(_run_script(script_path, deep1b_path, fas_path, scale))
-        finally:
-            if before is None:
-                os.environ.pop("VPRSCALE_CACHE")
-            else:
-                os.environ["VPRSCALE_CACHE"] = before
+        env = {**os.environ, "VPRSCALE_CACHE": cache}  # the first build computes the FAS fit, the later find it
+        for _ in range(runs):
+            builds.append(run_child(argv, fresh=Path(out) / f"{scale}.zarr", env=env))
+            scripts.append(_run_script(script_path, deep1b_path, fas_path, scale))
     script_s = statistics.median(r["wall_s"] for r in scripts)
     lines = [f"build {scale} from {deep1b_path.name} and {fas_path.name} beside {script_path.name}, "
              f"{runs} run(s) each, alternating"]
