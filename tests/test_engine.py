@@ -143,19 +143,26 @@ def test_online_matches_index_match_on_every_centre_with_bounded_state(tiny_stor
 
 def test_online_scores_are_the_batch_scores(tiny_store, tiny_index):
     """With ``return_score``, ``push`` and ``push_many`` give each match the batch's score (the same
-    number, in δ_max units), at L = 1 (quantisation error and the move to an occupied address) and
-    for sequences in both modes; frames that complete no window have none."""
+    number, in δ_max units), and ``push`` leaves the batch's N_r and best-first list, at L = 1
+    (quantisation error and the move to an occupied address) and for sequences in both modes;
+    frames that complete no window have none."""
     import zarr
 
     idx = Index.load(tiny_index)
     x = zarr.open_group(tiny_store, mode="r")["query_qm2"][46_000:47_200]
     for L, mode in ((1, "paper"), (20, "paper"), (50, "aligned")):
         batch = idx.match(x, L, mode=mode)
-        one = OnlineMatcher(idx, L=L, mode=mode)
-        pushed = [one.push(row, return_score=True) for row in x]
-        assert pushed[: L - 1] == [None] * (L - 1)
+        one = OnlineMatcher(idx, L=L, mode=mode, n_best=3)
+        pushed, n_r, top = [], [], []
+        for row in x:
+            pushed.append(one.push(row, return_score=True))
+            n_r.append(one.n_r)
+            top.append(one.top)
+        assert pushed[: L - 1] == [None] * (L - 1) and n_r[: L - 1] == [None] * (L - 1)
         np.testing.assert_array_equal([m for m, _ in pushed[L - 1 :]], batch.match)
         np.testing.assert_array_equal([s for _, s in pushed[L - 1 :]], batch.score)
+        np.testing.assert_array_equal(n_r[L - 1 :], batch.n_r)
+        np.testing.assert_array_equal(top[L - 1 :], idx.match(x, L, mode=mode, n_best=3).top)
         many = OnlineMatcher(idx, L=L, mode=mode)
         parts = [many.push_many(x[a : a + 333], return_score=True) for a in range(0, len(x), 333)]
         match, _, score = (np.concatenate(p) for p in zip(*parts, strict=True))

@@ -235,3 +235,20 @@ def test_bench_format_times_both_layouts_on_the_same_matches(tiny_store, tiny_in
         assert re.search(rf"{what}.*succinct [\d.]+ .*plain [\d.]+ .*succinct / plain = [\d.]+×", out), what
     plain, succinct = (float(x) for x in re.search(r"succinct ([\d.]+), plain ([\d.]+)", out).groups()[::-1])
     assert succinct < plain  # bytes per place in memory
+
+
+def test_bench_online_prints_push_against_the_batch_for_each_L(tiny_store, tiny_index, capsys):
+    """``bench online`` with no ``--L``: L = 1, 50 and 100 in one run (both modes for sequences),
+    each line with push's CPU time, its latency, push_many's and the batch's, and both ratios
+    (the matches are checked equal inside; no time is asserted)."""
+    assert main(["bench", "online", str(tiny_store), "--index", str(tiny_index)]) == 0
+    out = capsys.readouterr().out
+    number = r"(\d+\.\d+)"
+    for L, mode in ((1, "paper"), (50, "paper"), (50, "aligned"), (100, "paper"), (100, "aligned")):
+        line = re.search(rf"L = {L} +{mode} +push {number} µs a frame \(latency median {number}, p99 {number}\), "
+                         rf"push_many {number} µs a frame, batch {number} µs a query; push / batch {number}, "
+                         rf"push / push_many {number}", out)
+        assert line, (L, mode)
+        push, _, _, many, batch, to_batch, to_many = (float(v) for v in line.groups())
+        assert to_batch == pytest.approx(push / batch, rel=0.05, abs=0.01)  # of the unrounded figures
+        assert to_many == pytest.approx(push / many, rel=0.05, abs=0.01)

@@ -26,7 +26,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--runs", type=positive_int, default=2, help="build --script: runs of each (default 2)")
     p.add_argument("--d", type=positive_int, help="index: hash digits (default ⌈log2 N_ref⌉)")
     p.add_argument("--index", help="eval, online, format: the index to evaluate")
-    p.add_argument("--L", type=positive_int, default=100, help="online, codes: sequence length (default 100)")
+    p.add_argument("--L", type=positive_int, help="online, codes, format: sequence length (default: online 1, 50 "
+                   "and 100; codes and format 100)")
     p.add_argument("--compare", action="append", metavar="FACTORY",
                    help="codes: a FAISS index_factory string (repeat; default PQ3, OPQ3,PQ3, IVF1024,PQ3)")
     p.add_argument("--places", type=positive_int, help="codes: references encoded (default: all of the store's)")
@@ -57,16 +58,16 @@ def run(args: argparse.Namespace) -> int:
     elif args.job == "codes":
         from vprscale.jobs.codesbench import DEFAULT_FACTORIES, bench_codes
 
-        print(bench_codes(args.target, args.compare or list(DEFAULT_FACTORIES), args.places, args.L))
+        print(bench_codes(args.target, args.compare or list(DEFAULT_FACTORIES), args.places, args.L or 100))
     elif args.job in ("online", "format"):
         if not args.index:
             raise InputError(f"bench {args.job}: give --index")
         if args.job == "online":
-            print(bench.bench_online(args.target, args.index, args.L))
+            print(bench.bench_online(args.target, args.index, (args.L,) if args.L else (1, 50, 100)))
         else:
             from vprscale.jobs.formatbench import bench_format
 
-            print(bench_format(args.target, args.index, (1, args.L)))
+            print(bench_format(args.target, args.index, (1, args.L or 100)))
     else:
         if not args.index:
             raise InputError("bench eval: give --index")

@@ -162,8 +162,9 @@ def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
     return "\n".join(lines)
 
 
-def bench_online(store: str, index: str, L: int, frames: int = 3000, repeats: int = 5) -> str:
-    """Online matching against the batch on the same frames, in one process, paper and aligned.
+def bench_online(store: str, index: str, Ls: tuple[int, ...], frames: int = 3000, repeats: int = 5) -> str:
+    """Online matching against the batch on the same frames, in one process: each L of ``Ls``,
+    paper and aligned (L = 1: one mode).
 
     Per frame, the CPU time of this thread, each figure the median of its repeats and measured
     alike (one clock reading before and after the whole traverse): ``push`` frame by frame,
@@ -186,10 +187,9 @@ def bench_online(store: str, index: str, L: int, frames: int = 3000, repeats: in
     _ = idx.planes
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
-    lines = [f"online matching, {idx.n_ref:,} places, L = {L}, {len(x):,} frames, CPU time of one thread, "
-             f"{repeats} repeats"]
+    lines = [f"online matching, {idx.n_ref:,} places, {len(x):,} frames, CPU time of one thread, {repeats} repeats"]
     try:
-        for mode in ("paper", "aligned") if L > 1 else ("paper",):
+        for L, mode in [(n, mode) for n in Ls for mode in (("paper", "aligned") if n > 1 else ("paper",))]:
             warm = OnlineMatcher(idx, L, mode)
             warm.push_many(x[: L + 10])
             for row in x[: L + 10]:
@@ -219,7 +219,8 @@ def bench_online(store: str, index: str, L: int, frames: int = 3000, repeats: in
                     raise SystemExit("bench online: the online matches differ from the batch")
             median, p99 = float(np.median(each)) / 1e3, float(np.percentile(each, 99)) / 1e3
             push, many_us, batch_us = (float(np.median(v)) / 1e3 for v in (pushed, many, batch))
-            lines.append(f"  {mode:<8} push {push:.2f} µs a frame (latency median {median:.2f}, p99 {p99:.2f}), "
+            lines.append(f"  L = {L:<4} {mode:<8} push {push:.2f} µs a frame (latency median {median:.2f}, "
+                         f"p99 {p99:.2f}), "
                          f"push_many {many_us:.2f} µs a frame, batch {batch_us:.2f} µs a query; push / batch "
                          f"{push / batch_us:.2f}, push / push_many {push / many_us:.2f}; N_r mean "
                          f"{found.n_r.mean():.0f}; state {online.state_bytes / 1e3:.0f} kB")

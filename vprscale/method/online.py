@@ -42,6 +42,7 @@ from vprscale.method.kernels import (
     window_candidates,
     window_masks,
 )
+from vprscale.method.lent import borrow, lend
 from vprscale.method.succinct import get_packed
 from vprscale.protocol import MAX_BEST, check_window
 
@@ -70,7 +71,6 @@ class OnlineMatcher:
         if not 1 <= int(n_best) <= MAX_BEST:
             raise ValueError(f"n_best {n_best}: keep 1 to {MAX_BEST} candidates a window")
         self.index, self.L, self.mode, self.n_best = index, int(L), mode, int(n_best)
-        self.n_r: int | None = None
         self._top_s = np.full(self.n_best, 2**62, np.int64)  # the window's best-first list, as the batch keeps it
         self._top_c = np.full(self.n_best, NO_CANDIDATE, np.int64)
         codes, code_bits, n_ref, planes, bit_gap, w, tables, d, k, dmax = index.kernel_args()
@@ -92,26 +92,36 @@ class OnlineMatcher:
         centres = np.ascontiguousarray(index.centres, np.float64)
         self._dim = int(index.components.shape[1])
         self._frame = np.zeros((1, self._dim), np.float32)  # push copies each frame here: one type, one call
-        self._engine = _Engine(self._frame, self._top_s, self._top_c, np.ascontiguousarray(index.mean, np.float64),
-                               np.ascontiguousarray(index.components.T, np.float64), centres,
-                               np.empty(d), np.empty(d, np.uint8), float((centres[:, -1] - centres[:, 0]).sum()),
-                               self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
-                               self.L, self.mode == "aligned", self._fast, *self._args)
+        self._row = self._frame[0]  # ``row[...] = x`` is numpy's shortest copy path, half of ``frame[0] = x``
+        self._last = np.full(1, -1, np.int64)  # the last match's N_r (−1 before the first)
+        self._score = np.full(1, np.nan)  # and its score
+        model = (np.ascontiguousarray(index.mean, np.float64), np.ascontiguousarray(index.components.T, np.float64),
+                 centres, np.empty(d), np.empty(d, np.uint8))
+        self._lent = model  # the engine holds the arrays by address only: these, the index's and the matcher's
+        self._engine = _engine(self._frame, self._last, self._score, self._top_s, self._top_c, *model,
+                               float((centres[:, -1] - centres[:, 0]).sum()), self._state, self._ring_h,
+                               self._ring_n, self._buf, self._scratch, self._slots, self.L, self.mode == "aligned",
+                               self._fast, *self._args)
         self._push = _push.compile((numba.typeof(self._engine),))  # compiled, or loaded from numba's cache
 
     def push(self, descriptor: np.ndarray, return_score: bool = False) -> int | tuple[int, float] | None:
         """Add one query frame; the match of the window it completes (None until L frames), and
         its score with ``return_score``."""
         try:
-            self._frame[0] = descriptor  # cast to float32 as the batch reads frames
+            self._row[...] = descriptor  # cast to float32 as the batch reads frames
         except (ValueError, TypeError):
             raise ValueError(f"a query frame of {np.size(descriptor)} features; this index hashes frames of "
                              f"{self._dim}") from None
-        match, n_r, score = self._push(self._engine)
+        match = self._push(self._engine)  # one Python int back: N_r and the score stay in the engine
         if match < 0:
             return None
-        self.n_r = int(n_r)
-        return (int(match), float(score)) if return_score else int(match)
+        return (match, float(self._score[0])) if return_score else match
+
+    @property
+    def n_r(self) -> int | None:
+        """The last window matched's number of candidates (None before the first match)."""
+        n = int(self._last[0])
+        return None if n < 0 else n
 
     @property
     def top(self) -> np.ndarray:
@@ -121,11 +131,8 @@ class OnlineMatcher:
 
     def push_address(self, h: int) -> int | None:
         """Add one query frame given its own address (already hashed)."""
-        match, n_r = self.push_addresses(np.array([h], np.uint64))
-        if match[0] < 0:
-            return None
-        self.n_r = int(n_r[0])
-        return int(match[0])
+        match, _ = self.push_addresses(np.array([h], np.uint64))
+        return None if match[0] < 0 else int(match[0])
 
     def push_many(self, descriptors: np.ndarray, return_score: bool = False,
                   return_top: bool = False) -> tuple[np.ndarray, ...]:
@@ -157,8 +164,10 @@ class OnlineMatcher:
                                             self._slots, self.L, self.mode == "aligned", self._fast, self._top_s,
                                             self._top_c, *self._args)
             score = np.where(match >= 0, units / float(self._args[-1]), np.nan)
-        if len(h):  # the last frame's list, as push leaves it
+        if len(h) and match[-1] >= 0:  # the last frame's window, as push leaves it
             self._top_c[:] = np.where(top[-1] < 0, NO_CANDIDATE, top[-1])
+            self._last[0] = n_r[-1]
+            self._score[0] = np.nan if score is None else score[-1]
         return (match, n_r, *((score,) if scores else ()), *((top,) if tops else ()))
 
     @property
@@ -176,33 +185,61 @@ class _EngineType(types.StructRef):
 
 class _Engine(structref.StructRefProxy):
     """What :func:`_push` reads, in one object: the hashing model and scratch, the matcher's state
-    (the same arrays ``push_many`` steps, so both kinds of push share one stream) and the index."""
+    (the same arrays ``push_many`` steps, so both kinds of push share one stream) and the index,
+    every array lent by address (:mod:`vprscale.method.lent`)."""
 
 
 structref.define_proxy(_Engine, _EngineType, [
-    "frame", "top_s", "top_c", "mean", "w", "centres", "acc", "code_row", "span",
+    "frame", "last", "score", "top_s", "top_c", "mean", "w", "centres", "acc", "code_row", "span",
     "state", "ring_h", "ring_n", "buf", "cand", "slots", "L", "aligned", "fast",
     "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "dw", "tables",
     "d", "k", "dmax"])
 
 
-@numba.njit(cache=True, nogil=True)
-def _push(e: _Engine) -> tuple[np.int64, np.int64, float]:
-    """One frame (``e.frame``): hashed as the batch hashes it, then the step; ``(match, N_r,
-    score)``, the score in δ_max units as the batch reports it (−1, 0 and NaN before L frames).
-    L = 1: the single best of the frame's address, scored by its quantisation error and its move
-    to the occupied address it took (:meth:`Index.single_scores`)."""
-    h, err = hash_one(e.frame, 0, e.mean, e.w, e.centres, e.acc, e.code_row)
+@numba.njit(cache=True)
+def _engine(frame, last, score, top_s, top_c, mean, w, centres, acc, code_row, span, state, ring_h, ring_n, buf, cand,
+            slots, L, aligned, fast, occ, starts, ids, id_bits, codes, code_bits, n_ref, planes, gaps, masks, dw,
+            tables, d, k, dmax) -> _Engine:
+    """The engine of these arrays (lent: their owner keeps them) and values."""
+    kind, high, low, lb, ones, zeros, n, size = occ
+    s_high, s_low, s_lb, s_ones = starts
+    return _Engine(lend(frame), lend(last), lend(score), lend(top_s), lend(top_c), lend(mean), lend(w), lend(centres),
+                   lend(acc), lend(code_row), span, lend(state), lend(ring_h), lend(ring_n), lend(buf), lend(cand),
+                   lend(slots), L, aligned, fast,
+                   (kind, lend(high), lend(low), lb, lend(ones), lend(zeros), n, size),
+                   (lend(s_high), lend(s_low), s_lb, lend(s_ones)), lend(ids), id_bits, lend(codes), code_bits,
+                   n_ref, lend(planes), lend(gaps), lend(masks), lend(dw), lend(tables), d, k, dmax)
+
+
+@numba.njit(cache=True)  # the GIL kept: releasing and taking it back would cost a third of an L = 1 frame
+def _push(e: _Engine) -> np.int64:
+    """One frame (``e.frame``): hashed as the batch hashes it, then the step; the match (−1
+    before L frames), its N_r and its score (in δ_max units, as the batch reports it) left in
+    ``e.last`` and ``e.score``: one value boxed for Python, not three. L = 1: the single best of
+    the frame's address, scored by its quantisation error and its move to the occupied address it
+    took (:meth:`Index.single_scores`)."""
+    kind, high, low, lb, ones, zeros, n, size = e.occ
+    occ = (kind, borrow(high), borrow(low), lb, borrow(ones), borrow(zeros), n, size)
+    s_high, s_low, s_lb, s_ones = e.starts
+    starts = (borrow(s_high), borrow(s_low), s_lb, borrow(s_ones))
+    ids, top_c, dw, tables, last_n, score = borrow(e.ids), borrow(e.top_c), borrow(e.dw), borrow(e.tables), \
+        borrow(e.last), borrow(e.score)
+    h, err = hash_one(borrow(e.frame), 0, borrow(e.mean), borrow(e.w), borrow(e.centres), borrow(e.acc),
+                      borrow(e.code_row))
     if e.L == 1:
-        slot, taken = nearest_slot(e.occ, h)
-        first, last = list_span(e.starts, slot)
-        _list_head(e.ids, e.id_bits, first, last, e.top_c)
-        moved = delta(h, taken, e.dw, e.tables, e.d, e.k)
-        return np.int64(get_packed(e.ids, e.id_bits, first)), last - first, err / e.span + moved / float(e.dmax)
-    best, n_r, units = _step(h, e.state, e.ring_h, e.ring_n, e.buf, e.cand, e.slots, e.L, e.aligned, e.fast,
-                             e.top_s, e.top_c, e.occ, e.starts, e.ids, e.id_bits, e.codes, e.code_bits, e.n_ref,
-                             e.planes, e.gaps, e.masks, e.dw, e.tables, e.d, e.k, e.dmax)
-    return best, n_r, units / float(e.dmax) if best >= 0 else np.nan
+        slot, taken = nearest_slot(occ, h)
+        first, last = list_span(starts, slot)
+        _list_head(ids, e.id_bits, first, last, top_c)
+        moved = delta(h, taken, dw, tables, e.d, e.k)
+        last_n[0], score[0] = last - first, err / e.span + moved / float(e.dmax)
+        return np.int64(get_packed(ids, e.id_bits, first))
+    best, n_r, units = _step(h, borrow(e.state), borrow(e.ring_h), borrow(e.ring_n), borrow(e.buf), borrow(e.cand),
+                             borrow(e.slots), e.L, e.aligned, e.fast, borrow(e.top_s), top_c, occ, starts, ids,
+                             e.id_bits, borrow(e.codes), e.code_bits, e.n_ref, borrow(e.planes), borrow(e.gaps),
+                             borrow(e.masks), dw, tables, e.d, e.k, e.dmax)
+    if best >= 0:
+        last_n[0], score[0] = n_r, units / float(e.dmax)
+    return best
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
