@@ -8,8 +8,8 @@ occupied address, list retrieval) and the match, so a frame costs about what one
 query costs, without the batch's sort.
 
 State is O(L + N_r): a ring of the last L frames' addresses and list lengths, their lists
-in one sliding buffer, and scratch space for the candidates; nothing grows with the length
-of the stream.
+in one sliding buffer, and scratch space for the window and its candidates (nothing allocated
+a frame); nothing grows with the length of the stream.
 
 A frame pushed alone costs what a batched query costs only if the call itself is cheap: numba
 types and unboxes every argument of every call (about 0.1 µs an array, more for a tuple), and a
@@ -85,6 +85,10 @@ class OnlineMatcher:
         while slots < 2 * capacity:
             slots *= 2
         self._slots = np.empty(slots, np.int64)
+        # The window's addresses, list bounds and bit planes, rebuilt on each frame in place.
+        self._win_h = np.empty(self.L, np.uint64)
+        self._win_bounds = np.empty((2, self.L), np.int64)
+        self._win_planes = np.empty(((self.L + 63) // 64 + 2) * d, np.uint64)
         lists = index.lists
         self._args = _plain((lists.occupied_args(), lists.starts_args(), lists.ids, lists.id_bits, codes, code_bits,
                              n_ref, planes, gaps, masks, w, tables, d, k, dmax))
@@ -100,8 +104,8 @@ class OnlineMatcher:
         self._lent = model  # the engine holds the arrays by address only: these, the index's and the matcher's
         self._engine = _engine(self._frame, self._last, self._score, self._top_s, self._top_c, *model,
                                float((centres[:, -1] - centres[:, 0]).sum()), self._state, self._ring_h,
-                               self._ring_n, self._buf, self._scratch, self._slots, self.L, self.mode == "aligned",
-                               self._fast, *self._args)
+                               self._ring_n, self._buf, self._scratch, self._slots, self._win_h, self._win_bounds,
+                               self._win_planes, self.L, self.mode == "aligned", self._fast, *self._args)
         self._push = _push.compile((numba.typeof(self._engine),))  # compiled, or loaded from numba's cache
 
     def push(self, descriptor: np.ndarray, return_score: bool = False) -> int | tuple[int, float] | None:
@@ -161,8 +165,8 @@ class OnlineMatcher:
             score = self.index.single_scores(h, taken, errors) if scores else None
         else:
             match, n_r, units, top = _steps(h, self._state, self._ring_h, self._ring_n, self._buf, self._scratch,
-                                            self._slots, self.L, self.mode == "aligned", self._fast, self._top_s,
-                                            self._top_c, *self._args)
+                                            self._slots, self._win_h, self._win_bounds, self._win_planes, self.L,
+                                            self.mode == "aligned", self._fast, self._top_s, self._top_c, *self._args)
             score = np.where(match >= 0, units / float(self._args[-1]), np.nan)
         if len(h) and match[-1] >= 0:  # the last frame's window, as push leaves it
             self._top_c[:] = np.where(top[-1] < 0, NO_CANDIDATE, top[-1])
@@ -174,7 +178,7 @@ class OnlineMatcher:
     def state_bytes(self) -> int:
         """Bytes held between frames: fixed at construction, whatever the length of the stream."""
         return sum(a.nbytes for a in (self._state, self._ring_h, self._ring_n, self._buf, self._scratch, self._slots,
-                                      self._top_s, self._top_c))
+                                      self._win_h, self._win_bounds, self._win_planes, self._top_s, self._top_c))
 
 
 @structref.register
@@ -191,21 +195,21 @@ class _Engine(structref.StructRefProxy):
 
 structref.define_proxy(_Engine, _EngineType, [
     "frame", "last", "score", "top_s", "top_c", "mean", "w", "centres", "acc", "code_row", "span",
-    "state", "ring_h", "ring_n", "buf", "cand", "slots", "L", "aligned", "fast",
+    "state", "ring_h", "ring_n", "buf", "cand", "slots", "win_h", "win_bounds", "win_planes", "L", "aligned", "fast",
     "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "dw", "tables",
     "d", "k", "dmax"])
 
 
 @numba.njit(cache=True)
 def _engine(frame, last, score, top_s, top_c, mean, w, centres, acc, code_row, span, state, ring_h, ring_n, buf, cand,
-            slots, L, aligned, fast, occ, starts, ids, id_bits, codes, code_bits, n_ref, planes, gaps, masks, dw,
-            tables, d, k, dmax) -> _Engine:
+            slots, win_h, win_bounds, win_planes, L, aligned, fast, occ, starts, ids, id_bits, codes, code_bits, n_ref,
+            planes, gaps, masks, dw, tables, d, k, dmax) -> _Engine:
     """The engine of these arrays (lent: their owner keeps them) and values."""
     kind, high, low, lb, ones, zeros, n, size = occ
     s_high, s_low, s_lb, s_ones = starts
     return _Engine(lend(frame), lend(last), lend(score), lend(top_s), lend(top_c), lend(mean), lend(w), lend(centres),
                    lend(acc), lend(code_row), span, lend(state), lend(ring_h), lend(ring_n), lend(buf), lend(cand),
-                   lend(slots), L, aligned, fast,
+                   lend(slots), lend(win_h), lend(win_bounds), lend(win_planes), L, aligned, fast,
                    (kind, lend(high), lend(low), lb, lend(ones), lend(zeros), n, size),
                    (lend(s_high), lend(s_low), s_lb, lend(s_ones)), lend(ids), id_bits, lend(codes), code_bits,
                    n_ref, lend(planes), lend(gaps), lend(masks), lend(dw), lend(tables), d, k, dmax)
@@ -234,9 +238,10 @@ def _push(e: _Engine) -> np.int64:
         last_n[0], score[0] = last - first, err / e.span + moved / float(e.dmax)
         return np.int64(get_packed(ids, e.id_bits, first))
     best, n_r, units = _step(h, borrow(e.state), borrow(e.ring_h), borrow(e.ring_n), borrow(e.buf), borrow(e.cand),
-                             borrow(e.slots), e.L, e.aligned, e.fast, borrow(e.top_s), top_c, occ, starts, ids,
-                             e.id_bits, borrow(e.codes), e.code_bits, e.n_ref, borrow(e.planes), borrow(e.gaps),
-                             borrow(e.masks), dw, tables, e.d, e.k, e.dmax)
+                             borrow(e.slots), borrow(e.win_h), borrow(e.win_bounds), borrow(e.win_planes), e.L,
+                             e.aligned, e.fast, borrow(e.top_s), top_c, occ, starts, ids, e.id_bits, borrow(e.codes),
+                             e.code_bits, e.n_ref, borrow(e.planes), borrow(e.gaps), borrow(e.masks), dw, tables, e.d,
+                             e.k, e.dmax)
     if best >= 0:
         last_n[0], score[0] = n_r, units / float(e.dmax)
     return best
@@ -276,10 +281,11 @@ def _plain(value):
 
 @numba.njit(cache=True, nogil=True)
 def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
-           cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, top_s: np.ndarray,
-           top_c: np.ndarray, occ: tuple, starts: tuple, ids: np.ndarray, id_bits: int, codes: np.ndarray,
-           code_bits: int, n_ref: int, planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray,
-           tables: np.ndarray, d: int, k: int, dmax: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           cand: np.ndarray, slots: np.ndarray, win_h: np.ndarray, win_bounds: np.ndarray, win_planes: np.ndarray,
+           L: int, aligned: bool, fast: bool, top_s: np.ndarray, top_c: np.ndarray, occ: tuple, starts: tuple,
+           ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int, planes: np.ndarray,
+           gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+           dmax: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_step` for each address of ``hs`` in turn: match, N_r, the match's score in
     fixed-point units and the best-first list (−1 before L frames)."""
     match = np.empty(hs.shape[0], np.int64)
@@ -287,9 +293,9 @@ def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarra
     units = np.empty(hs.shape[0], np.int64)
     top = np.full((hs.shape[0], top_c.shape[0]), NO_CANDIDATE, np.int64)
     for i in range(hs.shape[0]):
-        match[i], n_r[i], units[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, L, aligned, fast, top_s,
-                                           top_c, occ, starts, ids, id_bits, codes, code_bits, n_ref, planes, gaps,
-                                           masks, w, tables, d, k, dmax)
+        match[i], n_r[i], units[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, win_h, win_bounds,
+                                           win_planes, L, aligned, fast, top_s, top_c, occ, starts, ids, id_bits,
+                                           codes, code_bits, n_ref, planes, gaps, masks, w, tables, d, k, dmax)
         if match[i] >= 0:
             top[i] = top_c
     return match, n_r, units, finish_best(top)
@@ -297,10 +303,11 @@ def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarra
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, buf: np.ndarray,
-          cand: np.ndarray, slots: np.ndarray, L: int, aligned: bool, fast: bool, top_s: np.ndarray,
-          top_c: np.ndarray, occ: tuple, starts: tuple, ids: np.ndarray, id_bits: int, codes: np.ndarray,
-          code_bits: int, n_ref: int, planes: np.ndarray, gaps: np.ndarray, masks: np.ndarray, w: np.ndarray,
-          tables: np.ndarray, d: int, k: int, dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
+          cand: np.ndarray, slots: np.ndarray, win_h: np.ndarray, win_bounds: np.ndarray, win_planes: np.ndarray,
+          L: int, aligned: bool, fast: bool, top_s: np.ndarray, top_c: np.ndarray, occ: tuple, starts: tuple,
+          ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int, planes: np.ndarray,
+          gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+          dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
     """One frame: its list into the window, then the window's match (−1 until L frames), its N_r
     and its score (fixed point); ``(top_s, top_c)`` then hold the window's best-first list
     (scores and candidates, ``NO_CANDIDATE`` where there were fewer), as the batch's
@@ -327,10 +334,8 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
         return np.int64(-1), np.int64(0), np.int64(0)
     # The window, oldest frame first: its addresses, list bounds and bit planes.
     half = L // 2
-    q_hash = np.empty(L, np.uint64)
-    q_start = np.empty(L, np.int64)
-    q_stop = np.empty(L, np.int64)
-    q_planes = np.zeros(((L + 63) // 64 + 2) * d, np.uint64)
+    q_hash, q_start, q_stop, q_planes = win_h, win_bounds[0], win_bounds[1], win_planes
+    q_planes[:] = 0
     pos = st[1]
     for i in range(L):
         j = (st[3] + i) % L
