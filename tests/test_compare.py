@@ -409,6 +409,21 @@ def test_residual_fast_scan_additive_codes_are_scored_from_residual_tables(facto
     np.testing.assert_allclose(dist.reshape(-1), exact, rtol=0.05)  # FAISS's 8-bit tables
 
 
+def test_rabitq_sign_tables_are_the_signed_sums_block_by_block():
+    """``T_b[v] = Σ_i s_i(v) y[8b + i] / √d``, term by term, for every frame, byte and value
+    (a width that is not a whole number of bytes; frames across blocks; values 10^±6 apart)."""
+    rng = np.random.default_rng(3)
+    y = (rng.standard_normal((37, 21)) * 10.0 ** rng.integers(-6, 6, (37, 21))).astype(np.float32)
+    tables = rabitq.sign_tables(y, block=8)
+    assert tables.shape == (37, 3, 256) and tables.dtype == np.float32
+    for n in (0, 9, 36):
+        for b in range(3):
+            for v in (0, 1, 128, 255, 77):
+                want = sum((1.0 if v >> i & 1 else -1.0) * float(y[n, 8 * b + i]) for i in range(8) if 8 * b + i < 21)
+                assert tables[n, b, v] == np.float32(want / np.sqrt(21)), (n, b, v)
+    np.testing.assert_array_equal(tables, rabitq.sign_tables(y))  # the same bytes whatever the block
+
+
 @pytest.mark.parametrize("factory", ["RQ3x8", "IVF16,RQ2x8_Nfloat", "LSQ2x8_Nfloat", "RaBitQ4"])
 def test_codes_without_tables_are_decoded(factory):
     """An additive quantiser without its norm in the code (FAISS decodes it to search) or with
