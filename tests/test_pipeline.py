@@ -120,20 +120,26 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0
 
 
-def _dry_run(path: Path, pythonpath: Path | None = None) -> dict[str, dict]:
-    """``vprscale run --dry-run`` as a user runs it, stage by stage: (run, reasons)."""
+def _dry_run(path: Path, pythonpath: Path | None = None, *flags: str) -> dict[str, dict]:
+    """``vprscale run --dry-run`` as a user runs it, stage by stage: (run, reasons, estimate)."""
+    return _plan(path, pythonpath, *flags)[0]
+
+
+def _plan(path: Path, pythonpath: Path | None = None, *flags: str) -> tuple[dict[str, dict], str]:
+    """``vprscale run --dry-run``'s stages (:func:`_dry_run`) and its last line, the run's estimate."""
     import subprocess
     import sys
 
     env = {**os.environ, **({"PYTHONPATH": str(pythonpath)} if pythonpath else {})}
-    done = subprocess.run([sys.executable, "-m", "vprscale.cli", "run", str(path), "--dry-run"], capture_output=True,
-                          text=True, env=env, cwd=path.parent)
+    done = subprocess.run([sys.executable, "-m", "vprscale.cli", "run", str(path), "--dry-run", *flags],
+                          capture_output=True, text=True, env=env, cwd=path.parent)
     assert done.returncode == 0, done.stderr
+    *stages, total = done.stdout.splitlines()
     found = {}
-    for line in done.stdout.splitlines():
-        verdict, name, why = re.match(r"(run|skip)\s+(\S+) \(\w+\): (.*)", line).groups()
-        found[name] = {"run": verdict == "run", "why": why}
-    return found
+    for line in stages:
+        verdict, name, why, cost = re.fullmatch(r"(run|skip)\s+(\S+) \(\w+\): (.*?)(?: \[(.*)\])?", line).groups()
+        found[name] = {"run": verdict == "run", "why": why, "cost": cost}
+    return found, total
 
 
 @pytest.mark.slow
@@ -180,6 +186,39 @@ def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp
     assert "upstream stage eval-20K re-runs" in plan["report"]["why"]
     shutil.move(kept / "results.parquet", results / "results.parquet")
     assert not any(s["run"] for s in _dry_run(path).values())
+
+
+@pytest.mark.slow
+def test_dry_run_estimates_each_stage_and_the_run_from_measured_figures(quickstart_run, capsys):
+    """``--dry-run --force`` gives each stage its last run's time and the run's total; ``--save-costs``
+    writes those figures beside the pipeline, and a dry run into an empty directory reads them."""
+    tmp, path, summary = quickstart_run
+    plan, total = _plan(path, None, "--force")
+    for stage in summary["stages"]:
+        cost = plan[stage["name"]]["cost"]
+        assert plan[stage["name"]]["run"] and cost.endswith(f"measured in the run of {_stamp(summary['started'])}")
+    seconds = sum(s["seconds"] for s in summary["stages"])
+    found = re.fullmatch(r"estimated: ([\d.]+) (min|s) of wall time, peak memory ([\d.]+) GB, ([\d.]+) GB on disk",
+                         total)
+    assert found, total
+    shown = float(found[1]) * (60 if found[2] == "min" else 1)
+    assert abs(shown - seconds) <= 3.5  # printed to a tenth of a minute
+    peak = max(s["outputs"]["peak_rss_bytes"] for s in summary["stages"])
+    assert float(found[3]) == pytest.approx(peak / 1e9, abs=0.006)
+    assert main(["run", str(path), "--save-costs"]) == 0  # every stage skipped: the figures of the run that ran them
+    costs = path.with_name(path.stem + ".costs.json")
+    assert str(costs) in capsys.readouterr().out
+    text = path.read_text()
+    try:
+        path.write_text(text.replace(str(tmp / "data"), str(tmp / "elsewhere")))
+        fresh, _ = _plan(path)
+        assert all(s["run"] and s["cost"].endswith("measured on the reference machine") for s in fresh.values())
+    finally:
+        path.write_text(text)
+
+
+def _stamp(started: str) -> str:
+    return f"{started[:4]}-{started[4:6]}-{started[6:8]} {started[9:11]}:{started[11:13]} UTC"
 
 
 @pytest.mark.slow

@@ -39,6 +39,7 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml, shipped
 from vprscale.evaluation.algorithms.registry import BUILTIN
+from vprscale.jobs import estimates
 from vprscale.jobs.child import vprscale_argv
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
@@ -182,29 +183,36 @@ class _Tee(io.TextIOBase):
 
 
 def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False,
-                 dry_run: bool = False) -> dict[str, Any]:
+                 dry_run: bool = False, save_costs: bool = False) -> dict[str, Any]:
     """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``).
 
     Each stage runs when something it depends on changed (:func:`plan_stage` says what) and
     is skipped otherwise; ``force`` re-runs every stage. ``dry_run`` decides and reports,
-    stage by stage, without running anything or writing a summary.
+    stage by stage, with each stage's estimated cost (:mod:`vprscale.jobs.estimates`), without
+    running anything or writing a summary. ``save_costs`` writes the figures of the stages that
+    ran beside the pipeline file, for a dry run on a machine that has not run it yet.
     """
     pipe = load_pipeline(path)
     state_file = pipe.out / "pipeline-state.json"
     state = _read_state(state_file)
     graph = _import_graph()
     digests = DigestCache(pipe.out / DIGESTS)
+    kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
     if dry_run:
         decisions = []
+        measured = estimates.read_measurements(pipe.out, pipe.path)
         for stage in pipe.stages:
             parts = _parts(stage, {d["name"]: d["fingerprint"] for d in decisions}, graph, digests)
             reasons = _reasons(stage, parts, state.get(stage.name, {}), {d["name"] for d in decisions if d["run"]},
                                force)
+            cost = estimates.estimate(stage.name, stage.kind, stage.params,
+                                      estimates.places(stage.params, stage.kind, kinds), measured)
             decisions.append({"name": stage.name, "kind": stage.kind, "fingerprint": _digest(parts),
-                              "run": bool(reasons), "reasons": reasons})
+                              "run": bool(reasons), "reasons": reasons, "estimate": cost})
         if pipe.out.is_dir():  # a cache, not an output: the next run need not hash the sources again
             digests.save()
-        return {"name": pipe.name, "dry_run": True, "stages": decisions}
+        total = estimates.totals([d["estimate"] for d in decisions if d["run"]], [d["estimate"] for d in decisions])
+        return {"name": pipe.name, "dry_run": True, "stages": decisions, "estimate": total}
     pipe.out.mkdir(parents=True, exist_ok=True)
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     runs = pipe.out / "runs"
@@ -227,7 +235,9 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 fp = fingerprints[stage.name] = _digest(parts)
                 prev = state.get(stage.name, {})
                 reasons = _reasons(stage, parts, prev, ran, force)
-                entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp}
+                entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp,
+                                         "params": stage.params,
+                                         "places": estimates.places(stage.params, stage.kind, kinds)}
                 if not reasons:
                     outputs[stage.name] = prev["outputs"]
                     entry |= {"status": "skipped", "outputs": prev["outputs"], "seconds": 0.0}
@@ -257,6 +267,10 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
             summary["figures"] = [f for s in summary["stages"] for f in s.get("outputs", {}).get("figures", [])]
             _write_json(runs / f"{stamp}.json", summary)
             summary["summary_file"] = str(runs / f"{stamp}.json")
+    if save_costs:  # this run's figures and earlier runs' for the stages it skipped
+        machine = {k: summary["provenance"].get(k) for k in ("cpu", "cores", "vprscale", "commit")}
+        summary["costs_file"] = str(estimates.save_costs(pipe.path, pipe.out,
+                                                         [(s.name, s.kind, s.params) for s in pipe.stages], machine))
     return summary
 
 
