@@ -20,6 +20,7 @@ import importlib.util
 import io
 import json
 import logging
+import os
 import re
 import shlex
 import subprocess
@@ -521,7 +522,9 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
     for line in proc.stdout:
         console.write(line)
-    if proc.wait() != 0:
+    _, status, usage = os.wait4(proc.pid, 0)  # the stage's own peak memory, whatever its job records
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
         message = (f"{pipe.path}: stage '{stage.name}' failed (exit status {proc.returncode}); "
                    f"see the log under {pipe.out / 'runs'}")
         raise InputError(message) if proc.returncode == 2 else JobFailed(message)
@@ -532,7 +535,7 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
         out = {"eval": out["out"]}
     if stage.kind == "encode":  # one directory per method
         out = {f"encoding {f}": m["out"] for f, m in result["methods"].items()}
-    out["peak_rss_bytes"] = result.get("peak_rss_bytes")
+    out["peak_rss_bytes"] = max(result.get("peak_rss_bytes") or 0, usage.ru_maxrss * 1024)
     main = out.get("store") or out.get("index") or out.get("eval") or out.get("dir")
     if main and Path(main).exists():
         out["bytes_on_disk"] = sum(f.stat().st_size for f in Path(main).rglob("*") if f.is_file())
