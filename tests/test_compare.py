@@ -409,6 +409,29 @@ def test_residual_fast_scan_additive_codes_are_scored_from_residual_tables(facto
     np.testing.assert_allclose(dist.reshape(-1), exact, rtol=0.05)  # FAISS's 8-bit tables
 
 
+@pytest.mark.parametrize("dim", [5, 21, 96, 128, 200])
+def test_rabitq_records_hold_the_factors_numpy_gives(dim):
+    """A record's ``F = A + 2 D ⟨s, c⟩ / √d`` is the float32 of numpy's own sum of the signed
+    centre (the bits of the definition, compiled or not), its ``D`` and signs as stored."""
+    rng = np.random.default_rng(dim)
+    n, nb, lists = 500, rabitq.sign_bytes(dim), rng.integers(0, 300, 500)
+    codes = np.zeros((n, 2 + nb + rabitq.FACTOR_BYTES), np.uint8)
+    codes[:, 0], codes[:, 1] = lists & 255, lists >> 8
+    codes[:, 2 : 2 + nb] = rng.integers(0, 256, (n, nb))
+    factors = rng.standard_normal((n, 2)).astype(np.float32)
+    codes[:, 2 + nb :] = factors.view(np.uint8)
+    centres = rng.standard_normal((300, dim)) * 10.0 ** rng.integers(-3, 3, (300, dim))
+    signs = np.where(np.unpackbits(codes[:, 2 : 2 + nb], axis=1, bitorder="little")[:, :dim], 1.0, -1.0)
+    e = (signs * centres[lists]).sum(axis=1) / np.sqrt(dim)
+    want = np.stack([factors[:, 0] + 2 * factors[:, 1].astype(np.float64) * e, factors[:, 1]], axis=1)
+    got = rabitq.records(codes, dim, 2, centres)
+    np.testing.assert_array_equal(got[:, -rabitq.FACTOR_BYTES :].view(np.float32), want.astype(np.float32))
+    np.testing.assert_array_equal(got[:, :nb], codes[:, 2 : 2 + nb])
+    if dim <= rabitq.PAIRWISE_BLOCK:  # the compiled sums themselves, to the last bit of float64
+        sums = rabitq._signed_sums(np.ascontiguousarray(codes[:, 2 : 2 + nb]), lists, centres, dim)
+        np.testing.assert_array_equal(sums, (signs * centres[lists]).sum(axis=1))
+
+
 def test_rabitq_sign_tables_are_the_signed_sums_block_by_block():
     """``T_b[v] = Σ_i s_i(v) y[8b + i] / √d``, term by term, for every frame, byte and value
     (a width that is not a whole number of bytes; frames across blocks; values 10^±6 apart)."""

@@ -17,11 +17,13 @@ kin enter the estimator through products of their own.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from vprscale.compared.codescore import list_numbers
 
 FACTOR_BYTES = 8  # F and D, float32
+PAIRWISE_BLOCK = 128  # numpy sums a row of at most this many in one block (longer: halves, recursively)
 _SIGNS = np.where(np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1, bitorder="little"), 1.0, -1.0)
 
 
@@ -61,13 +63,59 @@ def records(codes: np.ndarray, dim: int, list_bytes: int, centres: np.ndarray) -
     for list ``l``; one row for a flat index)."""
     nb = sign_bytes(dim)
     lists = list_numbers(codes, list_bytes)
-    signs = codes[:, list_bytes : list_bytes + nb]
+    signs = np.ascontiguousarray(codes[:, list_bytes : list_bytes + nb])
     factors = codes[:, list_bytes + nb : list_bytes + nb + FACTOR_BYTES].copy().view(np.float32).astype(np.float64)
-    s = np.where(np.unpackbits(signs, axis=1, bitorder="little")[:, :dim], 1.0, -1.0)
-    e = (s * centres[lists]).sum(axis=1) / np.sqrt(dim)
+    if dim <= PAIRWISE_BLOCK:
+        e = _signed_sums(signs, lists, np.ascontiguousarray(centres, np.float64), dim) / np.sqrt(dim)
+    else:  # numpy splits longer rows in halves, recursively: its own sum
+        s = np.where(np.unpackbits(signs, axis=1, bitorder="little")[:, :dim], 1.0, -1.0)
+        e = (s * centres[lists]).sum(axis=1) / np.sqrt(dim)
     out = np.zeros((len(codes), record_width(dim, list_bytes)), np.uint8)
     out[:, :nb] = signs
     out[:, nb : nb + list_bytes] = codes[:, :list_bytes]
     fd = np.stack([factors[:, 0] + 2 * factors[:, 1] * e, factors[:, 1]], axis=1).astype(np.float32)
     out[:, -FACTOR_BYTES:] = fd.view(np.uint8)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _signed_sums(signs: np.ndarray, lists: np.ndarray, centres: np.ndarray, dim: int) -> np.ndarray:
+    """``Σ_i s_i c_{l,i}`` of each place (its signs ``s = ±1`` and its list's centre ``c_l``),
+    summed as numpy sums a row (:func:`_row_sum`): the bits ``(s * centres[lists]).sum(axis=1)``
+    gives, without its two (places × dim) float64 arrays (a million 96-d places: 3.6 s → 0.13 s)."""
+    out = np.empty(signs.shape[0])
+    row = np.empty(dim)
+    for n in range(signs.shape[0]):
+        c = centres[lists[n]]
+        for i in range(dim):
+            row[i] = c[i] if signs[n, i >> 3] >> (i & 7) & 1 else -c[i]
+        out[n] = 0.0 + _row_sum(row, dim)  # numpy adds the row's sum to its identity, +0.0
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_sum(a: np.ndarray, n: int) -> float:
+    """numpy's pairwise sum of ``a[:n]``, ``n`` ≤ ``PAIRWISE_BLOCK`` (``pairwise_sum`` in its loops):
+    under 8 terms in order; else eight running sums combined as a tree, then the rest in order."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    i = 8
+    while i < n - n % 8:
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res
