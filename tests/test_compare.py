@@ -409,6 +409,25 @@ def test_residual_fast_scan_additive_codes_are_scored_from_residual_tables(facto
     np.testing.assert_allclose(dist.reshape(-1), exact, rtol=0.05)  # FAISS's 8-bit tables
 
 
+def test_coarse_levels_are_numpys_levels_row_by_row():
+    """The compiled levels, lows and highs of ``g = coarse + ref_base`` are numpy's on the whole
+    array, bit for bit, and a constant row (a step of 0) all level 0."""
+    from vprscale.compared.codescore import _levels
+
+    rng = np.random.default_rng(8)
+    coarse = (rng.standard_normal((300, 500)) ** 2 * 50).astype(np.float32)
+    ref_base = rng.standard_normal(500) * 3
+    g = coarse.astype(np.float64) + ref_base[None, :]
+    low, high = g.min(axis=1), g.max(axis=1)
+    step = (high - low) / 256
+    want = np.minimum(np.floor((g - low[:, None]) / np.where(step > 0, step, 1)[:, None]), 255).astype(np.uint8)
+    for got, expected in zip(_levels(coarse, ref_base), (want, low, high), strict=True):
+        np.testing.assert_array_equal(got, expected)
+    assert len(np.unique(want)) == 256
+    flat, low, high = _levels(np.full((2, 5), 3.0, np.float32), np.zeros(5))  # a step of 0: every level 0
+    assert (flat == 0).all() and (low == 3.0).all() and (high == 3.0).all()
+
+
 @pytest.mark.parametrize("dim", [5, 21, 96, 128, 200])
 def test_rabitq_records_hold_the_factors_numpy_gives(dim):
     """A record's ``F = A + 2 D ⟨s, c⟩ / √d`` is the float32 of numpy's own sum of the signed

@@ -96,15 +96,37 @@ def coarse_levels(coarse: np.ndarray, ref_base: np.ndarray, y: np.ndarray, centr
     ref_step)``: a list's ``g`` plus a place's term is ``base + step · level + ref_step ·
     place_level`` within ``err`` (half of each step, plus the coarse distances' own rounding).
     """
-    g = np.asarray(coarse, np.float64) + ref_base[None, :]
-    if g.shape[1] == 0:
-        return np.zeros(g.shape, np.uint8), np.zeros((len(g), 4))
-    low, high = g.min(axis=1), g.max(axis=1)
+    if coarse.shape[1] == 0:
+        return np.zeros(coarse.shape, np.uint8), np.zeros((len(coarse), 4))
+    levels, low, high = _levels(np.ascontiguousarray(coarse, np.float32), np.ascontiguousarray(ref_base, np.float64))
     step = (high - low) / 256
-    levels = np.minimum(np.floor((g - low[:, None]) / np.where(step > 0, step, 1)[:, None]), 255).astype(np.uint8)
     norms = (np.asarray(y, np.float64) ** 2).sum(axis=1) + centroid_norm
     err = 0.5 * step + COARSE_ROUNDING * norms + SLACK * np.maximum(np.abs(low), np.abs(high)) + ref_err
-    return levels, np.stack([low + 0.5 * step + 0.5 * ref_step, step, err, np.full(len(g), ref_step)], axis=1)
+    return levels, np.stack([low + 0.5 * step + 0.5 * ref_step, step, err, np.full(len(low), ref_step)], axis=1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _levels(coarse: np.ndarray, ref_base: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each frame's ``g = coarse + ref_base`` (float64) as levels ``min(⌊(g − low) / step⌋, 255)``
+    with ``step = (high − low) / 256`` (1 where 0), and its ``low`` and ``high``: a row at a time,
+    the same operations as numpy's on the whole (frames × lists) float64 array, without it."""
+    n, m = coarse.shape
+    levels = np.empty((n, m), np.uint8)
+    low = np.empty(n)
+    high = np.empty(n)
+    for f in range(n):
+        lo = hi = np.float64(coarse[f, 0]) + ref_base[0]
+        for j in range(1, m):
+            g = np.float64(coarse[f, j]) + ref_base[j]
+            lo = min(lo, g)
+            hi = max(hi, g)
+        step = (hi - lo) / 256
+        if not step > 0:
+            step = 1.0
+        for j in range(m):
+            levels[f, j] = np.uint8(min(np.floor((np.float64(coarse[f, j]) + ref_base[j] - lo) / step), 255.0))
+        low[f], high[f] = lo, hi
+    return levels, low, high
 
 
 CACHE_LINE = 64  # bytes
