@@ -204,6 +204,7 @@ def test_dry_run_estimates_each_stage_and_the_run_from_measured_figures(quicksta
     shown = float(found[1]) * (60 if found[2] == "min" else 1)
     assert abs(shown - seconds) <= 3.5  # printed to a tenth of a minute
     assert all(s["outputs"]["peak_rss_bytes"] > 50e6 for s in summary["stages"])  # every stage's process
+    assert all(s["outputs"]["bytes_on_disk"] > 0 for s in summary["stages"])  # every stage's output, a report's too
     peak = max(s["outputs"]["peak_rss_bytes"] for s in summary["stages"])
     assert float(found[3]) == pytest.approx(peak / 1e9, abs=0.006)
     assert main(["run", str(path), "--save-costs"]) == 0  # every stage skipped: the figures of the run that ran them

@@ -537,6 +537,8 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
         out = {f"encoding {f}": m["out"] for f, m in result["methods"].items()}
     out["peak_rss_bytes"] = max(result.get("peak_rss_bytes") or 0, usage.ru_maxrss * 1024)
     main = out.get("store") or out.get("index") or out.get("eval") or out.get("dir")
+    if stage.kind == "report" and out.get("report"):  # the report's folder: its page, tables and figures
+        main = str(Path(out["report"]).parent)
     if main and Path(main).exists():
         out["bytes_on_disk"] = sum(f.stat().st_size for f in Path(main).rglob("*") if f.is_file())
     return out
