@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _duration(seconds: float) -> str:
     minutes = seconds / 60
-    return f"{minutes:.0f} min" if minutes >= 10 else f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+    return f"{minutes:.0f} min" if minutes >= 10 else f"{minutes:.1f} min" if minutes >= 1 else f"{seconds:.0f} s"
 
 
 def _gb(n: int | None) -> str:

@@ -102,11 +102,15 @@ def read_measurements(out: Path, pipeline_path: Path) -> list[_Measured]:
     return found
 
 
+def _last(measured: list[_Measured], name: str, kind: str, params: dict[str, Any]) -> _Measured | None:
+    """The latest measurement of this stage (same name, kind and parameters), if any."""
+    return next((m for m in reversed(measured) if m.name == name and m.kind == kind and m.params == params), None)
+
+
 def estimate(name: str, kind: str, params: dict[str, Any], n: int | None, measured: list[_Measured]) -> Estimate:
     """One stage's estimate from the measurements (the latest of each kind wins)."""
-    same = [m for m in measured if m.name == name and m.kind == kind and m.params == params]
-    if same:
-        m = same[-1]
+    m = _last(measured, name, kind, params)
+    if m is not None:
         return Estimate(m.seconds, m.peak_bytes, m.disk_bytes, f"measured {_when(m.when)}")
     own = _own_params(params)
     alike = [m for m in measured if m.kind == kind and _own_params(m.params) == own and m.places and n]
@@ -143,9 +147,8 @@ def save_costs(pipeline_path: Path, out: Path, stages: list[tuple[str, str, dict
     measured = [m for m in read_measurements(out, pipeline_path) if m.when != REFERENCE]
     entries = []
     for name, kind, params in stages:
-        same = [m for m in measured if m.name == name and m.kind == kind and m.params == params]
-        if same:
-            m = same[-1]
+        m = _last(measured, name, kind, params)
+        if m is not None:
             entries.append({"name": name, "kind": kind, "params": params, "places": m.places, "status": "ran",
                             "seconds": m.seconds, "measured": m.when,
                             "outputs": {"peak_rss_bytes": m.peak_bytes, "bytes_on_disk": m.disk_bytes}})
