@@ -70,6 +70,49 @@ def test_same_addresses_lists_and_model(both_indexes):
                                       np.load(full / "model" / f"{name}.npy"), err_msg=name)
 
 
+def test_sample_spans_keep_every_reference_up_to_the_threshold_then_every_s_th_span():
+    from vprscale.method.coarsehash import SAMPLE_SPAN, SAMPLE_SPANS, sample_spans
+
+    assert sample_spans(10_000_000) == [(0, 10_000_000)]
+    below = (2 * SAMPLE_SPANS - 1) * SAMPLE_SPAN
+    assert sample_spans(below) == [(0, below)] and len(sample_spans(below + 1)) == SAMPLE_SPANS
+    spans = sample_spans(1_000_047_781)
+    starts = np.array([a for a, _ in spans])
+    assert len(spans) == 130 and np.all(np.diff(starts) == 59 * SAMPLE_SPAN)
+    assert all(b - a == SAMPLE_SPAN for a, b in spans) and sum(b - a for a, b in spans) >= SAMPLE_SPANS * SAMPLE_SPAN
+
+
+def test_sampled_centres_are_the_sample_s_in_both_layouts(tmp_path, sources, tiny_store, monkeypatch):
+    """Beyond the threshold the compact build and the index of a full store fit the centres on
+    the same sampled references: the k-means of exactly those rows, and the same lists."""
+    from vprscale.dataset.build import BuildRequest, build
+    from vprscale.jobs.indexing import build_index
+    from vprscale.method import coarsehash
+
+    monkeypatch.setattr(coarsehash, "SAMPLE_SPAN", 16384)
+    monkeypatch.setattr(coarsehash, "SAMPLE_SPANS", 2)  # 52,500 references: spans 0 and 2 of 16,384
+    assert coarsehash.sample_spans(52_500) == [(0, 16384), (32768, 49152)]
+    recipe = write_recipe(tmp_path / "tiny.toml")
+    build(BuildRequest(scale=str(recipe), out=tmp_path / "out", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+                       workers=2, quiet=True, layout="compact"))
+    compact = Path(build_index(tmp_path / "out" / "tiny.zarr", out=tmp_path / "c.index", quiet=True)["index"])
+    full = Path(build_index(tiny_store, d=16, out=tmp_path / "f.index", quiet=True)["index"])
+    for name in (*LISTS, "model/centres", "model/components"):
+        np.testing.assert_array_equal(np.load(compact / f"{name}.npy"), np.load(full / f"{name}.npy"), err_msg=name)
+
+    ref = zarr.open_group(tiny_store, mode="r")["ref"]
+    model = {n: np.load(full / "model" / f"{n}.npy") for n in ("mean", "components", "explained_variance")}
+
+    def centres(rows: np.ndarray) -> np.ndarray:
+        fitted = coarsehash.CoarseHasher.from_fitted(2, 1 << 14, 52_500, model["mean"], model["components"], None,
+                                                     model["explained_variance"])
+        return fitted.fit_centres([fitted.column_histogram(rows)]).centres_
+
+    sampled = centres(np.concatenate([ref[0:16384], ref[32768:49152]]))
+    np.testing.assert_array_equal(np.load(full / "model" / "centres.npy"), sampled)
+    assert not np.array_equal(centres(ref[:]), sampled)  # the sample is not the whole set
+
+
 @pytest.mark.slow
 def test_same_matches(both_indexes, compact_store, tiny_store, sources, tmp_path, small_training):
     """Every method, FAISS codes included (the compact store's references recomputed from its

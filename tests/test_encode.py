@@ -139,6 +139,38 @@ def test_compact_store_encodes_to_the_full_store_s_bytes(store, sources, tmp_pat
     assert _codes(compact) == _codes(store)
 
 
+def test_methods_share_one_sample_one_pass_and_one_coarse_assignment(store, monkeypatch):
+    """Encoded together, the methods draw one training sample and read each chunk once, and the
+    IVF codes of one coarse quantiser assign each chunk's rows once between them: the codes are
+    the ones each method writes alone (FAISS's own standalone codes)."""
+    import vprscale.jobs.encoding as enc
+    from vprscale.compared.faisscodes import FaissCodes
+
+    together = ["IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ", "PQ4"]
+    alone = {}
+    for f in together:
+        assert main(["encode", str(store), "--compare", f, "--workers", "1"]) == 0
+        alone[f] = np.load(encoding_dir(store, f) / "codes.npy")
+    calls = {"pick": 0, "chunk": 0, "assign": 0}
+
+    def counted(cls, name, key):
+        real = getattr(cls, name)
+
+        def wrapper(self, *args):
+            calls[key] += 1
+            return real(self, *args)
+
+        monkeypatch.setattr(cls, name, wrapper)
+
+    counted(enc._Pick, "__call__", "pick")
+    counted(enc._EncodeChunk, "__call__", "chunk")
+    counted(FaissCodes, "assign_rows", "assign")
+    assert main(["encode", str(store), *_compare(together), "--force", "--workers", "2"]) == 0
+    assert calls == {"pick": 4, "chunk": 4, "assign": 4}  # 52,500 rows: four chunks of 16,384
+    for f in together:
+        np.testing.assert_array_equal(np.load(encoding_dir(store, f) / "codes.npy"), alone[f], err_msg=f)
+
+
 def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
     """A run that fails while writing the on-disk lists' shards resumes without re-encoding or
     rewriting the shards already written, and publishes the lists of an uninterrupted run."""

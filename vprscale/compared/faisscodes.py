@@ -15,6 +15,7 @@ codes, in reference order, are what the window scores read.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -217,6 +218,13 @@ def _one_thread(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> Any:
     """``fn(x)`` with FAISS (and the BLAS it links, threaded by OpenMP) on this thread alone."""
     faiss.omp_set_num_threads(1)  # OpenMP's thread count is per calling thread
     return fn(x)
+
+
+def _encode_blocks(x: np.ndarray, start: int) -> list[np.ndarray]:
+    """Rows from id ``start`` cut at the multiples of ``ENCODE_ROWS``: the blocks FAISS encodes."""
+    x = np.ascontiguousarray(x, np.float32)
+    cuts = np.arange(ENCODE_ROWS - start % ENCODE_ROWS, len(x), ENCODE_ROWS) if len(x) else []
+    return np.split(x, cuts) if len(x) else [x]
 
 
 def _faiss_reason(err: Exception) -> str:
@@ -469,19 +477,46 @@ class FaissCodes:
         """Bytes of a place's standalone code (a graph's: its transformed row, float32)."""
         return FLOAT_BYTES * self.inner.d if self.graph else self.inner.sa_code_size()
 
-    def encode_rows(self, x: np.ndarray, start: int) -> np.ndarray:
+    def encode_rows(self, x: np.ndarray, start: int, lists: np.ndarray | None = None) -> np.ndarray:
         """FAISS's standalone codes of the references ``x`` from id ``start`` on (a graph's:
         the transformed rows' bytes), in blocks of ``ENCODE_ROWS`` at fixed offsets, on one
         FAISS thread each: some encoders' results depend on the rows encoded together (LSQ
         searches each block's codes with a generator seeded per call), so the blocks must not
         depend on how the rows arrive: a caller gives whole blocks (every store's chunks are
-        multiples of ``ENCODE_ROWS``), or rows through :meth:`encode`, which holds them back."""
-        x = np.ascontiguousarray(x, np.float32)
-        cuts = np.arange(ENCODE_ROWS - start % ENCODE_ROWS, len(x), ENCODE_ROWS) if len(x) else []
-        blocks = np.split(x, cuts) if len(x) else [x]
+        multiples of ``ENCODE_ROWS``), or rows through :meth:`encode`, which holds them back.
+        ``lists``: the rows' inverted lists when already known (:meth:`assign_rows` of a method
+        of the same :attr:`coarse_key`), so that the coarse search is not made again."""
+        blocks = _encode_blocks(x, start)
         if self.graph:
             return np.concatenate(self._each(self._transform, blocks)).view(np.uint8)
+        if lists is not None:
+            return np.concatenate(self._each(self._encode_assigned, list(zip(blocks, np.split(lists, np.cumsum(
+                [len(b) for b in blocks[:-1]])), strict=True))))
         return np.concatenate(self._each(lambda b: self.inner.sa_encode(self._transform(b)), blocks))
+
+    @property
+    def coarse_key(self) -> bytes | None:
+        """What decides this IVF code's list assignments (its trained coarse centroids), for
+        methods that take rows as they come (no transform before the IVF); else None. Methods
+        of equal keys assign every row to the same list: :meth:`assign_rows` once serves them all."""
+        if self.ivf is None or self.chain:
+            return None
+        centroids = self.ivf.quantizer.reconstruct_n(0, self.ivf.nlist)
+        return hashlib.blake2b(np.ascontiguousarray(centroids, np.float32).tobytes(), digest_size=16).digest()
+
+    def assign_rows(self, x: np.ndarray, start: int) -> np.ndarray:
+        """Each row's inverted list, as FAISS's standalone encoding assigns it (its quantiser's
+        ``assign``, in the blocks and on the one thread :meth:`encode_rows` uses)."""
+        return np.concatenate(self._each(lambda b: self.ivf.quantizer.assign(b, 1).ravel(), _encode_blocks(x, start)))
+
+    def _encode_assigned(self, item: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """FAISS's standalone codes of a block whose lists are known: ``sa_encode`` is the
+        quantiser's ``assign`` then ``encode_vectors`` with the list numbers, so this is its second half."""
+        rows, lists = item
+        rows, lists = np.ascontiguousarray(rows, np.float32), np.ascontiguousarray(lists, np.int64)
+        out = np.empty((len(rows), self.code_bytes), np.uint8)
+        self.ivf.encode_vectors(len(rows), faiss.swig_ptr(rows), faiss.swig_ptr(lists), faiss.swig_ptr(out), True)
+        return out
 
     def add_codes(self, codes: np.ndarray) -> None:
         """Add the next references by their standalone codes (:meth:`encode_rows`, or stored ones).

@@ -47,7 +47,7 @@ from vprscale.dataset.sources.deep1b import open_deep1b
 from vprscale.dataset.sources.fas import Traverse, open_fas
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.store import ATTR
-from vprscale.method.coarsehash import hash_descriptors
+from vprscale.method.coarsehash import hash_descriptors, sample_spans
 from vprscale.method.lists import address_dtype
 from vprscale.method.pca import block_moments
 from vprscale.protocol import EVAL_LENGTHS, MIN_FAS
@@ -127,8 +127,9 @@ def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path | Remote
     Each stage of the passes (homogenising, moments, projection, noise, hashing) is timed
     on one block of rows on one thread, as a task runs it, and the passes are added up:
     full = 2 homogenisations, moments, projection, noise and the writes of three float32
-    rows; compact = 3 homogenisations, moments, 2 projections, the histograms and the
-    hashing. The FAS part is a few randomized-PCA passes over 4096-d rows.
+    rows; compact = 2 homogenisations (and a third of the k-means sample's rows), moments,
+    2 projections (and the sample's), the histograms of the sample and the hashing. The FAS
+    part is a few randomized-PCA passes over 4096-d rows.
     """
     lay = Layout(recipe.deep1b_rows_kept, recipe.fas_rows("ref", traverse.ref.n_rows),
                  recipe.fas_rows("query", traverse.query.n_rows))
@@ -163,15 +164,17 @@ def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path | Remote
         fas_per_row = (_per_row(lambda: traverse.ref.read(0, fas_sample), fas_sample)
                        + _per_row(lambda: x.T @ (x @ np.ones((x.shape[1], 128), np.float32)), fas_sample))
     c = cost
+    sampled = sum(b - a for a, b in sample_spans(lay.n_ref)) / lay.n_ref  # the k-means pass's share of the rows
     if layout == "full":
         per_deep = 2 * c["homogenise"] + c["moments"] + c["project"] + c["noise"] + 12 * d / WRITE_BYTES_PER_S
     else:
-        per_deep = 3 * c["homogenise"] + c["moments"] + 2 * c["project"] + 2 * c["hash"] + 12 / WRITE_BYTES_PER_S
+        per_deep = ((2 + sampled) * c["homogenise"] + c["moments"] + (1 + sampled) * (c["project"] + c["hash"])
+                    + c["project"] + 12 / WRITE_BYTES_PER_S)
     fas_passes = 3 if lay.n_fas_ref == traverse.ref.n_rows else 6  # randomized PCA passes
     parallel = max(1, min(workers, os.cpu_count() or 1)) * PARALLEL_EFFICIENCY
     est = FIXED_S + (per_deep * recipe.deep1b_rows_kept + fas_per_row * (traverse.ref.n_rows * fas_passes
                                                                            + traverse.query.n_rows * 2)) / parallel
-    passes = 2 if layout == "full" else 3
+    passes = 2 if layout == "full" else 2 + sampled
     read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * passes + 4 * traverse.ref.dim * (
         traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3)
     chunk_mem = (recipe.shard_rows if layout == "full" else recipe.chunk_rows) * d * (8 + 8 + 4 * 6)

@@ -8,7 +8,9 @@ while the index needs a few bytes. At 100M places and beyond the build therefore
   these, ties to the smaller id) and its first principal component (``base_x1``, float32:
   the map of the d = 1 baseline), 12 bytes in all;
 - the fitted CoarseHash model (``transforms/coarsehash``), fitted on moments the build
-  derives (:meth:`~vprscale.dataset.merge.MergeTransform.ref_moments`) and histograms of a pass;
+  derives (:meth:`~vprscale.dataset.merge.MergeTransform.ref_moments`) and histograms of a pass
+  over the k-means sample (:func:`~vprscale.method.coarsehash.sample_spans`: every reference up
+  to 33.4M, beyond an evenly spread sample of at least 16.8M);
 - the query rows inside the windows the protocol evaluates (:mod:`vprscale.protocol`),
   for both noise levels, with their frame numbers, truth and part.
 
@@ -31,7 +33,7 @@ from vprscale.core.progress import Timings, compute
 from vprscale.core.publish import Output
 from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, codecs, grid, gt_of
 from vprscale.dataset.store import MODEL, load_model
-from vprscale.method.coarsehash import CoarseHasher, hash_descriptors, project
+from vprscale.method.coarsehash import CoarseHasher, hash_descriptors, project, sample_spans
 from vprscale.method.lists import address_dtype
 from vprscale.protocol import query_centres, window_frames
 
@@ -52,7 +54,7 @@ def _merge_histograms(state: tuple | None, r: tuple) -> tuple:
 
 
 class _HashWriter:
-    """Pass-3 task: hash a chunk of reference rows and write its per-place arrays."""
+    """Hashing-pass task: hash a chunk of reference rows and write its per-place arrays."""
 
     def __init__(self, store: str, writer: ChunkWriter, hasher: CoarseHasher) -> None:
         self.store, self.writer, self.hasher = store, writer, hasher
@@ -92,13 +94,15 @@ def _queries_of_block(writer: ChunkWriter, a: int, frames: np.ndarray) -> list[n
 
 def write_compact(group: zarr.Group, writer: ChunkWriter, partial: Output, timings: Timings,
                   ref_moments: np.ndarray, lengths: tuple[int, ...], quiet: bool) -> dict[str, Any]:
-    """Passes 2 and 3 of a compact build, and the evaluated query windows; the layout's attributes."""
+    """The k-means pass (over the sample) and the hashing pass of a compact build, and the
+    evaluated query windows; the layout's attributes."""
     lay, recipe = writer.layout, writer.recipe
     work = partial.work
-    bounds = chunk_bounds(lay.n_ref, recipe.chunk_rows)
+    bounds = [(a + s, a + e) for a, b in sample_spans(lay.n_ref) for s, e in chunk_bounds(b - a, recipe.chunk_rows)]
     hasher = CoarseHasher(k=2).fit_pca(ref_moments)
     if not partial.done("model"):
-        with timings.stage(f"CoarseHash model (d = {hasher.d_}): histograms of every reference"):
+        sampled = sum(b - a for a, b in bounds)
+        with timings.stage(f"CoarseHash model (d = {hasher.d_}): histograms of {sampled:,} references"):
             hist = reduce_pass(work, "histograms", bounds, _Histograms(writer, hasher), _merge_histograms, None,
                                quiet=quiet)
             hasher.fit_centres([hist])

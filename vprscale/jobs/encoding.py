@@ -6,13 +6,16 @@ recompute from its sources (:mod:`vprscale.dataset.references`), far longer than
 evaluation itself, so it is a job of its own, like a build:
 
 1. the training sample: the same evenly spaced references an evaluation trains on
-   (:func:`~vprscale.compared.faisscodes.training_rows`), drawn in one streamed pass
-   (chunks that hold none are not read); every method trained on it, each on one thread
-   (their trained indexes must not depend on ``--workers``), and saved;
-2. one pass per method over the references, chunk by chunk (Dask tasks, ``--workers`` at a
-   time), each chunk's codes written in place into the method's code array; a checkpoint
-   after every group of chunks (:func:`~vprscale.core.passes.reduce_pass`), so a killed run
-   resumes where it stopped;
+   (:func:`~vprscale.compared.faisscodes.training_rows`), drawn in one streamed pass for all
+   the methods (chunks that hold none are not read); every method trained on it, each on one
+   thread (their trained indexes must not depend on ``--workers``), and saved;
+2. one pass over the references for all the methods, chunk by chunk (Dask tasks,
+   ``--workers`` at a time): each chunk read (a compact store's recomputed) once, each
+   method's codes written in place into its code array, and the IVF methods of one coarse
+   quantiser (the same trained centroids: the same k-means on the same sample) assigning
+   the rows to their lists once between them, the most costly step of an IVF code (4,096
+   distances a row); a checkpoint after every group of chunks
+   (:func:`~vprscale.core.passes.reduce_pass`), so a killed run resumes where it stopped;
 3. each method's directory published whole (:mod:`vprscale.core.publish`).
 
 Every task encodes its rows in fixed blocks on one FAISS thread, exactly as an evaluation
@@ -24,6 +27,8 @@ from __future__ import annotations
 import json
 import logging
 import time
+from contextlib import ExitStack
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -59,20 +64,28 @@ SAMPLE_GROUP = 64  # chunks read between checkpoints of the training sample (eac
 
 
 class _EncodeChunk:
-    """Pass task: encode the references ``[a, b)`` with one method and write their codes in place."""
+    """Pass task: encode the references ``[a, b)`` with every method of the pass and write each
+    one's codes in place: the rows are read (a compact store's recomputed) once for them all,
+    and methods of one coarse quantiser (:attr:`FaissCodes.coarse_key`) share its assignment."""
 
-    def __init__(self, read: Any, out: str, factory: str, dim: int) -> None:
-        self.read, self.out, self.factory, self.dim = read, out, factory, dim
-        self._codes: FaissCodes | None = None
+    def __init__(self, read: Any, outs: list[str], factories: list[str], dim: int) -> None:
+        self.read, self.outs, self.factories, self.dim = read, outs, factories, dim
+        self._codes: list[FaissCodes] | None = None
 
     def __call__(self, a: int, b: int) -> None:
-        if self._codes is None:  # read once per process (threads share it: encoding is read-only)
-            self._codes = read_trained(Path(self.out), self.factory, self.dim)
-        codes = self._codes.encode_rows(self.read(a, b), a)
-        stored = np.load(Path(self.out) / "codes.npy", mmap_mode="r+")
-        stored[a:b] = codes
-        stored.flush()
-        del stored
+        if self._codes is None:  # read once per process (threads share them: encoding is read-only)
+            self._codes = [read_trained(Path(o), f, self.dim) for o, f in zip(self.outs, self.factories, strict=True)]
+        rows = self.read(a, b)
+        lists: dict[bytes, np.ndarray] = {}
+        for out, method in zip(self.outs, self._codes, strict=True):
+            key = method.coarse_key
+            if key is not None and key not in lists:
+                lists[key] = method.assign_rows(rows, a)
+            codes = method.encode_rows(rows, a, lists.get(key) if key is not None else None)
+            stored = np.load(Path(out) / "codes.npy", mmap_mode="r+")
+            stored[a:b] = codes
+            stored.flush()
+            del stored
 
 
 class _Pick:
@@ -119,26 +132,30 @@ def encode_store(store: str | Path | Remote, factories: list[str], deep1b: str |
     timings = Timings(quiet)
     summary: dict[str, Any] = {"store": str(store), "n_ref": n_ref, "methods": {}}
     t0 = time.perf_counter()
-    with dask_client(scheduler, workers) as client:
+    with dask_client(scheduler, workers) as client, ExitStack() as locks:
         read, bounds = reference_reader(store, group, deep1b, fas)  # refits a compact store's transforms as its build
+        jobs = []
         for f in factories:
             target = encoding_dir(store, f)
             remote = target if isinstance(target, Remote) else None
             out = cache_folder(remote) if remote else target
-            with exclusive(out):
-                key = {"encode": f, "store_identity": identity}
-                partial_out = PartialOutput(out, key)
-                if partial_out.recover() and not quiet:
-                    log.info(f"{out}: finished publishing the encoding a killed run had completed")
-                if _encoded(target, identity) and not force:
-                    summary["methods"][f] = {"out": str(target), "skipped": True}
-                    continue
-                partial_out.open()
-                summary["methods"][f] = _encode_one(f, methods[f], partial_out, read, bounds, dim, identity,
-                                                   workers, timings, quiet)
-                if remote:
-                    upload(out, remote)
-                    summary["methods"][f]["out"] = str(remote)
+            locks.enter_context(exclusive(out))
+            partial_out = PartialOutput(out, {"encode": f, "store_identity": identity})
+            if partial_out.recover() and not quiet:
+                log.info(f"{out}: finished publishing the encoding a killed run had completed")
+            if _encoded(target, identity) and not force:
+                summary["methods"][f] = {"out": str(target), "skipped": True}
+                continue
+            partial_out.open()
+            jobs.append(_Job(f, methods[f], partial_out, remote))
+        if jobs:
+            _train(jobs, read, bounds, timings, quiet)
+            _encode(jobs, read, bounds, dim, workers, timings, quiet)
+        for job in jobs:
+            summary["methods"][job.factory] = _finish(job, n_ref, dim, identity, workers, timings, quiet)
+            if job.remote:
+                upload(job.partial_out.final, job.remote)
+                summary["methods"][job.factory]["out"] = str(job.remote)
         summary["peak_rss_bytes"] = cluster_peak_rss(client)
     summary["wall_s"] = time.perf_counter() - t0
     return summary
@@ -151,25 +168,62 @@ def _encoded(out: Path | Remote, identity: str) -> bool:
     return read_record(out / "encoding.json").get("store_identity") == identity
 
 
-def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, read: Any,
-                bounds: list[tuple[int, int]], dim: int, identity: str, workers: int, timings: Timings,
-                quiet: bool) -> dict[str, Any]:
-    """Train (or reload) one method, encode every chunk resumably, publish; its summary."""
+@dataclass
+class _Job:
+    """One method's encoding in the making."""
+
+    factory: str
+    method: FaissCodes
+    partial_out: PartialOutput
+    remote: Remote | None
+    started: float = field(default_factory=time.perf_counter)
+
+    def __post_init__(self) -> None:
+        self.work.mkdir(exist_ok=True)  # checkpoints and the on-disk lists' shards
+
+    @property
+    def work(self) -> Path:
+        return self.partial_out.path / ".work"
+
+
+def _train(jobs: list[_Job], read: Any, bounds: list[tuple[int, int]], timings: Timings, quiet: bool) -> None:
+    """Train every method not yet trained, on one streamed sample of the training references
+    (every method trains on the same rows), and save each trained index."""
+    untrained = [j for j in jobs if not j.partial_out.done("trained")]
+    if not untrained:
+        return
     n_ref = bounds[-1][1]
     rows = training_rows(n_ref)
-    work = partial_out.path / ".work"
-    work.mkdir(exist_ok=True)
-    t_start = time.perf_counter()
-    if not partial_out.done("trained"):
-        with timings.stage(f"{factory}: train on {len(rows):,} evenly spaced references"):
-            sample = _sample(work, read, bounds, rows, quiet)
+    with timings.stage(f"training sample: {len(rows):,} evenly spaced references"):
+        sample = _sample(untrained[0].work, read, bounds, rows, quiet)  # checkpointed with the first to train
+    for job in untrained:
+        with timings.stage(f"{job.factory}: train"):
             with threadpool_limits(limits=1, user_api="blas"):  # one thread: the same trained index for any workers
-                method.train(sample)
-            write_trained(method, partial_out.path, n_ref)
-        partial_out.mark("trained")
-    with timings.stage(f"{factory}: encode {n_ref:,} references"):
-        reduce_pass(work, f"encode {factory}", bounds, _EncodeChunk(read, str(partial_out.path), factory, dim),
-                    lambda s, _: s, None, group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
+                job.method.train(sample)
+            write_trained(job.method, job.partial_out.path, n_ref)
+        job.partial_out.mark("trained")
+
+
+def _encode(jobs: list[_Job], read: Any, bounds: list[tuple[int, int]], dim: int, workers: int, timings: Timings,
+            quiet: bool) -> None:
+    """Encode every reference with every method not yet encoded, in one resumable pass."""
+    pending = [j for j in jobs if not j.partial_out.done("encoded")]
+    if not pending:
+        return
+    names = [j.factory for j in pending]
+    task = _EncodeChunk(read, [str(j.partial_out.path) for j in pending], names, dim)
+    with timings.stage(f"encode {bounds[-1][1]:,} references: {', '.join(names)}"):
+        # the checkpoint names its methods: a resumed run with another set starts the pass over
+        reduce_pass(pending[0].work, f"encode {' + '.join(names)}", bounds, task, lambda s, _: s, None,
+                    group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
+    for job in pending:
+        job.partial_out.mark("encoded")
+
+
+def _finish(job: _Job, n_ref: int, dim: int, identity: str, workers: int, timings: Timings,
+            quiet: bool) -> dict[str, Any]:
+    """A method's lists and records (or its graph) from its codes, its record, published; its summary."""
+    factory, method, partial_out = job.factory, job.method, job.partial_out
     if method.records_on_disk:
         with timings.stage(f"{factory}: inverted lists on disk and window records"):
             write_searched(partial_out.path, factory, dim, partial_out.done, partial_out.mark)
@@ -179,8 +233,8 @@ def _encode_one(factory: str, method: FaissCodes, partial_out: PartialOutput, re
             write_graph(partial_out.path, factory, dim, bar.update if bar else None)
         partial_out.mark("graph")
     record = provenance(inputs={"store_identity": identity, "factory": factory}, workers=workers)
-    (partial_out.path / "encoding.json").write_text(json.dumps(describe(factory, identity, n_ref, len(rows), record),
-                                                               indent=1))
+    (partial_out.path / "encoding.json").write_text(json.dumps(
+        describe(factory, identity, n_ref, len(training_rows(n_ref)), record), indent=1))
     partial_out.publish()
-    return {"out": str(partial_out.final), "wall_s": time.perf_counter() - t_start,
+    return {"out": str(partial_out.final), "wall_s": time.perf_counter() - job.started,
             "code_bytes": int(method.code_bytes)}

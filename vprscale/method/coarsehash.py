@@ -24,6 +24,8 @@ from vprscale.method.validation import check_rows
 
 _CHUNK = 65536
 SPAN = 8.0  # the streamed histograms cover ±SPAN standard deviations of each component
+SAMPLE_SPAN = 1 << 17  # rows of one span of the k-means sample: whole absolute blocks, a build chunk
+SAMPLE_SPANS = 128  # spans (16.8M rows) the 1-D k-means sees at least; every reference below twice that
 
 
 def _as_dask(x: np.ndarray | da.Array) -> da.Array:
@@ -42,6 +44,22 @@ def hash_descriptors(x: np.ndarray, mean: np.ndarray, components: np.ndarray,
                      centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(codes, addresses, quantisation errors, level counts)`` of descriptor rows, fused."""
     return hash_rows(np.asarray(x), mean, np.ascontiguousarray(components.T), centres, centres.shape[1])
+
+
+def sample_spans(n_ref: int) -> list[tuple[int, int]]:
+    """The reference rows the 1-D k-means is fitted on, as absolute ``[a, b)`` spans.
+
+    Fewer than ``2 × SAMPLE_SPANS`` spans of ``SAMPLE_SPAN`` rows (33.4M): all of them. Beyond,
+    every s-th span with ``s = ⌊spans / SAMPLE_SPANS⌋``: at least ``SAMPLE_SPANS`` evenly
+    spread spans, 16.8M rows (100M: 20M; 1B: 17M), whose centres differ from the whole set's
+    by a few thousandths of a standard deviation (docs/dataset.md gives the measured effect),
+    and a build at 1B draws its references twice instead of three times. A function of ``n_ref`` alone:
+    the compact build and the index of a full store fit the same centres on the same rows.
+    """
+    step = -(-n_ref // SAMPLE_SPAN) // SAMPLE_SPANS
+    if step <= 1:
+        return [(0, n_ref)]
+    return [(a, min(n_ref, a + SAMPLE_SPAN)) for a in range(0, n_ref, step * SAMPLE_SPAN)]
 
 
 def pack(codes: np.ndarray, k: int) -> np.ndarray:
@@ -114,14 +132,16 @@ class CoarseHasher(TransformerMixin, BaseEstimator):
         return hasher
 
     def fit(self, X: np.ndarray | da.Array, y: None = None, moments: np.ndarray | None = None) -> CoarseHasher:
-        """Exact PCA, then per-component 1-D k-means; two streamed passes over the reference rows ``X``.
+        """Exact PCA, then per-component 1-D k-means; two streamed passes over the reference rows ``X``
+        (the second over :func:`sample_spans` of them: every row up to 33.4M).
 
         ``moments`` (``[[XᵀX, Σx], [Σxᵀ, n]]`` of ``X``, e.g. the ones a build derives
         while it writes the rows) spare the PCA its pass.
         """
         x = _as_dask(check_rows(self, X, reset=True))
         self.fit_pca(moments if moments is not None else moments_of(x))
-        parts = [dask.delayed(self.column_histogram)(blk) for blk in x.to_delayed().ravel()]
+        parts = [dask.delayed(self.column_histogram)(blk) for a, b in sample_spans(len(x))
+                 for blk in x[a:b].to_delayed().ravel()]
         self.fit_centres(compute(*parts, desc="histograms"))
         return self
 

@@ -32,6 +32,7 @@ from vprscale.dataset.sources.fas import Traverse
 GENERATOR_VERSION = 3
 FRAME_M = 5.0
 FAS_BLOCK = 4096  # FAS rows are 4096-d: a smaller generator block keeps reads cheap
+SUB_ROWS = 1024  # Deep1B rows mapped by one matrix product (a block is 16 of them)
 
 # Random stream identifiers (one independent stream per purpose).
 _DEEP_GLOBAL, _DEEP_ROWS, _FAS_GLOBAL, _FAS_REF, _FAS_QUERY = range(1, 6)
@@ -64,28 +65,54 @@ class SyntheticDeep1B(RowSource):
     def _model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return _deep_model(self.seed, self.params)
 
-    def _block(self, b: int) -> np.ndarray:
-        """A whole block is always drawn, so rows never depend on ``n_rows``."""
+    def _rows(self, b: int, lo: int, hi: int) -> np.ndarray:
+        """Rows ``[lo, hi)`` of block ``b`` (offsets in the block).
+
+        A block's rows are drawn in one stream (its clusters, then its uniform offsets) and
+        mapped by a product of ``SUB_ROWS`` rows at a time; the rows of the sub-blocks that
+        hold ``[lo, hi)`` are computed alone, the offsets before them skipped in the stream
+        unread. A window's halo (its 20 rows across a block edge) so costs a sub-block, not
+        the whole neighbouring block, and a row has the same bits whichever rows are asked.
+        """
         centres, within, _ = self._model
         rng = block_rng(self.seed, _DEEP_ROWS, b)
         which = rng.integers(0, len(centres), BLOCK)
+        first, last = lo // SUB_ROWS * SUB_ROWS, -(-hi // SUB_ROWS) * SUB_ROWS
+        _skip_uint32(rng.bit_generator, first * self.dim)
         # Unit-variance uniform offsets (3× cheaper to draw than normals); the homogenisation
         # averages 40 rows, so the clusters it sees are Gaussian for all practical purposes.
-        spread = rng.random((BLOCK, self.dim), dtype=np.float32)
+        spread = rng.random((last - first, self.dim), dtype=np.float32)
         spread -= np.float32(0.5)
         spread *= np.float32(np.sqrt(12.0))
-        x = spread @ within
-        x += centres[which]
+        x = np.empty_like(spread)
+        for s in range(0, last - first, SUB_ROWS):
+            np.matmul(spread[s : s + SUB_ROWS], within, out=x[s : s + SUB_ROWS])
+        x += centres[which[first:last]]
         x /= np.sqrt(np.einsum("ij,ij->i", x, x))[:, None]
-        return x[: min(BLOCK, self.n_rows - b * BLOCK)]
+        return x[lo - first : hi - first]
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        parts = [self._block(b)[lo - b * BLOCK : hi - b * BLOCK] for b, lo, hi in block_spans(start, stop)]
+        parts = [self._rows(b, lo - b * BLOCK, hi - b * BLOCK) for b, lo, hi in block_spans(start, stop)]
         return np.concatenate(parts) if parts else np.empty((0, self.dim), np.float32)
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "synthetic-deep1b", "generator": GENERATOR_VERSION, "seed": self.seed,
                 "rows": self.n_rows, **asdict(self.params)}
+
+
+def _skip_uint32(bit_generator: np.random.BitGenerator, n: int) -> None:
+    """Advance ``bit_generator`` past ``n`` of the 32-bit draws float32 values are made of,
+    without making them: two to a 64-bit output, the odd one's other half kept as numpy's
+    own buffer keeps it (``has_uint32``), so the draws that follow are the ones that would."""
+    state = bit_generator.state
+    if n and state["has_uint32"]:
+        n, state["has_uint32"] = n - 1, 0
+    bit_generator.random_raw(n // 2, output=False)
+    state["state"] = bit_generator.state["state"]
+    if n % 2:
+        state["has_uint32"], state["uinteger"] = 1, int(bit_generator.random_raw()) >> 32
+        state["state"] = bit_generator.state["state"]
+    bit_generator.state = state
 
 
 @lru_cache(maxsize=4)
