@@ -24,7 +24,8 @@ def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray
     """Codes ``argmin_k |y_j − c_jk|`` (ties: the smaller k) and errors ``Σ_j min_k |y_j − c_jk|`` of
     already projected rows, through the method's own kernel with the identity projection."""
     d = y.shape[1]
-    codes, _, err, _ = hash_rows(np.asarray(y, np.float64), np.zeros(d), np.eye(d), centres, centres.shape[1])
+    codes, _, err, _ = hash_rows(np.asarray(y, np.float64), np.zeros(d), np.eye(d), centres, centres.shape[1],
+                                   np.empty(0, np.float32))
     return codes, err
 
 

@@ -160,3 +160,21 @@ def test_the_fas_fit_is_computed_once_per_source_and_never_stale(sources, tmp_pa
     with pytest.raises(AssertionError, match="computed again"):
         build(BuildRequest(scale=str(recipe), out=tmp_path / "e", deep1b=str(sources["fbin"]), fas=str(other),
                            quiet=True))
+
+
+def test_centred_in_the_window_pass_and_projected_in_place_are_the_recipe_s_bits():
+    """``window_mean`` less the mean (float32, after its own rounding) and one product per
+    absolute block written in place give the rows of the recipe's formula, ``(h − mean) @ M``
+    in float32 per absolute block, whatever range is asked."""
+    from vprscale.core.blocks import BLOCK, apply_by_block
+    from vprscale.dataset.homogenise import window_mean
+    from vprscale.dataset.merge import project_centred, project_rows
+    from vprscale.dataset.sources.synthetic import SyntheticDeep1B
+
+    src = SyntheticDeep1B(3 * BLOCK, seed=2)
+    rng = np.random.default_rng(1)
+    mean, matrix = rng.standard_normal(96) * 0.01, rng.standard_normal((96, 96))
+    for a, b in [(0, 3 * BLOCK), (BLOCK - 7, 2 * BLOCK + 5), (5, 6)]:
+        h = window_mean(src, src.n_rows, a, b, 40)
+        np.testing.assert_array_equal(project_centred(window_mean(src, src.n_rows, a, b, 40, mean), a, matrix),
+                                      apply_by_block(project_rows, h, a, mean, matrix))

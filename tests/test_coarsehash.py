@@ -141,3 +141,20 @@ def test_projection_bits_depend_only_on_the_row():
     np.testing.assert_array_equal(whole, one_by_one)
     np.testing.assert_array_equal(whole[3:], project_rows(x[3:], mean, w))
     np.testing.assert_allclose(whole, (x.astype(np.float64) - mean) @ w, rtol=1e-10, atol=1e-10)
+
+
+def test_hashing_gives_the_baseline_map_of_the_same_rows_bit_for_bit():
+    """A compact build takes the baseline's map (each row's first component, float32) from the
+    hashing's own projection: the bits of projecting on the first component alone."""
+    from vprscale.dataset.compact import baseline_map
+    from vprscale.method.coarsehash import hash_descriptors
+
+    rng = np.random.default_rng(7)
+    x = rng.standard_normal((5003, 96)).astype(np.float32)
+    hasher = CoarseHasher(d=13).fit(x)
+    first = np.full(len(x), np.nan, np.float32)
+    with_first = hash_descriptors(x, hasher.mean_, hasher.components_, hasher.centres_, first)
+    np.testing.assert_array_equal(first, baseline_map(x, hasher.mean_, hasher.components_))
+    for got, plain in zip(with_first, hash_descriptors(x, hasher.mean_, hasher.components_, hasher.centres_),
+                          strict=True):
+        np.testing.assert_array_equal(got, plain)

@@ -66,9 +66,9 @@ class _HashWriter:
         h, err, base = np.empty(b - a, self.dtype), np.empty(b - a, np.float32), np.empty(b - a, np.float32)
         for s, e in chunk_bounds(b - a, step):
             x = self.writer.ref_rows(a + s, a + e)
-            _, addresses, errors, _ = hash_descriptors(x, hs.mean_, hs.components_, hs.centres_)
+            # the baseline's map (the first component) comes out of the hashing's own projection
+            _, addresses, errors, _ = hash_descriptors(x, hs.mean_, hs.components_, hs.centres_, base[s:e])
             h[s:e], err[s:e] = addresses, errors  # cast as the arrays store them
-            base[s:e] = baseline_map(x, hs.mean_, hs.components_)
         group = zarr.open_group(self.store, mode="r+")
         group["ref_hash"][a:b] = h
         group["ref_err"][a:b] = err

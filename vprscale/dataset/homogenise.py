@@ -16,9 +16,10 @@ from vprscale.dataset.sources.base import RowSource
 
 
 @numba.njit(cache=True, nogil=True)
-def _running_window_mean(x: np.ndarray, base: int, lo: int, hi: int, n: int, half: int,
+def _running_window_mean(x: np.ndarray, base: int, lo: int, hi: int, n: int, half: int, centre: np.ndarray,
                          out: np.ndarray) -> None:
-    """Means of rows ``lo … hi−1``; ``x`` holds source rows from absolute ``base``."""
+    """Means of rows ``lo … hi−1`` less ``centre`` (float32, after the mean's own rounding to
+    float32, as numpy subtracts two float32 arrays); ``x`` holds source rows from absolute ``base``."""
     d = x.shape[1]
     acc = np.zeros(d)
     a, b = max(0, lo - half), min(n, lo + half)
@@ -37,17 +38,20 @@ def _running_window_mean(x: np.ndarray, base: int, lo: int, hi: int, n: int, hal
             a += 1
         inv = 1.0 / (b - a)
         for j in range(d):
-            out[i - lo, j] = acc[j] * inv
+            out[i - lo, j] = np.float32(acc[j] * inv) - centre[j]
 
 
-def window_mean(source: RowSource, n: int, start: int, stop: int, w: int) -> np.ndarray:
-    """Homogenised rows ``[start, stop)`` of the first ``n`` source rows, window ``w``."""
+def window_mean(source: RowSource, n: int, start: int, stop: int, w: int,
+                centre: np.ndarray | None = None) -> np.ndarray:
+    """Homogenised rows ``[start, stop)`` of the first ``n`` source rows, window ``w``; less
+    ``centre`` (cast to float32) when given: the centred rows a projection takes, in one pass."""
     half = w // 2
+    centre = np.zeros(source.dim, np.float32) if centre is None else np.asarray(centre, np.float32)
     out = np.empty((stop - start, source.dim), dtype=np.float32)
     base = max(0, start - half)
     x = source.read(base, min(n, stop + half))  # one read with both halos: rows are drawn once
     for _, lo, hi in block_spans(start, stop):
-        _running_window_mean(x, base, lo, hi, n, half, out[lo - start : hi - start])
+        _running_window_mean(x, base, lo, hi, n, half, centre, out[lo - start : hi - start])
     return out
 
 

@@ -13,10 +13,9 @@ from typing import Any
 import numpy as np
 import zarr
 
-from vprscale.core.blocks import apply_by_block
 from vprscale.core.zarrio import write_rows
 from vprscale.dataset.homogenise import window_mean
-from vprscale.dataset.merge import noisy_rows, project_rows
+from vprscale.dataset.merge import noisy_rows, project_centred
 from vprscale.dataset.recipe import Recipe
 from vprscale.dataset.sources.base import RowSource, check_finite
 from vprscale.protocol import FAS
@@ -99,8 +98,8 @@ class ChunkWriter:
         d_hi = min(b, self.layout.n_deep)
         if a >= d_hi:
             return np.empty((0, self.recipe.dim), np.float32)
-        h = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window)
-        rows = apply_by_block(project_rows, h, a, self.mean, self.matrix)
+        centred = window_mean(self.source, self.recipe.deep1b_rows_read, a, d_hi, self.recipe.window, self.mean)
+        rows = project_centred(centred, a, self.matrix)
         # Finite inputs can still overflow float32 once averaged and projected (values near 3e38).
         check_finite(rows, a, f"{self.source.name} (rows {max(0, a - self.recipe.window // 2):,}–"
                               f"{min(self.recipe.deep1b_rows_read, d_hi + self.recipe.window // 2) - 1:,} "
@@ -116,7 +115,8 @@ class ChunkWriter:
         """Reference rows ``[a, b)`` exactly as the full layout stores them (``deep``: their Deep1B
         part, when already computed)."""
         deep = self.deep_rows(a, b) if deep is None else deep
-        return np.concatenate([deep, self._fas(self.fas_ref, a, b, self.layout.n_ref)])
+        fas = self._fas(self.fas_ref, a, b, self.layout.n_ref)
+        return np.concatenate([deep, fas]) if len(fas) else deep
 
     def query_rows(self, deep: np.ndarray, a: int, b: int) -> list[np.ndarray]:
         """Query rows ``[a, b)`` of each noise level, given the Deep1B reference rows from ``a``."""

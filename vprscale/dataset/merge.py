@@ -169,6 +169,17 @@ def project_rows(h: np.ndarray, mean: np.ndarray, matrix: np.ndarray) -> np.ndar
     return (h - mean.astype(np.float32)) @ matrix.astype(np.float32)
 
 
+def project_centred(centred: np.ndarray, start: int, matrix: np.ndarray) -> np.ndarray:
+    """:func:`project_rows` of rows already centred (``h − mean`` in float32, first row at
+    absolute ``start``), one product per absolute block as :func:`~vprscale.core.blocks.apply_by_block`
+    makes them (the same bits), written in place into one array."""
+    out = np.empty((len(centred), matrix.shape[1]), np.float32)
+    m32 = matrix.astype(np.float32)
+    for _, lo, hi in block_spans(start, start + len(centred)):
+        np.matmul(centred[lo - start : hi - start], m32, out=out[lo - start : hi - start])
+    return out
+
+
 def noisy_rows(ref: np.ndarray, start: int, seed: int, mean: np.ndarray, std: np.ndarray,
                strengths: tuple[float, ...]) -> list[np.ndarray]:
     """Query rows ``ref + μ_n + s·σ_n·z`` for each strength ``s``, one shared draw ``z`` per row.

@@ -40,10 +40,12 @@ def project(x: np.ndarray, mean: np.ndarray, components: np.ndarray) -> np.ndarr
     return project_rows(np.asarray(x), mean, np.ascontiguousarray(components.T))
 
 
-def hash_descriptors(x: np.ndarray, mean: np.ndarray, components: np.ndarray,
-                     centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(codes, addresses, quantisation errors, level counts)`` of descriptor rows, fused."""
-    return hash_rows(np.asarray(x), mean, np.ascontiguousarray(components.T), centres, centres.shape[1])
+def hash_descriptors(x: np.ndarray, mean: np.ndarray, components: np.ndarray, centres: np.ndarray,
+                     first: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(codes, addresses, quantisation errors, level counts)`` of descriptor rows, fused;
+    ``first`` (float32, a value per row), when given, receives each row's first component."""
+    return hash_rows(np.asarray(x), mean, np.ascontiguousarray(components.T), centres, centres.shape[1],
+                     np.empty(0, np.float32) if first is None else first)
 
 
 def sample_spans(n_ref: int) -> list[tuple[int, int]]:

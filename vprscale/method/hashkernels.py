@@ -110,12 +110,15 @@ def column_histogram(x: np.ndarray, mean: np.ndarray, w: np.ndarray, lo: np.ndar
 
 
 @numba.njit(cache=True, nogil=True)
-def hash_rows(x: np.ndarray, mean: np.ndarray, w: np.ndarray, centres: np.ndarray,
-              k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Codes, addresses, quantisation errors and per-component level counts of rows.
+def hash_rows(x: np.ndarray, mean: np.ndarray, w: np.ndarray, centres: np.ndarray, k: int,
+              first: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Codes, addresses, quantisation errors and per-component level counts of rows; into
+    ``first`` (when it holds a value per row) each row's first projected component as float32.
 
     Code ``argmin_k |y_j − c_jk|`` (ties: the smaller k); address ``Σ_j K^(d−j) q_j`` with
-    the first component as the top digit; error ``Σ_j min_k |y_j − c_jk|``.
+    the first component as the top digit; error ``Σ_j min_k |y_j − c_jk|``. The first
+    component is summed as :func:`project_rows` sums it with one component alone (each
+    component is its own sum, in the same order): a compact build's baseline map comes free.
     """
     n, d = x.shape[0], w.shape[1]
     codes = np.empty((n, d), np.uint8)
@@ -130,6 +133,8 @@ def hash_rows(x: np.ndarray, mean: np.ndarray, w: np.ndarray, centres: np.ndarra
         for r in range(rows):
             i = start + r
             h[i], err[i] = _quantise(tile[r], centres, k, base, codes[i])
+            if len(first):
+                first[i] = np.float32(tile[r, 0])
             for j in range(d):
                 counts[j, codes[i, j]] += 1
     return codes, h, err, counts
