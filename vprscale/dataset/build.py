@@ -260,12 +260,12 @@ class DeepMoments:
 
     def __call__(self, a: int, b: int) -> np.ndarray:
         h = window_mean(self.source, self.recipe.deep1b_rows_read, a, b, self.recipe.window)
-        big = np.flatnonzero(np.abs(h).max(axis=1) > MAX_MAGNITUDE)
-        if len(big):
-            i, half = a + int(big[0]), self.recipe.window // 2
+        low, high = h.min(axis=0), h.max(axis=0)  # two column passes tell both checks (rows only when one fails)
+        if max(-low.min(), high.max()) > MAX_MAGNITUDE:
+            i, half = a + int(np.flatnonzero(np.abs(h).max(axis=1) > MAX_MAGNITUDE)[0]), self.recipe.window // 2
             raise InputError(f"{self.source.name}: rows {max(0, i - half):,}–{i + half - 1:,} average to values beyond "
                              f"±{MAX_MAGNITUDE:.0e} (dataset row {i:,}); their squares overflow the float32 recipe")
-        if len(h) > self.recipe.window and not np.ptp(h, axis=0).any():
+        if len(h) > self.recipe.window and np.array_equal(low, high):
             raise InputError(f"{self.source.name}: dataset rows {a:,}–{b - 1:,} are all equal after homogenising "
                              f"(every value {h[0, 0]:g}…): a blank or damaged block of descriptors")
         return block_moments(h, a)

@@ -65,8 +65,8 @@ class SyntheticDeep1B(RowSource):
     def _model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return _deep_model(self.seed, self.params)
 
-    def _rows(self, b: int, lo: int, hi: int) -> np.ndarray:
-        """Rows ``[lo, hi)`` of block ``b`` (offsets in the block).
+    def _rows(self, b: int, lo: int, hi: int, out: np.ndarray) -> None:
+        """Rows ``[lo, hi)`` of block ``b`` (offsets in the block) into ``out``.
 
         A block's rows are drawn in one stream (its clusters, then its uniform offsets) and
         mapped by a product of ``SUB_ROWS`` rows at a time; the rows of the sub-blocks that
@@ -84,16 +84,19 @@ class SyntheticDeep1B(RowSource):
         spread = rng.random((last - first, self.dim), dtype=np.float32)
         spread -= np.float32(0.5)
         spread *= np.float32(np.sqrt(12.0))
-        x = np.empty_like(spread)
+        x = out if (first, last) == (lo, hi) else np.empty_like(spread)  # whole sub-blocks: made in place
         for s in range(0, last - first, SUB_ROWS):
             np.matmul(spread[s : s + SUB_ROWS], within, out=x[s : s + SUB_ROWS])
         x += centres[which[first:last]]
         x /= np.sqrt(np.einsum("ij,ij->i", x, x))[:, None]
-        return x[lo - first : hi - first]
+        if x is not out:
+            out[:] = x[lo - first : hi - first]
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        parts = [self._rows(b, lo - b * BLOCK, hi - b * BLOCK) for b, lo, hi in block_spans(start, stop)]
-        return np.concatenate(parts) if parts else np.empty((0, self.dim), np.float32)
+        out = np.empty((stop - start, self.dim), np.float32)
+        for b, lo, hi in block_spans(start, stop):
+            self._rows(b, lo - b * BLOCK, hi - b * BLOCK, out[lo - start : hi - start])
+        return out
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "synthetic-deep1b", "generator": GENERATOR_VERSION, "seed": self.seed,
