@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import resource
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -25,6 +26,29 @@ def single_threaded_blas() -> None:
     on the machine's cores. One thread per product keeps "same seed, same bytes".
     """
     threadpool_limits(limits=1, user_api="blas")
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
+HEAP_BLOCK_BYTES = 32 << 20  # glibc's largest mmap threshold
+HEAP_KEPT_BYTES = 1 << 30  # free heap memory kept for the next task rather than returned to the system
+
+
+def reuse_task_memory() -> None:
+    """Let glibc keep the memory a task frees for the next task (where glibc is the C library).
+
+    A pass's tasks each make and free arrays of tens of MB; by default glibc maps each one
+    afresh and unmaps it after, and with two threads working every unmap stops the other
+    core to flush its address translations: at 1B the build spent a fifth of its CPU time in
+    the kernel. Served from the heap and kept there (blocks up to 32 MB; up to 1 GB of free
+    heap kept), the same pass takes 0.78 instead of 1.10 µs a row (moments pass, 2 threads).
+    Peak memory is unchanged; memory freed at the end of a job may stay with the process.
+    """
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):  # not glibc: its own allocator's defaults
+        return
+    mallopt(_M_MMAP_THRESHOLD, HEAP_BLOCK_BYTES)
+    mallopt(_M_TRIM_THRESHOLD, HEAP_KEPT_BYTES)
 
 
 def check_query_planning() -> None:
@@ -63,10 +87,12 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
             raise InputError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
         with client, threadpool_limits(limits=1, user_api="blas"):
             client.run(single_threaded_blas)
+            client.run(reuse_task_memory)
             yield client
         return
     if workers < 1:
         raise InputError(f"--workers {workers}: must be at least 1")
+    reuse_task_memory()
     # The threaded scheduler's function, not its name: given a name, Dask imports
     # ``distributed`` to look for a client (0.5 s on every run).
     with (threadpool_limits(limits=1, user_api="blas"),
