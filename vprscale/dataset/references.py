@@ -5,8 +5,8 @@ A full store holds them (``ref``). A compact store keeps a few bytes per place i
 FAISS encoding them for the compact-code comparison — gets them recomputed from the store's
 sources, chunk by chunk in the same absolute blocks and by the same code as the build: the
 same bits the full layout of the same data stores. Nothing but one chunk at a time is ever
-held; reading them costs what a build pass costs (about 160 s at 100M, 25 min at 1B on
-2 cores).
+held; reading them costs what a build's hashing pass costs (about 2 minutes at 100M, 18 at
+1B on 2 cores).
 """
 
 from __future__ import annotations
