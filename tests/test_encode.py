@@ -171,6 +171,33 @@ def test_methods_share_one_sample_one_pass_and_one_coarse_assignment(store, monk
         np.testing.assert_array_equal(np.load(encoding_dir(store, f) / "codes.npy"), alone[f], err_msg=f)
 
 
+def test_a_resumed_joint_pass_never_skips_a_method_started_afresh(store, monkeypatch, capsys):
+    """A joint pass killed midway resumes only for the same code arrays: once one of its methods
+    has been encoded again on its own (a fresh array), the joint run starts the pass over, and
+    every method ends with the codes of an uninterrupted run."""
+    import vprscale.jobs.encoding as enc
+
+    pair = ["PQ4", "IVF32,PQ4"]
+    assert main(["encode", str(store), *_compare(pair), "--workers", "1"]) == 0
+    whole = {f: np.load(encoding_dir(store, f) / "codes.npy") for f in pair}
+    monkeypatch.setattr(enc, "ENCODE_GROUP", 1)
+    real, calls = enc._EncodeChunk.__call__, {"n": 0}
+
+    def failing(self, a, b):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OSError("disk vanished")
+        return real(self, a, b)
+
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", failing)
+    assert main(["encode", str(store), *_compare(pair), "--force", "--workers", "1"]) == 1  # two chunks done
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", real)
+    shutil.rmtree(encoding_dir(store, "IVF32,PQ4").with_name(".IVF32_PQ4.partial"))  # that one started afresh
+    assert main(["encode", str(store), *_compare(pair), "--force", "--workers", "1"]) == 0
+    for f in pair:
+        np.testing.assert_array_equal(np.load(encoding_dir(store, f) / "codes.npy"), whole[f], err_msg=f)
+
+
 def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
     """A run that fails while writing the on-disk lists' shards resumes without re-encoding or
     rewriting the shards already written, and publishes the lists of an uninterrupted run."""

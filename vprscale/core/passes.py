@@ -24,12 +24,14 @@ S = TypeVar("S")
 
 
 def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Callable[[int, int], Any],
-                fold: Callable[[S, Any], S], state: S, group: int = 16, quiet: bool = False) -> S:
+                fold: Callable[[S, Any], S], state: S, group: int = 16, quiet: bool = False,
+                checkpoint: str | None = None) -> S:
     """Fold ``task(a, b)`` of every chunk into ``state``, in chunk order, resumably.
 
-    ``work`` holds the checkpoint ``<name>.pass``: the state after the first ``n`` chunks.
+    ``work`` holds the checkpoint ``<checkpoint or name>.pass``: the state after the first
+    ``n`` chunks. ``name`` is what the progress shows.
     """
-    ckpt = work / f"{name}.pass"
+    ckpt = work / f"{checkpoint or name}.pass"
     done = 0
     if ckpt.is_file():
         with ckpt.open("rb") as f:

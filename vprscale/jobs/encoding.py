@@ -24,9 +24,11 @@ encodes them in process: the same bytes for any ``--workers``, local or distribu
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import time
+import uuid
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -185,6 +187,15 @@ class _Job:
     def work(self) -> Path:
         return self.partial_out.path / ".work"
 
+    @property
+    def array_id(self) -> str:
+        """A name drawn when this method's code array was made (one made before names were drawn
+        gets one now): the same array keeps it across resumed runs, a new one never shares it."""
+        path = self.work / "codes.id"
+        if not path.is_file():
+            path.write_text(uuid.uuid4().hex)
+        return path.read_text()
+
 
 def _train(jobs: list[_Job], read: Any, bounds: list[tuple[int, int]], timings: Timings, quiet: bool) -> None:
     """Train every method not yet trained, on one streamed sample of the training references
@@ -201,6 +212,7 @@ def _train(jobs: list[_Job], read: Any, bounds: list[tuple[int, int]], timings: 
             with threadpool_limits(limits=1, user_api="blas"):  # one thread: the same trained index for any workers
                 job.method.train(sample)
             write_trained(job.method, job.partial_out.path, n_ref)
+            (job.work / "codes.id").unlink(missing_ok=True)  # a new code array: a new name
         job.partial_out.mark("trained")
 
 
@@ -212,10 +224,13 @@ def _encode(jobs: list[_Job], read: Any, bounds: list[tuple[int, int]], dim: int
         return
     names = [j.factory for j in pending]
     task = _EncodeChunk(read, [str(j.partial_out.path) for j in pending], names, dim)
+    # The checkpoint names its methods' code arrays (each named when made, at training): a run with
+    # another set of methods, or with one of them started afresh since, starts the pass over.
+    arrays = " ".join(f"{j.factory}@{j.array_id}" for j in pending)
     with timings.stage(f"encode {bounds[-1][1]:,} references: {', '.join(names)}"):
-        # the checkpoint names its methods: a resumed run with another set starts the pass over
         reduce_pass(pending[0].work, f"encode {' + '.join(names)}", bounds, task, lambda s, _: s, None,
-                    group=max(ENCODE_GROUP, 2 * workers), quiet=quiet)
+                    group=max(ENCODE_GROUP, 2 * workers), quiet=quiet,
+                    checkpoint=f"encode-{hashlib.sha256(arrays.encode()).hexdigest()[:16]}")
     for job in pending:
         job.partial_out.mark("encoded")
 
