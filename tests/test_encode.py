@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,23 @@ def _compare(factories: list[str]) -> list[str]:
 
 def _codes(store: Path) -> dict[str, bytes]:
     return {f: np.load(encoding_dir(store, f) / "codes.npy").tobytes() for f in FACTORIES}
+
+
+def _fail_at_third_chunk(monkeypatch) -> Callable:
+    """Make the encode pass (one chunk a group) fail at its third chunk; the real task call."""
+    import vprscale.jobs.encoding as enc
+
+    monkeypatch.setattr(enc, "ENCODE_GROUP", 1)
+    real, calls = enc._EncodeChunk.__call__, {"n": 0}
+
+    def failing(self, a, b):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise OSError("disk vanished")
+        return real(self, a, b)
+
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", failing)
+    return real
 
 
 @pytest.mark.slow
@@ -94,17 +112,7 @@ def test_killed_encoding_resumes_to_the_bytes_of_one_run_on_any_workers(store, m
 
     assert main(["encode", str(store), *_compare(FACTORIES), "--workers", "2"]) == 0
     whole = _codes(store)
-    monkeypatch.setattr(enc, "ENCODE_GROUP", 1)
-    calls = {"n": 0}
-    real = enc._EncodeChunk.__call__
-
-    def failing(self, a, b):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise OSError("disk vanished")
-        return real(self, a, b)
-
-    monkeypatch.setattr(enc._EncodeChunk, "__call__", failing)
+    real = _fail_at_third_chunk(monkeypatch)
     # not the input's fault nor vprscale's: one line naming the error, exit 1, no traceback
     assert main(["encode", str(store), "--compare", "PQ4", "--force", "--workers", "1"]) == 1
     assert "vprscale encode: failed: disk vanished" in capsys.readouterr().err
@@ -180,16 +188,7 @@ def test_a_resumed_joint_pass_never_skips_a_method_started_afresh(store, monkeyp
     pair = ["PQ4", "IVF32,PQ4"]
     assert main(["encode", str(store), *_compare(pair), "--workers", "1"]) == 0
     whole = {f: np.load(encoding_dir(store, f) / "codes.npy") for f in pair}
-    monkeypatch.setattr(enc, "ENCODE_GROUP", 1)
-    real, calls = enc._EncodeChunk.__call__, {"n": 0}
-
-    def failing(self, a, b):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise OSError("disk vanished")
-        return real(self, a, b)
-
-    monkeypatch.setattr(enc._EncodeChunk, "__call__", failing)
+    real = _fail_at_third_chunk(monkeypatch)
     assert main(["encode", str(store), *_compare(pair), "--force", "--workers", "1"]) == 1  # two chunks done
     monkeypatch.setattr(enc._EncodeChunk, "__call__", real)
     shutil.rmtree(encoding_dir(store, "IVF32,PQ4").with_name(".IVF32_PQ4.partial"))  # that one started afresh
