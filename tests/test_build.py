@@ -178,3 +178,31 @@ def test_centred_in_the_window_pass_and_projected_in_place_are_the_recipe_s_bits
         h = window_mean(src, src.n_rows, a, b, 40)
         np.testing.assert_array_equal(project_centred(window_mean(src, src.n_rows, a, b, 40, mean), a, matrix),
                                       apply_by_block(project_rows, h, a, mean, matrix))
+
+
+@pytest.mark.slow
+def test_fas_fit_has_the_same_bits_from_python_and_from_a_job(tmp_path, monkeypatch):
+    """The FAS part of the fit (a randomized PCA of 47,781 × 4,096 rows) gives the same bits
+    called from plain Python, with BLAS on every core, as inside a job's Dask work (one BLAS
+    thread): a fit cached by either is the other's, and a compact store's transforms refit from
+    Python are its own."""
+    from threadpoolctl import threadpool_limits
+
+    from vprscale.core.cluster import dask_client
+    from vprscale.dataset.merge import MergeTransform
+    from vprscale.dataset.sources.synthetic import SyntheticFAS
+    from vprscale.method.pca import moments_of
+
+    traverse = SyntheticFAS(0).traverse()
+    moments = moments_of(np.random.default_rng(0).standard_normal((4096, 96)))
+    fits = []
+    for where in ("python", "job"):
+        monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / where))  # fitted afresh each time
+        if where == "python":
+            with threadpool_limits(limits=2, user_api="blas"):
+                fits.append(MergeTransform(96, 47_781, 26_638, 0).fit(moments, traverse))
+        else:
+            with dask_client(None, 2):
+                fits.append(MergeTransform(96, 47_781, 26_638, 0).fit(moments, traverse))
+    for name in ("fas_ref_", "fas_query_", "noise_mean_", "noise_std_", "scale_"):
+        np.testing.assert_array_equal(getattr(fits[0], name), getattr(fits[1], name), err_msg=name)

@@ -11,6 +11,7 @@ import inspect
 import dask
 import numba
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from vprscale.core.blocks import BLOCK, block_spans
 from vprscale.core.progress import compute
@@ -61,7 +62,10 @@ class MergeTransform:
         self.deep_pca_ = ExactPCA(self.dim).fit_moments(deep_moments)
         cached = fascache.load(self._fas_key(traverse))
         if cached is None:
-            self._fit_fas(traverse)
+            # BLAS on one thread, as in every job's Dask work (core.cluster): its sums split by thread
+            # count, and a fit from plain Python would otherwise cache other last bits for every job
+            with threadpool_limits(limits=1, user_api="blas"):
+                self._fit_fas(traverse)
             fascache.save(self._fas_key(traverse), self._fas_arrays())
         else:
             self._set_fas(cached)
