@@ -72,18 +72,18 @@ class _EncodeChunk:
 
     def __init__(self, read: Any, outs: list[str], factories: list[str], dim: int) -> None:
         self.read, self.outs, self.factories, self.dim = read, outs, factories, dim
-        self._codes: list[FaissCodes] | None = None
+        self._codes: list[tuple[FaissCodes, bytes | None]] | None = None
 
     def __call__(self, a: int, b: int) -> None:
         if self._codes is None:  # read once per process (threads share them: encoding is read-only)
-            self._codes = [read_trained(Path(o), f, self.dim) for o, f in zip(self.outs, self.factories, strict=True)]
+            trained = [read_trained(Path(o), f, self.dim) for o, f in zip(self.outs, self.factories, strict=True)]
+            self._codes = [(method, method.coarse_key) for method in trained]
         rows = self.read(a, b)
         lists: dict[bytes, np.ndarray] = {}
-        for out, method in zip(self.outs, self._codes, strict=True):
-            key = method.coarse_key
+        for out, (method, key) in zip(self.outs, self._codes, strict=True):
             if key is not None and key not in lists:
                 lists[key] = method.assign_rows(rows, a)
-            codes = method.encode_rows(rows, a, lists.get(key) if key is not None else None)
+            codes = method.encode_rows(rows, a, lists.get(key))
             stored = np.load(Path(out) / "codes.npy", mmap_mode="r+")
             stored[a:b] = codes
             stored.flush()
