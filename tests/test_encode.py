@@ -91,10 +91,10 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
 
 
 def test_an_encoding_is_not_redone_and_bad_input_is_refused(store, capsys):
-    assert main(["encode", str(store), "--compare", "PQ4", "--workers", "1"]) == 0
-    before = (encoding_dir(store, "PQ4") / "codes.npy").stat().st_mtime_ns
-    assert main(["encode", str(store), "--compare", "PQ4"]) == 0
-    assert (encoding_dir(store, "PQ4") / "codes.npy").stat().st_mtime_ns == before
+    assert main(["encode", str(store), "--compare", "PQ4x4", "--workers", "1"]) == 0
+    before = (encoding_dir(store, "PQ4x4") / "codes.npy").stat().st_mtime_ns
+    assert main(["encode", str(store), "--compare", "PQ4x4"]) == 0
+    assert (encoding_dir(store, "PQ4x4") / "codes.npy").stat().st_mtime_ns == before
     capsys.readouterr()
     for argv, message in ((["--compare", "Banana"], "--compare Banana: not a FAISS index_factory string"),
                           (["--compare", "IVF100000,PQ4"], "100,000 inverted lists for 52,500 references")):
@@ -154,7 +154,7 @@ def test_methods_share_one_sample_one_pass_and_one_coarse_assignment(store, monk
     import vprscale.jobs.encoding as enc
     from vprscale.compared.faisscodes import FaissCodes
 
-    together = ["IVF32,PQ4", "IVF32,RQ2x8_Nqint8", "IVF32,RaBitQ", "PQ4"]
+    together = ["IVF32,PQ4x4", "IVF32,RQ2x4_Nqint8", "IVF32,RaBitQ", "PQ4x4"]  # 4-bit: cheap to train
     alone = {}
     for f in together:
         assert main(["encode", str(store), "--compare", f, "--workers", "1"]) == 0
@@ -185,13 +185,13 @@ def test_a_resumed_joint_pass_never_skips_a_method_started_afresh(store, monkeyp
     every method ends with the codes of an uninterrupted run."""
     import vprscale.jobs.encoding as enc
 
-    pair = ["PQ4", "IVF32,PQ4"]
+    pair = ["PQ4x4", "IVF32,PQ4x4"]
     assert main(["encode", str(store), *_compare(pair), "--workers", "1"]) == 0
     whole = {f: np.load(encoding_dir(store, f) / "codes.npy") for f in pair}
     real = _fail_at_third_chunk(monkeypatch)
     assert main(["encode", str(store), *_compare(pair), "--force", "--workers", "1"]) == 1  # two chunks done
     monkeypatch.setattr(enc._EncodeChunk, "__call__", real)
-    shutil.rmtree(encoding_dir(store, "IVF32,PQ4").with_name(".IVF32_PQ4.partial"))  # that one started afresh
+    shutil.rmtree(encoding_dir(store, "IVF32,PQ4x4").with_name(".IVF32_PQ4x4.partial"))  # that one started afresh
     assert main(["encode", str(store), *_compare(pair), "--force", "--workers", "1"]) == 0
     for f in pair:
         np.testing.assert_array_equal(np.load(encoding_dir(store, f) / "codes.npy"), whole[f], err_msg=f)
@@ -206,8 +206,8 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
     import vprscale.jobs.encoding as enc
 
     monkeypatch.setattr(stored_format, "SHARD_ROWS", 20_000)
-    assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--workers", "1"]) == 0
-    out = encoding_dir(store, "IVF32,PQ4")
+    assert main(["encode", str(store), "--compare", "IVF32,PQ4x4", "--workers", "1"]) == 0
+    out = encoding_dir(store, "IVF32,PQ4x4")
     whole = {name: (out / name).read_bytes() for name in (LISTS, WINDOW)}
     written: list[str] = []
     real_write = faiss.write_index
@@ -220,7 +220,7 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
         return real_write(index, path)
 
     monkeypatch.setattr(stored_format.faiss, "write_index", failing_write)
-    assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"]) == 1
+    assert main(["encode", str(store), "--compare", "IVF32,PQ4x4", "--force", "--workers", "1"]) == 1
     encoded = {"n": 0}
     real_chunk = enc._EncodeChunk.__call__
 
@@ -229,25 +229,25 @@ def test_inverted_lists_resume_after_a_failure(store, monkeypatch):
         return real_chunk(self, a, b)
 
     monkeypatch.setattr(enc._EncodeChunk, "__call__", counting)
-    assert main(["encode", str(store), "--compare", "IVF32,PQ4", "--force", "--workers", "1"]) == 0
+    assert main(["encode", str(store), "--compare", "IVF32,PQ4x4", "--force", "--workers", "1"]) == 0
     assert encoded["n"] == 0 and len(written) == 2 + 2  # the first shard kept; the second and third written
     assert {name: (out / name).read_bytes() for name in (LISTS, WINDOW)} == whole
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("format", 2, "not an encoding of PQ4 in this version's format; re-run vprscale encode with --force"),
+    ("format", 2, "not an encoding of PQ4x4 in this version's format; re-run vprscale encode with --force"),
     ("store_identity", "0123456789abcdef", "encodes another store than"),
 ])
 def test_a_stale_encoding_is_refused_in_one_line(store, tiny_index, tmp_path, capsys, field, value, message):
     """An evaluation does not read an encoding of an older format or of another store: one
     line naming it, exit 2, and no evaluation written."""
-    assert main(["encode", str(store), "--compare", "PQ4", "--workers", "1"]) == 0
-    meta_file = encoding_dir(store, "PQ4") / "encoding.json"
+    assert main(["encode", str(store), "--compare", "PQ4x4", "--workers", "1"]) == 0
+    meta_file = encoding_dir(store, "PQ4x4") / "encoding.json"
     meta_file.write_text(json.dumps({**json.loads(meta_file.read_text()), field: value}))
     capsys.readouterr()
     out = tmp_path / "e"
-    assert main(["eval", str(store), str(tiny_index), "--L", "1", "--compare", "PQ4", "--no-baseline",
+    assert main(["eval", str(store), str(tiny_index), "--L", "1", "--compare", "PQ4x4", "--no-baseline",
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert message in err and str(encoding_dir(store, "PQ4")) in err and len(err.splitlines()) == 1
+    assert message in err and str(encoding_dir(store, "PQ4x4")) in err and len(err.splitlines()) == 1
     assert not out.exists()
