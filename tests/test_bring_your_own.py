@@ -140,7 +140,7 @@ def test_every_built_in_method_passes_the_shared_answers_suite(tiny_store, tiny_
 
     group = zarr.open_group(tiny_store, mode="r")
     idx = Index.load(tiny_index).warm()
-    codes = [FaissCodes("PQ4", 96, 8), FaissCodes("IVF16,PQ4", 96, 8)]
+    codes = [FaissCodes("PQ4np", 96, 8), FaissCodes("IVF16,PQ4np", 96, 8)]
     fit_codes(codes, rows_of(group["ref"]), quiet=True)
     mine = exact_l2()
     mine.fit(rows_of(group["ref"]))
@@ -149,7 +149,7 @@ def test_every_built_in_method_passes_the_shared_answers_suite(tiny_store, tiny_
                                baseline=load_baseline_map(group, store_layout(group)), compared=codes,
                                plugged=[("exact-l2", mine)], method_k=[4])
     algorithms = registry.create(context)
-    assert [a.name for a in algorithms] == ["coarsehash", "baseline", "faiss:PQ4", "faiss:IVF16,PQ4", "exact-l2"]
+    assert [a.name for a in algorithms] == ["coarsehash", "baseline", "faiss:PQ4np", "faiss:IVF16,PQ4np", "exact-l2"]
     rows = group["query_qm1"][40_000:40_300]
     for alg in algorithms:
         alg.prepare("qm1", np.arange(300), rows, {1: np.arange(0, 300, 7), 5: np.arange(2, 290, 7)})

@@ -132,10 +132,10 @@ def test_bench_codes_prints_the_frame_search_against_faiss(tiny_store, capsys):
     enumeration's µs per frame, and the frames on which both found the same ids (all, here)."""
     from vprscale.cli import main
 
-    assert main(["bench", "codes", str(tiny_store), "--compare", "PQ4", "--compare", "ITQ16,LSH", "--compare",
+    assert main(["bench", "codes", str(tiny_store), "--compare", "PQ4np", "--compare", "ITQ16,LSH", "--compare",
                  "PQ6x4fs", "--L", "5"]) == 0
     out = capsys.readouterr().out
     section = out[out.index("a frame's top-16"):].splitlines()[2:]
-    assert [line.split()[0] for line in section] == ["PQ4", "ITQ16,LSH"]  # the fast-scan code scans
+    assert [line.split()[0] for line in section] == ["PQ4np", "ITQ16,LSH"]  # the fast-scan code scans
     for line in section:
         assert line.split()[-1] == "256/256"

@@ -31,8 +31,10 @@ from vprscale.method.kernels import N_BEST
 
 from .conftest import SMALL_TRAINING
 
-# (the additive quantisers, whose flat search decodes every code, are checked apart: test_new_codes_…)
-FACTORIES = ["PQ4", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4", "RaBitQ", "IVF32,RaBitQfs", "HNSW32"]
+# (the additive quantisers, whose flat search decodes every code, are checked apart: test_new_codes_…). The 8-bit
+# product quantisers are FAISS's `np` forms: the factory's default polysemous training only renumbers a codebook's
+# entries and took 7.5 s of each code's 7.8 s of training here (the slow tests of test_encode keep it)
+FACTORIES = ["PQ4np", "OPQ4,PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4np", "RaBitQ", "IVF32,RaBitQfs", "HNSW32"]
 L_SEQ = 9
 
 
@@ -178,10 +180,10 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_store, tiny_inde
     per_method = res.groupby("method")["bytes_per_place"].unique()
     assert set(per_method.index) == {"coarsehash", "baseline", *(f"faiss:{f}" for f in FACTORIES)}
     assert all(len(v) == 1 and v[0] > 0 for v in per_method)
-    assert per_method["faiss:PQ4"][0] == 4 and per_method["faiss:ITQ16,LSH"][0] == 2
+    assert per_method["faiss:PQ4np"][0] == 4 and per_method["faiss:ITQ16,LSH"][0] == 2
     assert per_method["faiss:OPQ4,PQ4x6"][0] == 3 and per_method["faiss:PQ6x4fs"][0] == 3  # 24 bits
     # list entry; the code in id order with its list number and its distance term's level
-    assert per_method["faiss:IVF32,PQ4"][0] == 4 + ID_BYTES + 5 + REF_LEVEL_BYTES
+    assert per_method["faiss:IVF32,PQ4np"][0] == 4 + ID_BYTES + 5 + REF_LEVEL_BYTES
     assert per_method["faiss:RaBitQ"][0] == faiss.index_factory(dim, "RaBitQ").sa_code_size()  # bits and factors
     assert per_method["faiss:HNSW32"][0] > 4 * dim + 2 * 32 * 4  # its row, and at least its bottom layer's links
     assert per_method["baseline"][0] == 4
@@ -204,31 +206,31 @@ def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, t
         monkeypatch.setattr(fc, "SCAN_BUDGET", budget)
         out = tmp_path / f"e{floor}-{budget}"
         assert main(["eval", str(tiny_store), str(tiny_index), "--L", "5", "--z", "97", "--noise", "qm1",
-                     "--modes", "paper", "--no-baseline", "--compare", "PQ6x4fs", "--compare", "IVF32,PQ4",
-                     "--compare", "PQ4", "--faiss-nprobe", "1", "--repeats", "1", "--out", str(out)]) == 0
+                     "--modes", "paper", "--no-baseline", "--compare", "PQ6x4fs", "--compare", "IVF32,PQ4np",
+                     "--compare", "PQ4np", "--faiss-nprobe", "1", "--repeats", "1", "--out", str(out)]) == 0
         res = pq.read_table(out / "results.parquet").to_pandas()
         runs[floor, budget] = res[res.part == "all"].groupby("method")["n_queries"].first()
     n = runs[30, 52_500 * 5 * 40]
-    assert n["faiss:PQ6x4fs"] == 40 and n["faiss:IVF32,PQ4"] == n["coarsehash"] > 40  # the budget's 40 over 30
+    assert n["faiss:PQ6x4fs"] == 40 and n["faiss:IVF32,PQ4np"] == n["coarsehash"] > 40  # the budget's 40 over 30
     assert runs[40, 52_500 * 5 * 40]["faiss:PQ6x4fs"] == 40
     assert runs[1000, 52_500 * 5 * 40]["faiss:PQ6x4fs"] == n["coarsehash"] < 1000  # the floor: all when fewer
     tight = runs[30, 1]  # beyond any budget: scanning flat codes at the floor, the others still at every centre
-    assert tight["faiss:PQ6x4fs"] == 30 and tight["faiss:IVF32,PQ4"] == n["coarsehash"]
-    assert all(run["faiss:PQ4"] == n["coarsehash"] for run in runs.values())
+    assert tight["faiss:PQ6x4fs"] == 30 and tight["faiss:IVF32,PQ4np"] == n["coarsehash"]
+    assert all(run["faiss:PQ4np"] == n["coarsehash"] for run in runs.values())
 
 
 def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tmp_path):
     """``--flat-noise qm1``: flat codes whose evaluation scans every code per frame (fast-scan
-    PQ) run on QM1 alone; IVF codes, enumerable flat codes (PQ4: no scan) and CoarseHash on
+    PQ) run on QM1 alone; IVF codes, enumerable flat codes (PQ4np: no scan) and CoarseHash on
     every noise level; the evaluation records what was run."""
     out = tmp_path / "e"
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1,qm2",
                  "--flat-noise", "qm1", "--modes", "paper", "--no-baseline", "--compare", "PQ6x4fs", "--compare",
-                 "IVF32,PQ4", "--compare", "PQ4", "--repeats", "1", "--out", str(out)]) == 0
+                 "IVF32,PQ4np", "--compare", "PQ4np", "--repeats", "1", "--out", str(out)]) == 0
     res = pq.read_table(out / "results.parquet").to_pandas()
     ran = res.groupby("method")["noise"].agg(lambda n: sorted(set(n)))
     assert ran["faiss:PQ6x4fs"] == ["qm1"]
-    assert ran["faiss:IVF32,PQ4"] == ran["faiss:PQ4"] == ran["coarsehash"] == ["qm1", "qm2"]
+    assert ran["faiss:IVF32,PQ4np"] == ran["faiss:PQ4np"] == ran["coarsehash"] == ["qm1", "qm2"]
     assert json.loads((out / "eval.json").read_text())["flat_noise"] == ["qm1"]
 
 
@@ -249,10 +251,10 @@ def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_pa
     assert not out.exists()
 
 
-@pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("IVF256,PQ4", "residual"),
-                                           ("IVF300,PQ4", "residual"), ("OPQ3_30,IVF300,PQ3", "residual"),
+@pytest.mark.parametrize("factory, form", [("IVF16,PQ4", "residual"), ("IVF256,PQ4np", "residual"),
+                                           ("IVF300,PQ4np", "residual"), ("OPQ3_30,IVF300,PQ3np", "residual"),
                                            ("OPQ4,IVF16,PQ4x6", "residual"),
-                                           ("OPQ4,PQ4", "tables"), ("PQ4x6", "tables"), ("PQ8x4fs", "tables"),
+                                           ("OPQ4,PQ4np", "tables"), ("PQ4x6", "tables"), ("PQ8x4fs", "tables"),
                                            ("OPQ8,PQ8x4fs", "tables"), ("PQ1x4", "tables")])
 def test_table_scores_equal_decoded_vector_scores(factory, form):
     """Every candidate's window score from the tables (IVF-PQ: coarse distance + per-list term +
@@ -493,7 +495,7 @@ def test_smallest_is_a_stable_sort_prefix(values, data):
 
 
 @pytest.mark.parametrize("spread", ["data", "one far list", "flat rows"])
-@pytest.mark.parametrize("factory, dim", [("IVF256,PQ2", 16), ("IVF300,PQ3", 18)])
+@pytest.mark.parametrize("factory, dim", [("IVF256,PQ2np", 16), ("IVF300,PQ3np", 18)])
 def test_residual_best_from_coarse_levels_are_the_exact_best(spread, factory, dim):
     """IVF-PQ windows bound their candidates from 8-bit levels of each frame's distances to
     the lists and of each place's term, and score exactly only those that could be among the
@@ -535,7 +537,7 @@ def test_same_matches_whatever_the_workers(tiny_store, tiny_index, compared, tmp
     one worker gives the lists and matches two gave (FAISS's own threading changes its OPQ and
     ITQ rotations and IVF distances in the last bit with the thread count, flipping near-ties)."""
     out = tmp_path / "one"
-    threaded = ["OPQ4,PQ4x6", "IVF32,PQ4"]  # the forms whose FAISS threading changed bytes
+    threaded = ["OPQ4,PQ4x6", "IVF32,PQ4np"]  # the forms whose FAISS threading changed bytes
     argv = ["eval", str(tiny_store), str(tiny_index), "--L", str(L_SEQ), "--z", "97", "--noise", "qm1",
             "--modes", "aligned", "--no-baseline", "--out", str(out), "--workers", "1"]
     for factory in threaded:
@@ -564,11 +566,11 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
     words = [line for line in section.splitlines() if line.startswith("- tiny, QM1, L = ")]
     assert len(words) == 2
     res = compared["results"]
-    row = res[(res.method == "faiss:PQ4") & (res.L == L_SEQ) & (res["mode"] == "aligned") & (res.part == "all")
+    row = res[(res.method == "faiss:PQ4np") & (res.L == L_SEQ) & (res["mode"] == "aligned") & (res.part == "all")
               & (res.radius == 20)].iloc[0]
     time = f"{row.us_per_query:,.2f} ({row.us_per_query_lo:,.2f}–{row.us_per_query_hi:,.2f})"
     recall = f"{100 * row.recall:.1f} ({100 * row.recall_lo:.1f}–{100 * row.recall_hi:.1f})"
-    assert f"| PQ4 {row.params} (aligned) | 4.00 | {time} | {recall} | {row.n_queries} |" in section
+    assert f"| PQ4np {row.params} (aligned) | 4.00 | {time} | {recall} | {row.n_queries} |" in section
     # every ratio is of medians measured in the same run (one evaluation here)
     assert "different runs" not in section and "faster" in section or "slower" in section
     section, points = section.split("### Operating points")
@@ -655,19 +657,19 @@ def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tm
     flat one, is its own method row with its params, answered as FAISS answers at that point."""
     out = tmp_path / "points"
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline",
-                 "--compare", "IVF32,PQ4", "--compare", "PQ4", "--faiss-k", "3,6", "--faiss-nprobe", "1,4",
+                 "--compare", "IVF32,PQ4np", "--compare", "PQ4np", "--faiss-k", "3,6", "--faiss-nprobe", "1,4",
                  "--repeats", "1", "--out", str(out)]) == 0
     q = pq.read_table(out / "queries.parquet").to_pandas()
     points = q.groupby(["method", "params"]).size()
-    assert sorted(points.index) == sorted([("faiss:IVF32,PQ4", f"k={k} nprobe={n}") for k in (3, 6) for n in (1, 4)]
-                                          + [("faiss:PQ4", "k=3"), ("faiss:PQ4", "k=6")])
+    assert sorted(points.index) == sorted([("faiss:IVF32,PQ4np", f"k={k} nprobe={n}") for k in (3, 6) for n in (1, 4)]
+                                          + [("faiss:PQ4np", "k=3"), ("faiss:PQ4np", "k=6")])
     _, query, indexes = direct
-    ivf = faiss.extract_index_ivf(indexes["IVF32,PQ4"])
+    ivf = faiss.extract_index_ivf(indexes["IVF32,PQ4np"])
     try:
         for k, n in ((3, 1), (6, 4)):
             ivf.nprobe = n
-            rows = q[(q.method == "faiss:IVF32,PQ4") & (q.params == f"k={k} nprobe={n}")].sort_values("t")
-            _, ids = indexes["IVF32,PQ4"].search(query.get_orthogonal_selection((rows.t.to_numpy(), slice(None))), k)
+            rows = q[(q.method == "faiss:IVF32,PQ4np") & (q.params == f"k={k} nprobe={n}")].sort_values("t")
+            _, ids = indexes["IVF32,PQ4np"].search(query.get_orthogonal_selection((rows.t.to_numpy(), slice(None))), k)
             np.testing.assert_array_equal(rows["match"].to_numpy(), ids[:, 0])
             np.testing.assert_array_equal(rows.n_r.to_numpy(), (ids >= 0).sum(axis=1))
     finally:
@@ -677,8 +679,8 @@ def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tm
     text = (tmp_path / "r" / "report.md").read_text()
     for k in (3, 6):
         for n in (1, 4):
-            assert f"| IVF32,PQ4 k={k} nprobe={n} (single) |" in text
-        assert f"| PQ4 k={k} (single) |" in text
+            assert f"| IVF32,PQ4np k={k} nprobe={n} (single) |" in text
+        assert f"| PQ4np k={k} (single) |" in text
 
 
 def test_recall_at_n_ranks_at_least_n_whatever_the_operating_point(compared, direct):
@@ -688,7 +690,7 @@ def test_recall_at_n_ranks_at_least_n_whatever_the_operating_point(compared, dir
     ``ranked_mean`` says how many each ranking weighed, and Recall@N never falls with N."""
     _, query, indexes = direct
     q, res = compared["queries"], compared["results"]
-    for factory in ("PQ4", "IVF32,PQ4", "HNSW32"):
+    for factory in ("PQ4np", "IVF32,PQ4np", "HNSW32"):
         assert _k(compared, factory) < N_BEST
         rows = q[(q.method == f"faiss:{factory}") & (q.L == 1)].sort_values("t")
         _, ids = indexes[factory].search(query.get_orthogonal_selection((rows.t.to_numpy(), slice(None))), N_BEST)

@@ -137,12 +137,12 @@ def test_a_stored_encoding_without_its_manifest_or_with_changed_codes_is_refused
                                                                                  small_training, capsys):
     store = tmp_path / "s.zarr"
     shutil.copytree(tiny_store, store)
-    assert main(["encode", str(store), "--compare", "PQ4", "-q"]) == 0
-    encoding = tmp_path / "s.faiss" / "PQ4"
+    assert main(["encode", str(store), "--compare", "PQ4np", "-q"]) == 0
+    encoding = tmp_path / "s.faiss" / "PQ4np"
     capsys.readouterr()
     assert main(["verify", str(encoding)]) == 0
     assert "encoding verified" in capsys.readouterr().out
-    evaluate = ["eval", str(store), str(tiny_index), "--L", "1", "--compare", "PQ4", "--out", str(tmp_path / "e")]
+    evaluate = ["eval", str(store), str(tiny_index), "--L", "1", "--compare", "PQ4np", "--out", str(tmp_path / "e")]
     _same_size_edit(encoding / "codes.npy")
     fails(capsys, evaluate, "codes.npy", "content changed")
     (encoding / "manifest.json").unlink()

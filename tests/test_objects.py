@@ -356,20 +356,20 @@ def test_an_encoding_beside_a_store_on_s3_is_made_once_and_evaluated_from_its_co
     url = f"s3://{BUCKET}/enc"
     assert main(["build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]),
                  "--out", url, "-q"]) == 0
-    assert main(["encode", f"{url}/tiny.zarr", "--compare", "PQ4", "-q"]) == 0
-    assert "manifest.json" in Remote(f"{url}/tiny.faiss/PQ4").files()
+    assert main(["encode", f"{url}/tiny.zarr", "--compare", "PQ4np", "-q"]) == 0
+    assert "manifest.json" in Remote(f"{url}/tiny.faiss/PQ4np").files()
     capsys.readouterr()
-    assert main(["encode", f"{url}/tiny.zarr", "--compare", "PQ4"]) == 0
+    assert main(["encode", f"{url}/tiny.zarr", "--compare", "PQ4np"]) == 0
     assert "up to date, kept" in capsys.readouterr().out
-    grid = ["--L", "1", "--noise", "qm1", "--no-baseline", "--compare", "PQ4", "-q"]
+    grid = ["--L", "1", "--noise", "qm1", "--no-baseline", "--compare", "PQ4np", "-q"]
     assert main(["eval", f"{url}/tiny.zarr", str(tiny_index), *grid, "--out", str(tmp_path / "remote")]) == 0
     assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", str(tmp_path / "local")]) == 0
     remote_eval = json.loads((tmp_path / "remote" / "eval.json").read_text())
-    assert remote_eval["compare"]["faiss:PQ4"]["encoding"]  # the stored encoding, not one trained by the eval
+    assert remote_eval["compare"]["faiss:PQ4np"]["encoding"]  # the stored encoding, not one trained by the eval
     import pyarrow.parquet as pq
 
     answers = [pq.read_table(tmp_path / run / "queries.parquet").to_pandas() for run in ("remote", "local")]
-    faiss_rows = [a[a["method"] == "faiss:PQ4"].sort_values(["L", "t"]).reset_index(drop=True) for a in answers]
+    faiss_rows = [a[a["method"] == "faiss:PQ4np"].sort_values(["L", "t"]).reset_index(drop=True) for a in answers]
     assert len(faiss_rows[0]) > 0 and faiss_rows[0]["match"].tolist() == faiss_rows[1]["match"].tolist()
 
 

@@ -97,7 +97,7 @@ def two_noise_report(tiny_store, tiny_index, tmp_path_factory):
     in metres on the FAS part (the recipe's store keeps its poses)."""
     tmp = tmp_path_factory.mktemp("html")
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--z", "97", "--noise", "qm1,qm2",
-                 "--compare", "PQ4", "--repeats", "1", "--radius-m", "5,25", "--out", str(tmp / "e")]) == 0
+                 "--compare", "PQ4np", "--repeats", "1", "--radius-m", "5,25", "--out", str(tmp / "e")]) == 0
     assert main(["report", str(tmp / "e"), "--out", str(tmp / "r")]) == 0
     return tmp / "e", tmp / "r"
 
@@ -145,7 +145,7 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     _chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri())
     shot = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB")).reshape(-1, 3).astype(int)
     colours = _json.loads(re.search(r"var COLOURS = (\{.*?\}), SYMBOLS", text).group(1))
-    assert set(colours) == {"CoarseHash", "baseline", "PQ4"}
+    assert set(colours) == {"CoarseHash", "baseline", "PQ4np"}
     for method, colour in colours.items():  # each method's points and lines are on the screen
         rgb = np.array([int(colour[i : i + 2], 16) for i in (1, 3, 5)])
         assert (np.abs(shot - rgb).max(axis=1) <= 12).sum() > 200, method
