@@ -5,10 +5,13 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+import faiss
 import numpy as np
 import pytest
 from hypothesis import settings
+from threadpoolctl import threadpool_limits
 
+from vprscale.compared.faisscodes import ENCODE_ROWS
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.sources.writers import write_fas_npz, write_fbin, write_fvecs
 from vprscale.method.hashkernels import hash_rows
@@ -33,6 +36,29 @@ def kmeans_1d_exact(column: np.ndarray, k: int) -> np.ndarray:
     """Exact 1-D k-means centres of an in-memory column (its distinct values weighted by count)."""
     values, counts = np.unique(np.asarray(column, np.float64), return_counts=True)
     return kmeans_1d(values, counts, k)
+
+
+def faiss_own(factory: str, train: np.ndarray, ref: np.ndarray) -> faiss.Index:
+    """``factory`` built with FAISS directly on one thread: trained on ``train`` (OPQ and ITQ
+    training change with the BLAS thread count), then ``add`` of the references in blocks of
+    ``ENCODE_ROWS`` (an HNSW graph's links and LSQ's codes depend on the rows added together)."""
+    omp = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)
+    try:
+        index = faiss.index_factory(ref.shape[1], factory)
+        with threadpool_limits(limits=1, user_api="blas"):
+            index.train(train)
+        for lo in range(0, len(ref), ENCODE_ROWS):
+            index.add(ref[lo : lo + ENCODE_ROWS])
+    finally:
+        faiss.omp_set_num_threads(omp)
+    if "IVF" in factory:
+        faiss.extract_index_ivf(index).nprobe = 16
+    if "HNSW" in factory:
+        inner = faiss.downcast_index(index)
+        faiss.downcast_index(getattr(inner, "index", inner)).hnsw.efSearch = 64  # past a transform, if any
+    return index
+
 
 
 @pytest.fixture(autouse=True)
