@@ -89,9 +89,11 @@ def test_from_addresses_needs_one_error_per_address():
         Index.from_addresses(np.array([0, 1, 2], np.uint64), hasher, np.zeros(2))
 
 
-def test_saved_index_is_the_job_format_and_every_command_reads_it(tiny_store, tiny_index, tmp_path):
+def test_saved_index_is_the_job_format_and_every_command_reads_it(tiny_store, tiny_index, tmp_path, capsys):
     """An ``Index.save`` copy holds the files the index job writes, with equal bytes for the
     lists, and works with sql, occupancy, eval and localise."""
+    from vprscale.cli import main
+
     original = tiny_index
     copy = tmp_path / "copy.index"
     Index.load(original).save(copy)
@@ -106,27 +108,21 @@ def test_saved_index_is_the_job_format_and_every_command_reads_it(tiny_store, ti
     assert json.loads((copy / "index.json").read_text())["store"] == json.loads(
         (original / "index.json").read_text())["store"]
 
-    def cli(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "vprscale.cli", *args], capture_output=True, text=True,
-                              cwd=tmp_path)
-
     n_ref = read_index(original).n_ref
-    sql = cli("sql", str(copy), "SELECT count(*) AS n FROM lists", "--json")
-    assert sql.returncode == 0, sql.stderr
-    assert json.loads(sql.stdout.splitlines()[0])["n"] == n_ref
-    occ = cli("occupancy", str(copy), "--json")
-    assert occ.returncode == 0, occ.stderr
-    assert json.loads(occ.stdout)["occupied"] == read_index(original).occupied
+    assert main(["sql", str(copy), "SELECT count(*) AS n FROM lists", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[0])["n"] == n_ref
+    assert main(["occupancy", str(copy), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["occupied"] == read_index(original).occupied
     matches = []
     for idx in (original, copy):
-        ev = cli("eval", str(tiny_store), str(idx), "--noise", "qm1", "--L", "1,50", "--modes", "paper",
-                 "--no-baseline", "--repeats", "1", "--out", str(tmp_path / f"ev-{idx.name}"))
-        assert ev.returncode == 0, ev.stderr
-        matches.append(pq.read_table(tmp_path / f"ev-{idx.name}" / "queries.parquet").to_pandas())
+        out = tmp_path / f"ev-{idx.name}"
+        assert main(["eval", str(tiny_store), str(idx), "--noise", "qm1", "--L", "1,50", "--modes", "paper",
+                     "--no-baseline", "--repeats", "1", "--out", str(out), "-q"]) == 0
+        matches.append(pq.read_table(out / "queries.parquet").to_pandas())
     assert len(matches[0]) > 0
     np.testing.assert_array_equal(matches[0].match.to_numpy(), matches[1].match.to_numpy())
-    loc = cli("localise", str(copy), str(tiny_store / "query_qm1"), "--L", "50", "--out", str(tmp_path / "m.parquet"))
-    assert loc.returncode == 0, loc.stderr
+    assert main(["localise", str(copy), str(tiny_store / "query_qm1"), "--L", "50", "--out",
+                 str(tmp_path / "m.parquet"), "-q"]) == 0
     assert pq.read_table(tmp_path / "m.parquet").num_rows > 0
 
 

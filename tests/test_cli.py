@@ -142,13 +142,13 @@ def test_the_sql_shell_on_a_terminal(evaluated, tmp_path):
     assert "SELECT 6 * 7 AS answer;" in history.read_text()
 
 
-def test_report_is_not_replaced_without_force_and_is_kept_with_it(evaluated, tmp_path):
+def test_report_is_not_replaced_without_force_and_is_kept_with_it(evaluated, tmp_path, capsys):
     out = tmp_path / "rep"
     assert main(["report", str(evaluated / "eval"), "--out", str(out), "--quiet"]) == 0
     first = {p.name: p.read_bytes() for p in out.iterdir()}
-    done = _vprscale("report", str(evaluated / "eval"), "--out", str(out))
-    assert done.returncode == 2
-    assert done.stderr.strip().splitlines() == [
+    capsys.readouterr()
+    assert main(["report", str(evaluated / "eval"), "--out", str(out)]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
         f"vprscale report: error: --out {out}: already holds a report; --force replaces it and keeps it beside, "
         "in rep.previous/"]
     assert {p.name: p.read_bytes() for p in out.iterdir()} == first
