@@ -60,7 +60,6 @@ def faiss_own(factory: str, train: np.ndarray, ref: np.ndarray) -> faiss.Index:
     return index
 
 
-
 @pytest.fixture(autouse=True)
 def own_cache(tmp_path, monkeypatch):
     """Each test its own ``$VPRSCALE_CACHE``: a FAS fit (or a fetched copy) cached by one test must
