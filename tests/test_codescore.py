@@ -302,6 +302,17 @@ def test_residual_best_from_coarse_levels_are_the_exact_best(spread, factory, di
             np.testing.assert_array_equal(scores, every[1][:, :n_best])
 
 
+def _trained_and_encoded(codes: FaissCodes, train: np.ndarray, ref: np.ndarray, block: int) -> FaissCodes:
+    """``codes`` trained on ``train`` as a job trains them (BLAS on one thread) and holding ``ref``,
+    given in chunks of ``block`` rows."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        codes.train(train)
+    codes.start(len(ref))
+    for lo in range(0, len(ref), block):
+        codes.encode(ref[lo : lo + block])
+    codes.finish()
+    return codes
+
 
 @pytest.mark.parametrize("factory", ["RaBitQfs", "IVF16,RaBitQfs", "IVF16,PQ4x4fs", "IVF16,RaBitQ", "LSQ2x8",
                                      "PRQ2x2x6", "IVF16,RQ4x4fs_Nrq2x4", "IVF16,LSQ2x4fsr_Nlsq2x4", "HNSW16",
@@ -317,13 +328,7 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
     ref = rng.standard_normal((9000, 16)).astype(np.float32)
     query = ref[::50] + 0.2 * rng.standard_normal((180, 16)).astype(np.float32)
     train = ref[training_rows(len(ref))]
-    codes = FaissCodes(factory, 16, k=7)
-    with threadpool_limits(limits=1, user_api="blas"):
-        codes.train(train)
-    codes.start(len(ref))
-    for lo in range(0, len(ref), 2500):
-        codes.encode(ref[lo : lo + 2500])
-    codes.finish()
+    codes = _trained_and_encoded(FaissCodes(factory, 16, k=7), train, ref, block=2500)
     own = faiss_own(factory, train, ref)
     dist, ids = codes.search(query)
     own_dist, own_ids = own.search(query, 7)
@@ -347,6 +352,24 @@ def test_new_codes_answer_as_faiss_itself_whatever_the_chunks(factory):
         assert codes.codes.shape == (len(ref), width) and codes.vectors.shape == (0, 0)
     else:
         assert codes.vectors.shape == (len(ref), codes.inner.d)
+
+
+@pytest.mark.parametrize("factory", ["PQ4", pytest.param("IVF16,PQ4", marks=pytest.mark.slow)])
+def test_product_codes_answer_as_faiss_polysemous_trained_ones(factory):
+    """A product quantiser trained without FAISS's polysemous renumbering (it only numbers the
+    centroids otherwise) finds what the factory's own polysemous-trained index finds: the same
+    neighbours at the same distances, bit for bit."""
+    rng = np.random.default_rng(5)
+    ref = np.cumsum(rng.standard_normal((6000, 16)), axis=0).astype(np.float32) * 0.1
+    query = ref[::40] + 0.05 * rng.standard_normal((150, 16)).astype(np.float32)
+    train = ref[training_rows(len(ref))]
+    codes = _trained_and_encoded(FaissCodes(factory, 16, k=9), train, ref, block=len(ref))
+    own = faiss_own(factory, train, ref)
+    assert not codes.inner.do_polysemous_training and faiss.downcast_index(own).do_polysemous_training
+    dist, ids = codes.search(query)
+    own_dist, own_ids = own.search(query, 9)
+    np.testing.assert_array_equal(ids, own_ids)
+    np.testing.assert_array_equal(dist, own_dist)
 
 
 @pytest.mark.parametrize("factory, message", [

@@ -118,9 +118,8 @@ def test_same_matches(both_indexes, compact_store, tiny_store, sources, tmp_path
     """Every method, FAISS codes included (the compact store's references recomputed from its
     sources, the full store's read), answers the same on both layouts."""
     compact, full = both_indexes
-    # a flat, an IVF and a transformed code (PCA: OPQ's 50 rotations were a third of this test, and the
-    # factory's polysemous training of 8-bit codes another; test_compare and test_codescore train OPQ, test_encode
-    # and test_codescore the polysemous codes)
+    # a flat, an IVF and a transformed code (PCA: OPQ's 50 rotations were a third of this test; test_compare and
+    # test_codescore train OPQ)
     compare = ["--compare", "PQ4np", "--compare", "IVF32,PQ4np", "--compare", "PCA32,PQ4x6"]
     files = ["--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"])]
     tables = []

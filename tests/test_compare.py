@@ -27,8 +27,8 @@ from vprscale.method.kernels import N_BEST
 from .conftest import SMALL_TRAINING, faiss_own
 
 # (the additive quantisers, whose flat search decodes every code, are checked apart: test_new_codes_…). The 8-bit
-# product quantisers are FAISS's `np` forms: the factory's default polysemous training only renumbers a codebook's
-# entries and took 7.5 s of each code's 7.8 s of training (test_codescore's IVF16,PQ4 and test_encode's PQ4 keep it)
+# product quantisers are FAISS's `np` forms: FAISS's own index (`direct`) would otherwise spend 7.5 s a code on its
+# polysemous training, which vprscale skips (test_codescore's PQ4 and IVF16,PQ4 compare the two trainings)
 FACTORIES = ["PQ4np", "PQ4x6", "PQ6x4fs", "ITQ16,LSH", "IVF32,PQ4np", "RaBitQ", "IVF32,RaBitQfs", "HNSW32"]
 L_SEQ = 9
 

@@ -15,8 +15,8 @@ from vprscale.cli import main
 from vprscale.compared.encoding import GRAPH, LISTS, SEARCHED, WINDOW, encoding_dir
 
 # 8-bit, 4-bit fast-scan and residual codes; over an IVF, an additive quantiser's and RaBitQ's records, a fast-scan
-# additive quantiser's codes; a graph. The IVF-PQ without FAISS's polysemous training (its `np`: a renumbering of the
-# codebook, 7.5 s of each training here), the flat PQ with it
+# additive quantiser's codes; a graph. The IVF-PQ in FAISS's `np` form (its own index, built
+# here for comparison, skips the polysemous training vprscale never does), the flat PQ in the plain one
 FACTORIES = ["PQ4", "PQ6x4fs", "IVF32,PQ4np", "IVF32,RQ2x8_Nqint8", "IVF32,RQ4x4fs_Nrq2x4", "PCA16,IVF32,RaBitQ",
              "HNSW16"]
 
