@@ -22,6 +22,7 @@ import zarr
 from vprscale.cli import main
 from vprscale.compared.codescore import REF_LEVEL_BYTES
 from vprscale.compared.faisscodes import ID_BYTES, training_rows
+from vprscale.evaluation.algorithms.faisscodes import FaissMethod
 from vprscale.method.kernels import N_BEST
 
 from .conftest import SMALL_TRAINING, faiss_own
@@ -374,6 +375,32 @@ def test_every_operating_point_is_its_own_row(tiny_store, tiny_index, direct, tm
         for n in (1, 4):
             assert f"| IVF32,PQ4np k={k} nprobe={n} (single) |" in text
         assert f"| PQ4np k={k} (single) |" in text
+
+
+def test_operating_points_share_their_ranking_and_answer_as_alone(tiny_store, tiny_index, tmp_path, small_training,
+                                                                 monkeypatch):
+    """Operating points of one code differing only in k (both below N_BEST) search the frames'
+    top N_BEST once per noise level and share the ranking's window answers, yet each answers
+    (match, score, Recall@N ranking) as it does evaluated alone."""
+    searches = []
+    search = FaissMethod._search
+    monkeypatch.setattr(FaissMethod, "_search", lambda self, rows: searches.append(self.k) or search(self, rows))
+    common = ["--L", "1,9", "--noise", "qm1", "--no-baseline", "--compare", "PQ4np", "--repeats", "1"]
+    assert main(["eval", str(tiny_store), str(tiny_index), *common, "--faiss-k", "3,6", "--out", str(tmp_path / "both"),
+                 "-q"]) == 0
+    assert len(searches) == 1  # the answers' search at N_BEST, for both points
+    assert main(["eval", str(tiny_store), str(tiny_index), *common, "--faiss-k", "6", "--out", str(tmp_path / "alone"),
+                 "-q"]) == 0
+    both, alone = (pq.read_table(tmp_path / run / "queries.parquet").to_pandas() for run in ("both", "alone"))
+    faiss_rows = both[both.method == "faiss:PQ4np"]
+    assert set(faiss_rows.params) == {"k=3", "k=6"}
+    mine = faiss_rows[faiss_rows.params == "k=6"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
+    theirs = alone[alone.method == "faiss:PQ4np"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(mine, theirs)
+    # the two points' rankings are one ranking; their matches come from their own k
+    k3 = faiss_rows[faiss_rows.params == "k=3"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
+    np.testing.assert_array_equal(np.stack(k3.top.to_numpy()), np.stack(mine.top.to_numpy()))
+    assert (k3.n_r <= 3 * 9).all() and (k3.n_r.to_numpy() <= mine.n_r.to_numpy()).all()
 
 
 def test_recall_at_n_ranks_at_least_n_whatever_the_operating_point(compared, direct):

@@ -54,7 +54,7 @@ DEFAULT_REPEATS = 3
 # The results columns that measure the machine rather than the method's answers: everything
 # else in an evaluation's tables is the same bytes for the same inputs, whatever the workers.
 TIMING_COLUMNS = ("us_per_query", "us_per_query_lo", "us_per_query_hi", "us_per_frame", "us_per_match",
-                  "queries_per_s", "timed_frames")
+                  "queries_per_s", "timed_queries", "timed_frames")
 
 
 def spread(n: int, limit: int | None) -> np.ndarray:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from threading import Lock
@@ -65,6 +67,47 @@ def fit_codes(methods: list[FaissCodes], ref: da.Array, quiet: bool = False) -> 
             list(pool.map(lambda m: m.finish(tick if bar and m.finish_blocks else None), methods))
 
 
+def _bytes_digest(a: np.ndarray) -> bytes:
+    return hashlib.blake2b(np.ascontiguousarray(a).tobytes(), digest_size=16).digest()
+
+
+class SharedRanking:
+    """The Recall@N ranking of one code at one ``nprobe``, shared by its operating points that
+    differ only in k, each below ``N_BEST``: they all search the frames' top ``N_BEST`` and score
+    the windows of those lists, the same work and the same answers whatever their k, so it is
+    done once per noise level rather than once per k (in the quickstart, two values of k, it was
+    a third of the evaluation's CPU). Held for the last frames searched only (a new noise level
+    or sample replaces it); what the runner times (the match alone) never comes from here. The
+    arrays handed out are shared: nothing downstream writes into an answer's ranking or state."""
+
+    def __init__(self) -> None:
+        self._frames = b""  # digest of the frames the held search is of
+        self._found: tuple | None = None  # (dist, ids, ranking) of those frames at N_BEST
+        self._answers: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+    def search(self, rows: np.ndarray, search: Callable[[], tuple[np.ndarray, np.ndarray]]) -> tuple:
+        """``(dist, ids, ranking)`` of ``rows`` at ``N_BEST``: ``search()``'s, run once per frames."""
+        digest = _bytes_digest(rows)
+        if self._found is None or digest != self._frames:
+            dist, ids = search()
+            self._frames, self._answers = digest, {}
+            self._found = dist, ids, ranked_lists(ids)
+        return self._found
+
+    def answer(self, ranking: tuple, pos: np.ndarray, L: int, mode: str | None, n_best: int,
+               answer: Callable[[], Answer]) -> tuple[np.ndarray, np.ndarray]:
+        """``(top, n_r)`` of the windows at ``pos`` over ``ranking``: ``answer()``'s, once per
+        window set, when ``ranking`` is the one held (any other is answered, not kept)."""
+        if self._found is None or ranking is not self._found[2]:
+            got = answer()
+            return got.top, got.n_r
+        key = (_bytes_digest(pos), L, mode, n_best)
+        if key not in self._answers:
+            got = answer()
+            self._answers[key] = got.top, got.n_r
+        return self._answers[key]
+
+
 class FaissMethod(Algorithm):
     """One FAISS index: L = 1 is its top-1, L > 1 scores the window's candidates over the codes.
 
@@ -85,8 +128,9 @@ class FaissMethod(Algorithm):
     timed_side_by_side = True
 
     def __init__(self, codes: FaissCodes, n_centres: int, max_L: int, query_limit: int | None,
-                 k: int | None = None, nprobe: int | None = None, flat_noise: list[str] | None = None) -> None:
-        self.codes = codes
+                 k: int | None = None, nprobe: int | None = None, flat_noise: list[str] | None = None,
+                 shared: SharedRanking | None = None) -> None:
+        self.codes, self.shared = codes, shared
         self.name = codes.name
         self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
         self.bytes_per_place = codes.bytes_per_place
@@ -142,10 +186,14 @@ class FaissMethod(Algorithm):
         only places at exactly equal distances may come in another order), and the search,
         which dominates an IVF code's evaluation, is not run twice."""
         self.codes.set_point(max(self.k, N_BEST), self.nprobe)
-        dist, ids = self._search(rows)
         ranking = None
+        if self.shared is not None:
+            dist, ids, lists = self.shared.search(rows, lambda: self._search(rows))
+        else:
+            dist, ids = self._search(rows)
+            lists = ranked_lists(ids) if self.k < N_BEST else None
         if self.k < N_BEST:
-            ranking = ids, dist, ranked_lists(ids)
+            ranking = ids, dist, lists
             dist, ids = np.ascontiguousarray(dist[:, : self.k]), np.ascontiguousarray(ids[:, : self.k])
         self._apply()
         state = self._state(rows, dist, ids, ranking)
@@ -164,8 +212,12 @@ class FaissMethod(Algorithm):
         ids, dist, lists, terms, ranking = state
         answer = self._answer(ids, dist, lists, terms, pos, L, mode, n_best)
         if ranking is not None and n_best > 1:
-            ranked = self._answer(*ranking, terms, pos, L, mode, n_best)
-            answer.ranked, answer.n_ranked = ranked.top, ranked.n_r
+            ranked = partial(self._answer, *ranking, terms, pos, L, mode, n_best)
+            if self.shared is not None:
+                answer.ranked, answer.n_ranked = self.shared.answer(ranking[2], pos, L, mode, n_best, ranked)
+            else:
+                got = ranked()
+                answer.ranked, answer.n_ranked = got.top, got.n_r
         return answer
 
     def _answer(self, ids: np.ndarray, dist: np.ndarray, lists: tuple, terms: Any, pos: np.ndarray, L: int,
@@ -186,11 +238,16 @@ class FaissMethod(Algorithm):
 
 def create(context: Any) -> list[Algorithm]:
     """The registry's factory: one method per FAISS code the evaluation compares (``--compare``) and
-    operating point (every ``--faiss-k``, with every ``--faiss-nprobe`` for IVF codes), in that order."""
+    operating point (every ``--faiss-k``, with every ``--faiss-nprobe`` for IVF codes), in that order;
+    the points of a code at one nprobe whose k are below ``N_BEST`` share their ranking
+    (:class:`SharedRanking`) when there are several."""
     found: list[Algorithm] = []
     for codes in context.compared:
         nprobes = (context.faiss_nprobe or [codes.nprobe]) if codes.ivf is not None else [codes.nprobe]
-        for k in context.faiss_k or [codes.k]:
+        ks = context.faiss_k or [codes.k]
+        below = sum(k < N_BEST for k in ks) > 1
+        shared = {n: SharedRanking() if below else None for n in nprobes}
+        for k in ks:
             found += [FaissMethod(codes, context.n_centres, max(context.lengths), context.compare_queries, k, n,
-                                  context.flat_noise) for n in nprobes]
+                                  context.flat_noise, shared[n] if k < N_BEST else None) for n in nprobes]
     return found
