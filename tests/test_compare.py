@@ -385,20 +385,21 @@ def test_operating_points_share_their_ranking_and_answer_as_alone(tiny_store, ti
     searches = []
     search = FaissMethod._search
     monkeypatch.setattr(FaissMethod, "_search", lambda self, rows: searches.append(self.k) or search(self, rows))
-    common = ["--L", "1,9", "--noise", "qm1", "--no-baseline", "--compare", "PQ4np", "--repeats", "1"]
+    common = ["--L", "1,9", "--noise", "qm1", "--no-baseline", "--compare", "IVF16,PQ4np", "--repeats", "1",
+              "--modes", "paper", "--faiss-nprobe", "1"]
     assert main(["eval", str(tiny_store), str(tiny_index), *common, "--faiss-k", "3,6", "--out", str(tmp_path / "both"),
                  "-q"]) == 0
     assert len(searches) == 1  # the answers' search at N_BEST, for both points
     assert main(["eval", str(tiny_store), str(tiny_index), *common, "--faiss-k", "6", "--out", str(tmp_path / "alone"),
                  "-q"]) == 0
     both, alone = (pq.read_table(tmp_path / run / "queries.parquet").to_pandas() for run in ("both", "alone"))
-    faiss_rows = both[both.method == "faiss:PQ4np"]
-    assert set(faiss_rows.params) == {"k=3", "k=6"}
-    mine = faiss_rows[faiss_rows.params == "k=6"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
-    theirs = alone[alone.method == "faiss:PQ4np"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
+    faiss_rows = both[both.method == "faiss:IVF16,PQ4np"]
+    assert set(faiss_rows.params) == {"k=3 nprobe=1", "k=6 nprobe=1"}
+    mine = faiss_rows[faiss_rows.params == "k=6 nprobe=1"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
+    theirs = alone[alone.method == "faiss:IVF16,PQ4np"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
     pd.testing.assert_frame_equal(mine, theirs)
     # the two points' rankings are one ranking; their matches come from their own k
-    k3 = faiss_rows[faiss_rows.params == "k=3"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
+    k3 = faiss_rows[faiss_rows.params == "k=3 nprobe=1"].sort_values(["L", "mode", "t"]).reset_index(drop=True)
     np.testing.assert_array_equal(np.stack(k3.top.to_numpy()), np.stack(mine.top.to_numpy()))
     assert (k3.n_r <= 3 * 9).all() and (k3.n_r.to_numpy() <= mine.n_r.to_numpy()).all()
 
