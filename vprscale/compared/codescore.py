@@ -232,7 +232,8 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
     the candidate centres ``cand`` (tables, factors or vectors form): each candidate's sum of
     terms inside the map, its count of reference frames outside it, and the largest term seen.
 
-    The window's frames are the outer loop: each frame's tables (3 KB for 3 code bytes) stay
+    Decoded rows are summed candidate by candidate (:func:`_vector_window_sums`); codes frame by
+    frame, the window's frames the outer loop: each frame's tables (3 KB for 3 code bytes) stay
     in the first-level cache while every candidate reads its reference at that offset, and
     the candidates' code lines stay there from one frame to the next.
     """
@@ -249,6 +250,8 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
     sums = np.zeros(m, np.float64)
     outside = np.zeros(m, np.int64)
     largest = 0.0
+    if not by_tables:
+        return _vector_window_sums(t, L, cand, n_ref, q_vectors, vectors, sums, outside)
     for i in range(L):
         p = t + i - half
         if by_tables and i + 1 < L:
@@ -267,10 +270,31 @@ def _window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, tables: np.n
                     if lst != centre_list:
                         centre_list, centre_dist = lst, _squared_distance(q_vectors, p, centroids, lst)
                 dist = _factors_dist(tables, codes, vectors, p, r, width, centre_dist)
-            elif by_tables:
-                dist = _table_dist(tables, p, codes, r, width)
             else:
-                dist = _squared_distance(q_vectors, p, vectors, r)
+                dist = _table_dist(tables, p, codes, r, width)
+            sums[j] += dist
+            largest = max(largest, dist)
+    return sums, outside, largest
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _vector_window_sums(t: np.int64, L: int, cand: np.ndarray, n_ref: int, q_vectors: np.ndarray,
+                        vectors: np.ndarray, sums: np.ndarray,
+                        outside: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.float64]:
+    """:func:`_window_sums` over decoded rows (a graph's own rows: 384 bytes a place at 96-d),
+    candidate by candidate: a candidate's ``L`` consecutive rows are one run of memory the
+    processor streams in, where frame by frame every term was a miss of its own (each sum
+    still adds its terms in frame order: the same bits). The frames' rows, a few tens of KB,
+    stay cached across candidates."""
+    half = L // 2
+    largest = 0.0
+    for j in range(cand.shape[0]):
+        for i in range(L):
+            r = cand[j] + i - half
+            if r < 0 or r >= n_ref:  # a reference frame outside the map
+                outside[j] += 1
+                continue
+            dist = _squared_distance(q_vectors, t + i - half, vectors, r)
             sums[j] += dist
             largest = max(largest, dist)
     return sums, outside, largest
