@@ -38,14 +38,24 @@ def kmeans_1d_exact(column: np.ndarray, k: int) -> np.ndarray:
     return kmeans_1d(values, counts, k)
 
 
-def faiss_own(factory: str, train: np.ndarray, ref: np.ndarray) -> faiss.Index:
+def faiss_own(factory: str, train: np.ndarray, ref: np.ndarray, anneal: int | None = None) -> faiss.Index:
     """``factory`` built with FAISS directly on one thread: trained on ``train`` (OPQ and ITQ
     training change with the BLAS thread count), then ``add`` of the references in blocks of
-    ``ENCODE_ROWS`` (an HNSW graph's links and LSQ's codes depend on the rows added together)."""
+    ``ENCODE_ROWS`` (an HNSW graph's links and LSQ's codes depend on the rows added together).
+
+    ``anneal``: the iterations of an 8-bit product quantiser's polysemous renumbering (FAISS's
+    500,000 take 7 s whatever the sample; any number renumbers the codebook).
+    """
     omp = faiss.omp_get_max_threads()
     faiss.omp_set_num_threads(1)
     try:
         index = faiss.index_factory(ref.shape[1], factory)
+        if anneal is not None:
+            schedule = faiss.PolysemousTraining()
+            schedule.n_iter = anneal
+            quantiser = faiss.downcast_index(faiss.extract_index_ivf(index) if "IVF" in factory else index)
+            quantiser.polysemous_training = schedule  # an IVF-PQ holds a pointer: kept alive with the index
+            index.referenced_objects = [schedule]
         with threadpool_limits(limits=1, user_api="blas"):
             index.train(train)
         for lo in range(0, len(ref), ENCODE_ROWS):
