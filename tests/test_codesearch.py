@@ -139,3 +139,16 @@ def test_bench_codes_prints_the_frame_search_against_faiss(tiny_store, capsys):
     assert [line.split()[0] for line in section] == ["PQ4np", "ITQ16,LSH"]  # the fast-scan code scans
     for line in section:
         assert line.split()[-1] == "256/256"
+
+
+def test_bench_codes_times_faiss_distance_computer_on_fast_scan_ivf_and_few_places(tiny_store, capsys):
+    """The distance-computer column of an IVF fast-scan code reads its searched copy's lists (the
+    trained index holds none: FAISS aborted the process), and fewer places than FAISS's random
+    index would propose are all proposed."""
+    from vprscale.cli import main
+
+    assert main(["bench", "codes", str(tiny_store), "--compare", "IVF16,PQ4x4fsr", "--places", "3000",
+                 "--L", "5"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("IVF16,PQ4x4fsr"))
+    computer = float(line.split()[7])  # FAISS: distance comp. (median)
+    assert computer > 0

@@ -85,15 +85,16 @@ def _ours(codes: FaissCodes, terms: FrameTerms, L: int, rng: np.random.Generator
 def _faiss_distance_computer(codes: FaissCodes, query: np.ndarray, repeats: int) -> tuple[float, float, float]:
     """FAISS's distance computer of the searched index on random ids, per id (one thread):
     ``IndexRefine(IndexRandom)``'s search less the random index's own."""
-    if codes.ivf is not None:
-        codes.ivf.make_direct_map()  # an IVF finds an id's code through it
-    y = np.ascontiguousarray(query[:WINDOWS * CANDIDATES // PROPOSED], np.float32)
+    if codes.ivf is not None:  # an IVF finds an id's code through it (a fast-scan code: in its searched copy)
+        faiss.extract_index_ivf(codes.searched).make_direct_map()
+    proposed = min(PROPOSED, codes.n_ref)  # FAISS's random index proposes at most every place
+    y = np.ascontiguousarray(query[:WINDOWS * CANDIDATES // proposed], np.float32)
     proposer = faiss.IndexRandom(codes.dim, codes.n_ref)
     refined = faiss.IndexRefine(proposer, codes.searched)
-    refined.k_factor = PROPOSED
+    refined.k_factor = proposed
     faiss.omp_set_num_threads(1)
-    both = _cpu_ns(lambda: refined.search(y, 1), len(y) * PROPOSED, repeats)
-    alone = _cpu_ns(lambda: proposer.search(y, PROPOSED), len(y) * PROPOSED, repeats)
+    both = _cpu_ns(lambda: refined.search(y, 1), len(y) * proposed, repeats)
+    alone = _cpu_ns(lambda: proposer.search(y, proposed), len(y) * proposed, repeats)
     return both[0] - alone[0], both[1] - alone[2], both[2] - alone[1]
 
 
