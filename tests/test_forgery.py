@@ -133,6 +133,14 @@ def test_verify_covers_the_evaluation_inside_an_index(index, capsys):
     assert lines[1].startswith(f"{index / 'eval'}:")
 
 
+def test_verify_refuses_an_evaluation_whose_record_and_manifest_were_removed(index, capsys):
+    """A forger who deletes an index's evaluation record, results and manifest but leaves its
+    queries does not get the index verified as if it had no evaluation."""
+    for name in ("eval.json", "manifest.json", "results.parquet"):
+        (index / "eval" / name).unlink()
+    fails(capsys, ["verify", str(index)], str(index / "eval"))
+
+
 def test_a_stored_encoding_without_its_manifest_or_with_changed_codes_is_refused(tiny_store, tiny_index, tmp_path,
                                                                                  small_training, capsys):
     store = tmp_path / "s.zarr"

@@ -9,6 +9,8 @@ from pathlib import Path
 from vprscale.core.errors import InputError
 from vprscale.core.objects import Remote, location
 
+# what an evaluation publishes: an index's eval/ holding any of them is verified as one
+_EVALUATION_FILES = ("eval.json", "manifest.json", "results.parquet", "queries.parquet", "results_m.parquet")
 KINDS = {"zarr.json": "dataset store", "index.json": "index", "eval.json": "evaluation", "encoding.json": "encoding"}
 
 
@@ -27,8 +29,8 @@ def run(args: argparse.Namespace) -> int:
     if kind is None:
         raise InputError(f"{path}: not a vprscale store, index, evaluation or encoding")
     found = [(path, kind)]
-    if kind == "index" and any((path / "eval" / f).exists() for f in ("eval.json", "results.parquet", "manifest.json")):
-        found.append((path / "eval", "evaluation"))  # its evaluation, published apart
+    if kind == "index" and any((path / "eval" / f).exists() for f in _EVALUATION_FILES):
+        found.append((path / "eval", "evaluation"))  # its evaluation, published apart (any file of one: checked whole)
     for root, what in found:
         n = _verify(root, what)
         print(f"{root}: {what} verified, {n:,} files with their sizes and checksums")
