@@ -9,8 +9,6 @@ from pathlib import Path
 from vprscale.core.errors import InputError
 from vprscale.core.objects import Remote, location
 
-# what an evaluation publishes: an index's eval/ holding any of them is verified as one
-_EVALUATION_FILES = ("eval.json", "manifest.json", "results.parquet", "queries.parquet", "results_m.parquet")
 KINDS = {"zarr.json": "dataset store", "index.json": "index", "eval.json": "evaluation", "encoding.json": "encoding"}
 
 
@@ -29,8 +27,11 @@ def run(args: argparse.Namespace) -> int:
     if kind is None:
         raise InputError(f"{path}: not a vprscale store, index, evaluation or encoding")
     found = [(path, kind)]
-    if kind == "index" and any((path / "eval" / f).exists() for f in _EVALUATION_FILES):
-        found.append((path / "eval", "evaluation"))  # its evaluation, published apart (any file of one: checked whole)
+    if kind == "index":
+        from vprscale.evaluation.results import PUBLISHED
+
+        if any((path / "eval" / f).exists() for f in PUBLISHED):
+            found.append((path / "eval", "evaluation"))  # its evaluation, published apart: checked whole
     for root, what in found:
         n = _verify(root, what)
         print(f"{root}: {what} verified, {n:,} files with their sizes and checksums")

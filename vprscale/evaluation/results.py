@@ -19,6 +19,10 @@ from vprscale.core.provenance import PARQUET_KEY
 if TYPE_CHECKING:  # pandas is imported by what returns a DataFrame, not by ``vprscale results``
     import pandas as pd
 
+# what ``vprscale eval`` publishes in an evaluation folder: a folder holding any of them is one
+# (checked whole, and refused when incomplete), not a folder of other files
+PUBLISHED = ("eval.json", "manifest.json", "results.parquet", "queries.parquet", "results_m.parquet")
+
 
 def eval_folder(path: str | Path, full: bool = False) -> Path:
     """The evaluation folder a path names (itself, an index's ``eval/``, or the folder of its
