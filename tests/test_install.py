@@ -4,6 +4,7 @@ README's Python example from a folder that is not the checkout."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -13,6 +14,8 @@ import tomllib
 from pathlib import Path
 
 import pytest
+
+from vprscale import __version__
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,6 +27,28 @@ def test_every_package_is_listed_for_the_wheel():
     found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "vprscale").rglob("__init__.py")}
     assert found <= listed
     assert {"vprscale.recipes", "vprscale.pipelines"} <= listed
+
+
+def test_the_version_is_the_changelogs_newest_section_and_the_citations():
+    """The version the code carries is the newest section of CHANGELOG.md (so an output's version
+    says which changes made it) and the one CITATION.cff asks readers to cite."""
+    newest = re.search(r"^## (\d+\.\d+\.\d+)\b", (ROOT / "CHANGELOG.md").read_text(), re.M)
+    assert newest and newest.group(1) == __version__
+    assert re.search(r"^version: (\S+)$", (ROOT / "CITATION.cff").read_text(), re.M).group(1) == __version__
+    assert not re.search(r"^## Unreleased", (ROOT / "CHANGELOG.md").read_text(), re.M | re.I)
+
+
+def test_a_build_records_the_checkouts_commit_and_an_install_reads_it(tmp_path):
+    """What setup.py writes into a wheel's or sdist's package is what provenance reads back there,
+    and a folder that is no checkout has no commit of its own to give."""
+    from vprscale.core import commit
+
+    package = tmp_path / "site-packages" / "vprscale"
+    commit.record(ROOT, package)
+    assert commit.from_build(package) == commit.from_git(ROOT)
+    assert commit.from_git(tmp_path) is None and commit.from_build(tmp_path) is None
+    (tmp_path / commit.BUILD_FILE).write_text("not json")
+    assert commit.from_build(tmp_path) is None
 
 
 def test_recipes_and_pipelines_come_from_the_installed_package():
@@ -63,22 +88,34 @@ def _byo_inputs() -> str:
     return re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "bring-your-own.md").read_text(), re.S)[0]
 
 
+def _venv_beside_this_environment(venv: Path) -> Path:
+    """A new virtual environment, without system site packages, that sees this interpreter's
+    site-packages (the dependencies: a venv's or the system's alike) after its own, through a
+    ``.pth`` of paths (whose own ``.pth`` files, an editable vprscale's among them, are not read)."""
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    own = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                         check=True, capture_output=True, text=True).stdout.strip()
+    outer = [p for p in sys.path if p.endswith(("site-packages", "dist-packages")) and Path(p).is_dir()]
+    (Path(own) / "outer-environment.pth").write_text("\n".join(outer) + "\n")
+    return python
+
+
 @pytest.mark.slow
 def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
-    """A wheel, built by ``python -m build``, installed into a fresh venv (the dependencies come
-    from this environment): from an empty folder it builds, indexes and evaluates the 20K store
-    where the quickstart puts it, plans the shipped quickstart pipeline by name and runs the
-    README's Python example on them."""
+    """A wheel, built by ``python -m build`` from an sdist of a checkout, installed into a fresh
+    venv (the dependencies come from this environment): from an empty folder it builds, indexes and
+    evaluates the 20K store where the quickstart puts it, recording the checkout's commit, plans the
+    shipped quickstart pipeline by name and runs the README's Python example on them."""
     source = tmp_path / "source"  # a copy: building writes build/ and egg-info beside the sources
-    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".git", "data", "build", "dist", "*.egg-info",
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns("data", "build", "dist", "*.egg-info", "_build.json",
                                                                 "__pycache__", ".*_cache"))
     wheels = tmp_path / "wheels"
-    subprocess.run([sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(wheels), str(source)],
-                   check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "build", "--no-isolation", "--outdir", str(wheels), str(source)],
+                   check=True, capture_output=True)  # the sdist, then the wheel from the sdist (no git there)
     (wheel,) = wheels.glob("vprscale-*.whl")
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
-    python = venv / "bin" / "python"
+    python = _venv_beside_this_environment(venv)
     subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True,
                    capture_output=True)
     work = tmp_path / "work"
@@ -99,6 +136,10 @@ def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
         done = vprscale(*argv, "--quiet")
         assert done.returncode == 0, done.stderr
     assert (work / q / "20K.zarr" / "manifest.json").is_file()
+    built = json.loads((work / q / "20K.zarr" / "build.json").read_text())["provenance"]
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+    assert built["vprscale"] == __version__
+    assert built["commit"] == (head.stdout.strip() if head.returncode == 0 else None)
     plan = vprscale("run", "quickstart", "--dry-run")
     assert plan.returncode == 0, plan.stderr
     assert "build-20K (build)" in plan.stdout and "report (report)" in plan.stdout

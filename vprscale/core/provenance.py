@@ -12,7 +12,6 @@ import json
 import os
 import platform
 import shlex
-import subprocess
 import sys
 from datetime import UTC, datetime
 from functools import cache
@@ -20,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import vprscale
+from vprscale.core import commit
 
 PARQUET_KEY = b"vprscale.provenance"
 _command: list[str] = []
@@ -32,21 +32,12 @@ def set_command(argv: list[str]) -> None:
 
 @cache
 def code_state() -> dict[str, Any]:
-    """The vprscale version, and the git commit of its checkout with whether the tree was dirty
-    (None where vprscale is installed without one)."""
-    root = Path(vprscale.__file__).resolve().parents[1]
-    state: dict[str, Any] = {"vprscale": vprscale.__version__, "commit": None, "dirty": None}
-    if not (root / ".git").exists():
-        return state
-    try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                              timeout=10, check=True).stdout.strip()
-        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no", "--",
-                                 "vprscale", "pyproject.toml", "datasets", "pipelines"],
-                                capture_output=True, text=True, timeout=10, check=True).stdout
-    except (OSError, subprocess.SubprocessError):
-        return state
-    return {**state, "commit": head, "dirty": bool(status.strip())}
+    """The vprscale version and the commit its code comes from, with whether the tree was dirty:
+    git's answer in a checkout, the build's record in a wheel or sdist install (None where neither
+    says: a copy of the sources without git)."""
+    package = Path(vprscale.__file__).resolve().parent
+    found = commit.from_git(package.parent) or commit.from_build(package) or {"commit": None, "dirty": None}
+    return {"vprscale": vprscale.__version__, **found}
 
 
 @cache

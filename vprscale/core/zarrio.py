@@ -24,8 +24,6 @@ import dask.array as da
 import numpy as np
 import zarr
 from dask.base import tokenize
-from zarr.codecs import BytesCodec
-from zarr.core.chunk_grids import RegularChunkGrid
 from zarr.storage import LocalStore
 
 from vprscale.core.errors import InputError
@@ -33,16 +31,22 @@ from vprscale.core.manifest import listed
 
 
 def raw_chunk_dir(array: zarr.Array) -> Path | None:
-    """The directory of the chunk files if ``array`` is 2-D, row-chunked and stored raw on disk."""
-    meta = array.metadata
-    if (meta.zarr_format != 3 or array.ndim != 2 or not isinstance(array.store, LocalStore)
-            or not isinstance(meta.chunk_grid, RegularChunkGrid)
-            or meta.storage_transformers or len(meta.codecs) != 1 or not isinstance(meta.codecs[0], BytesCodec)
-            or array.chunks[1] != array.shape[1]
-            or meta.chunk_key_encoding.encode_chunk_key((1, 0)) != "c/1/0"):
+    """The directory of the chunk files if ``array`` is 2-D, row-chunked and stored raw on disk.
+
+    Asked of the array's metadata as the Zarr v3 specification writes it (``zarr.json``), which
+    every zarr release reads alike, not of zarr's Python classes for it, which change between
+    releases."""
+    if array.metadata.zarr_format != 3 or array.ndim != 2 or not isinstance(array.store, LocalStore):
         return None
-    endian = meta.codecs[0].endian
-    if array.dtype.itemsize > 1 and (endian is None or endian.value != "little" or sys.byteorder != "little"):
+    meta = array.metadata.to_dict()
+    codecs = [dict(c) for c in meta["codecs"]]
+    if (meta["chunk_grid"].get("name") != "regular" or meta.get("storage_transformers")
+            or len(codecs) != 1 or codecs[0].get("name") != "bytes"
+            or array.chunks[1] != array.shape[1]
+            or array.metadata.chunk_key_encoding.encode_chunk_key((1, 0)) != "c/1/0"):
+        return None
+    endian = (codecs[0].get("configuration") or {}).get("endian")
+    if array.dtype.itemsize > 1 and (endian != "little" or sys.byteorder != "little"):
         return None  # the buffer is read as native little-endian bytes
     return Path(array.store.root).resolve() / array.path / "c"
 
