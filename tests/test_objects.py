@@ -536,3 +536,34 @@ def test_fas_rows_by_url_are_read_where_the_client_copy_is_not(s3, sources, tmp_
     worker_side = pickle.loads(sent)
     np.testing.assert_array_equal(worker_side.read(100, 300), local.query.read(100, 300))
     assert (tmp_path / "worker-cache" / "sources").is_dir()  # its own copy, fetched once
+
+
+@pytest.mark.parametrize("force", [[], ["--force"]], ids=["plain", "force"])
+def test_no_command_removes_objects_it_did_not_write(s3, sources, tiny_store, tiny_index, tmp_path, capsys, force):
+    """Every command that writes under an ``s3://`` prefix (build, index, eval, report) refuses,
+    in one line naming the prefix and before any work, one that holds someone's own objects (no
+    vprscale manifest or job key beside them), with or without ``--force``: nothing removed, nothing
+    replaced, nothing written there."""
+    recipe = tiny_store.parent.parent / "tiny.toml"
+    grid = ["--L", "1", "--noise", "qm1", "--no-baseline", "-q"]
+    evaluation = tmp_path / "eval"
+    assert main(["eval", str(tiny_store), str(tiny_index), *grid, "--out", str(evaluation)]) == 0
+    commands = {
+        "build": (["build", "--scale", str(recipe), "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]),
+                   "--out", f"s3://{BUCKET}/mine", "-q"], f"s3://{BUCKET}/mine/tiny.zarr"),
+        "index": (["index", str(tiny_store), "--d", "12", "-q", "--out"], f"s3://{BUCKET}/mine"),
+        "eval": (["eval", str(tiny_store), str(tiny_index), *grid, "--out"], f"s3://{BUCKET}/mine"),
+        "report": (["report", str(evaluation), "-q", "--out"], f"s3://{BUCKET}/mine"),
+    }
+    for name, (argv, prefix) in commands.items():
+        theirs = {f"{prefix}/results.csv": b"method,recall\nmine,0.9\n", f"{prefix}/notes/a.txt": b"keep me"}
+        for url, data in theirs.items():
+            Remote(url).write_bytes(data)
+        capsys.readouterr()
+        argv = [*argv, prefix] if argv[-1] == "--out" else argv
+        assert main([*argv, *force]) == 2, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not a vprscale output" in err[0] and "results.csv" in err[0], (name, err)
+        assert Remote(prefix).files() == {"results.csv": len(theirs[f"{prefix}/results.csv"]), "notes/a.txt": 7}, name
+        assert all(Remote(url).read_bytes() == data for url, data in theirs.items()), name
+        Remote(prefix).remove()

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from vprscale.core.manifest import NAME, check_manifest, read_manifest, remote_manifest
 from vprscale.core.objects import Remote, cache_root, storage_errors
-from vprscale.core.publish import keep_remote_beside
+from vprscale.core.publish import clear_remote_output, keep_remote_beside
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +65,7 @@ def upload(local: Path, remote: Remote, keep: bool = False) -> None:
         raise RuntimeError(f"{local}: uploaded before it was published")  # a bug: callers publish first
     if keep and read_manifest(remote) is not None:
         keep_remote_beside(remote)
-    (remote / NAME).remove()
-    remote.remove()
+    clear_remote_output(remote)
     with storage_errors(remote.url):
         for rel in manifest["files"]:
             remote.fs.put_file(str(local / rel), f"{remote.path}/{rel}")

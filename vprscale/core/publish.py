@@ -267,7 +267,7 @@ class ObjectOutput:
             return True
         if (self.final / NAME).exists():
             keep_remote_beside(self.final)
-        self.final.remove()
+        clear_remote_output(self.final)
         shutil.rmtree(self.work, ignore_errors=True)
         self.work.mkdir(parents=True)
         job.write_text(json.dumps(self.key, sort_keys=True, indent=1))
@@ -288,6 +288,26 @@ class ObjectOutput:
         write_manifest(self.final)
         self.recover()
         shutil.rmtree(self.work, ignore_errors=True)
+
+
+def refuse_foreign(path: Remote) -> None:
+    """Refuse, in one line, an output prefix that holds objects no vprscale job wrote (no manifest,
+    no job key beside them): they are someone's data, and vprscale replaces only its own outputs
+    (a local output folder is refused alike)."""
+    found = path.files()
+    if found and NAME not in found and ".job.json" not in found:
+        some = ", ".join(sorted(found)[:3]) + (", …" if len(found) > 3 else "")
+        raise InputError(f"{path}: holds {len(found):,} objects that are not a vprscale output ({some}); "
+                         "vprscale removes none of them: give another --out, or remove them yourself")
+
+
+def clear_remote_output(path: Remote) -> None:
+    """Remove what an earlier vprscale job left under ``path`` (a job that did not finish, an
+    output already kept beside) before a new one is written there: the one way vprscale empties a
+    prefix, and never one that holds someone else's objects (:func:`refuse_foreign`)."""
+    refuse_foreign(path)
+    (path / NAME).remove()  # first: a reader finds no output, not a complete one losing its files
+    path.remove()
 
 
 def keep_remote_beside(path: Remote) -> Remote:

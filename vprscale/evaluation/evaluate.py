@@ -31,7 +31,7 @@ from vprscale.core.localcopy import cache_folder, upload
 from vprscale.core.objects import Remote, shown
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, shared
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, refuse_foreign, shared
 from vprscale.dataset.references import reference_rows
 from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
@@ -240,6 +240,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         remote = req.out if isinstance(req.out, Remote) else None
         if remote is not None:  # made in the cache, uploaded once published (core/localcopy)
             check_writable(remote.parent)
+            refuse_foreign(remote)  # before the work: what is there is replaced only if vprscale wrote it
             if (remote / "eval.json").exists() and not req.force:
                 raise InputError(_HOLDS.format(out=remote))
         out = cache_folder(remote, fresh=True) if remote else Path(req.out) if req.out else (

@@ -25,7 +25,7 @@ from vprscale.core.localcopy import cache_folder, upload  # noqa: E402
 from vprscale.core.manifest import write_manifest  # noqa: E402
 from vprscale.core.objects import Remote  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
-from vprscale.core.publish import check_writable, exclusive, keep_beside  # noqa: E402
+from vprscale.core.publish import check_writable, exclusive, keep_beside, refuse_foreign  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
@@ -351,6 +351,7 @@ def write_report(results: list[str | Path], out: Path | Remote, extra_indexes: l
 def _write_remote(results: list[str | Path], out: Remote, extra_indexes: list[str] | None,
                   force: bool) -> dict[str, Any]:
     check_writable(out.parent)
+    refuse_foreign(out)  # before the drawing: what is there is replaced only if vprscale wrote it
     if (out / "report.md").exists() and not force:
         raise InputError(f"--out {out}: holds a report; --force replaces it (the old one is kept beside, as "
                          f"{out.name}.previous)")

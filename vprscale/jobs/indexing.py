@@ -27,7 +27,7 @@ from vprscale.core.localcopy import cache_folder, upload
 from vprscale.core.objects import Remote, location, shown
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
-from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside
+from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, refuse_foreign
 from vprscale.core.zarrio import rows_of
 from vprscale.dataset.store import ATTR, load_model, open_complete_group, ref_moments, store_identity, store_layout
 from vprscale.evaluation.storage import file_bytes, index_parts, storage_table
@@ -86,6 +86,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
     check_writable(final.parent)
     if remote:
         check_writable(remote.parent)
+        refuse_foreign(remote)  # before the work: what is there is replaced only if vprscale wrote it
     identity = store_identity(group)
     timings = Timings(quiet)
     t0 = time.perf_counter()
