@@ -149,3 +149,40 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     for method, colour in colours.items():  # each method's points and lines are on the screen
         rgb = np.array([int(colour[i : i + 2], 16) for i in (1, 3, 5)])
         assert (np.abs(shot - rgb).max(axis=1) <= 12).sum() > 200, method
+
+
+HOSTILE = ("<img src=x onerror=\"document.body.dataset.pwned='img'\">",
+           "</script><script>document.body.dataset.pwned='script'</script>",
+           "\x1b]0;title\x07|`tick`|&amp;")
+
+
+@pytest.mark.parametrize("where", ["method", "params"])
+def test_every_label_is_text_in_the_report_and_its_page(two_noise_report, tmp_path, where):
+    """A method's name or parameters can be anything a plug-in or an evaluation folder says: in
+    report.md they are escaped text (no HTML, no broken table, no control characters); in
+    report.html no value can close a script element or become markup, and, opened in Chromium,
+    none runs, while each is shown as the text it is."""
+    evaluation = tmp_path / "e"
+    shutil.copytree(two_noise_report[0], evaluation)
+    res = pd.read_parquet(evaluation / "results.parquet")
+    faiss = res[res.method == "faiss:PQ4np"]
+    extra = [faiss.assign(**{where: name}, bytes_per_place=faiss.bytes_per_place + i + 1)
+             for i, name in enumerate(HOSTILE)]
+    pd.concat([res, *extra]).to_parquet(evaluation / "results.parquet")
+    write_manifest(evaluation)
+    report = tmp_path / "rep"
+    write_report([evaluation], report)
+    text = (report / "report.md").read_text()
+    assert "<img" not in text and "<script" not in text and "\x1b" not in text
+    tables = re.findall(r"(?m)(?:^\|.*\n)+", text)  # each table's lines: as many cells in each as in its header
+    assert any("title" in t for t in tables)
+    for table in tables:
+        assert len({len(re.split(r"(?<!\\)\|", line)) for line in table.splitlines()}) == 1, table
+    page = (report / "report.html").read_text()
+    body = page.split("</style>", 1)[1]  # after plotly.js, which holds its own markup strings
+    assert "<img" not in body and "</script><script>document" not in body and "\x1b" not in body
+    if CHROMIUM is None:
+        return
+    dom = _chromium("--dump-dom", (report / "report.html").as_uri()).stdout
+    assert 'data-drawn="yes"' in dom and "data-pwned" not in dom and "<img" not in dom.split("</style>", 1)[1]
+    assert "&lt;img src=x onerror=" in dom  # shown as text, in the figures' tables

@@ -24,7 +24,6 @@ per method, one marker per mode: :mod:`vprscale.evaluation.comparison`).
 from __future__ import annotations
 
 import html
-import json
 import re
 from importlib import resources
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.colors import to_hex
 
+from vprscale.core.plaintext import script_json
 from vprscale.evaluation.comparison import family_colours, method_and_mode, with_family
 
 PAGE, SCRIPT = "report_page.html", "report_page.js"  # the page's template and script (package data)
@@ -61,11 +61,11 @@ def page_rows(res: pd.DataFrame, columns: tuple[str, ...] = COLUMNS) -> pd.DataF
 
 
 def _json(rows: pd.DataFrame) -> str:
-    """The rows as JSON records (NaN as null), safe inside a ``<script>`` element."""
+    """The rows as JSON records (NaN as null), safe inside a ``<script>`` element whatever a label holds."""
     clean = rows.astype(object).where(rows.notna(), None)
     records = [{k: (v.item() if isinstance(v, np.generic) else v) for k, v in r.items()}
                for r in clean.to_dict("records")]
-    return json.dumps(records, separators=(",", ":")).replace("</", "<\\/")
+    return script_json(records, separators=(",", ":"))
 
 
 def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[str], title: str, out: Path) -> Path:
@@ -82,8 +82,8 @@ def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[s
     colours = {method_and_mode(f)[0]: to_hex(c) for f, c in family_colours(families).items()}
     provenance = "".join(f"<li>{html.escape(line.removeprefix('- '))}</li>" for line in provenance_lines
                          if line.startswith("- "))
-    script = (script.replace("@COLOURS@", json.dumps(colours)).replace("@SYMBOLS@", json.dumps(SYMBOLS))
-              .replace("@FIGURES@", json.dumps(figures)))
+    script = (script.replace("@COLOURS@", script_json(colours)).replace("@SYMBOLS@", script_json(SYMBOLS))
+              .replace("@FIGURES@", script_json(figures)))
     values = {"TITLE": html.escape(title), "PROVENANCE": provenance, "SCRIPT": script, "ROWS": _json(rows),
               "ROWSM": _json(rows_m),
               "PLOTLY": get_plotlyjs().replace("</script", "<\\/script")}

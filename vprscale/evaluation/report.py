@@ -24,6 +24,7 @@ from vprscale.core.errors import InputError  # noqa: E402
 from vprscale.core.localcopy import cache_folder, upload  # noqa: E402
 from vprscale.core.manifest import write_manifest  # noqa: E402
 from vprscale.core.objects import Remote  # noqa: E402
+from vprscale.core.plaintext import markdown, markdown_code  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.core.publish import check_writable, exclusive, keep_beside, refuse_foreign  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
@@ -266,18 +267,19 @@ def _provenance_block(evals: list[dict]) -> list[str]:
     me = provenance()
     lines = ["## Provenance", "",
              f"- report: vprscale {me['vprscale']}, commit {_commit(me)}, {me['time']}, on {me['cpu']} "
-             f"({me['cores']} cores), `{me['command']}`"]
+             f"({me['cores']} cores), {markdown_code(me['command'])}"]
     commits = set()
     for e in evals:
         rec = e.get("provenance")
         if not rec:
-            lines.append(f"- results {e['_run']}: no provenance recorded (written by a vprscale before 0.3)")
+            lines.append(f"- results {markdown(e['_run'])}: no provenance recorded (written by a vprscale before 0.3)")
             commits.add("unknown")
             continue
         commits.add(_commit(rec))
-        lines.append(f"- results {e['_run']}: vprscale {rec['vprscale']}, commit {_commit(rec)}, {rec['time']}, "
-                     f"{rec['cpu']} ({rec['cores']} cores, load {', '.join(map(str, rec['load_average']))} at start), "
-                     f"`{rec['command']}`")
+        lines.append(f"- results {markdown(e['_run'])}: vprscale {rec['vprscale']}, commit {_commit(rec)}, "
+                     f"{rec['time']}, {rec['cpu']} ({rec['cores']} cores, "
+                     f"load {', '.join(map(str, rec['load_average']))} at start), "
+                     f"{markdown_code(rec['command'])}")
     if len(commits) > 1:
         lines.append(f"- **These results come from {len(commits)} different commits** "
                      f"({', '.join(sorted(commits))}); figures from different commits are not one run.")
@@ -291,8 +293,9 @@ def _commit(rec: dict) -> str:
 
 
 def _md_table(header: list[str], rows: list[list[Any]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(v) for v in r) + " |" for r in rows]
+    """A Markdown table; every cell is text (a method's name is never markup: core/plaintext)."""
+    lines = ["| " + " | ".join(map(markdown, header)) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(map(markdown, r)) + " |" for r in rows]
     return "\n".join(lines)
 
 

@@ -34,10 +34,15 @@
     }
     return !withRadius || String(r.radius) === chosen("radius");
   }
+  // Plotly reads a subset of HTML in hover texts and legend names: values reach them escaped
+  function esc(v) {
+    return String(v).replace(/&/g, "&amp;").replace(/</g, "&lt;").replace(/>/g, "&gt;").replace(/"/g, "&quot;");
+  }
   function pct(v) { return v === null ? "–" : (100 * v).toFixed(1); }
   function hover(r) {
-    return r.family + (r.params ? " " + r.params : "") + "<br>" + r.scale + ", " + String(r.noise).toUpperCase() +
-      ", L = " + r.L + (r.radius_m === undefined ? ", radius " + r.radius : ", " + r.part + ", within " + r.radius_m + " m") +
+    return esc(r.family) + (r.params ? " " + esc(r.params) : "") + "<br>" + esc(r.scale) + ", " +
+      esc(String(r.noise).toUpperCase()) + ", L = " + r.L +
+      (r.radius_m === undefined ? ", radius " + r.radius : ", " + esc(r.part) + ", within " + r.radius_m + " m") +
       "<br>recall " + pct(r.recall) + " % (" + pct(r.recall_lo) + "–" +
       pct(r.recall_hi) + ")<br>" + (r.us_per_query === null ? "–" : r.us_per_query.toFixed(2)) + " µs/query, " +
       (r.bytes_per_place === null ? "–" : r.bytes_per_place.toFixed(2)) + " B/place, " + r.n_queries + " queries";
@@ -66,13 +71,20 @@
   });
   document.getElementById("download-all").addEventListener("click", function () { download("recall_rows.csv", ROWS); });
 
-  function table(id, rows, cols) {
-    var tab = document.getElementById(id + "-table"), head = "<tr>" + cols.map(function (c) { return "<th>" + c + "</th>"; }).join("") + "</tr>";
-    tab.innerHTML = head + rows.map(function (r) {
-      return '<tr data-noise="' + r.noise + '" data-family="' + r.family + '">' + cols.map(function (c) {
-        var v = r[c]; return "<td>" + (v === null ? "–" : typeof v === "number" && !Number.isInteger(v) ? v.toPrecision(4) : v) + "</td>";
-      }).join("") + "</tr>";
-    }).join("");
+  function table(id, rows, cols) {  // built node by node: every value is text, never markup
+    var tab = document.getElementById(id + "-table"), head = document.createElement("tr");
+    tab.replaceChildren(head);
+    cols.forEach(function (c) { var th = document.createElement("th"); th.textContent = c; head.appendChild(th); });
+    rows.forEach(function (r) {
+      var tr = document.createElement("tr");
+      tr.dataset.noise = r.noise; tr.dataset.family = r.family;
+      cols.forEach(function (c) {
+        var v = r[c], td = document.createElement("td");
+        td.textContent = v === null ? "–" : typeof v === "number" && !Number.isInteger(v) ? v.toPrecision(4) : String(v);
+        tr.appendChild(td);
+      });
+      tab.appendChild(tr);
+    });
   }
   function traces(rows, x, lines) {
     var groups = {};
@@ -87,7 +99,7 @@
               error_y: {type: "data", symmetric: false, visible: !lines, thickness: 1,
                         array: g.map(function (r) { return r.recall_hi === null ? 0 : 100 * (r.recall_hi - r.recall); }),
                         arrayminus: g.map(function (r) { return r.recall_lo === null ? 0 : 100 * (r.recall - r.recall_lo); })},
-              mode: lines ? "lines+markers" : "markers", name: key, text: g.map(hover), hoverinfo: "text",
+              mode: lines ? "lines+markers" : "markers", name: esc(key), text: g.map(hover), hoverinfo: "text",
               marker: {color: COLOURS[r0.method] || "#444", symbol: SYMBOLS[r0.mode] || "circle", size: lines ? 5 : 9},
               line: {color: COLOURS[r0.method] || "#444", dash: r0.mode === "paper" ? "dash" : r0.mode === "single" ? "dot" : "solid"}};
     });
