@@ -318,3 +318,26 @@ def test_a_build_reads_deep1b_where_it_lives_to_the_same_store(sources, tiny_sto
     sources_seen = json.loads((tmp_path / "data" / "tiny.zarr" / "zarr.json").read_text())
     assert server.url in json.dumps(sources_seen)  # the URL is the source of record
     assert not list((tmp_path / "data").glob("*.fbin"))  # read where it lives: nothing copied
+
+
+def test_a_urls_password_and_signature_reach_no_output_record_or_summary(sources, tmp_path, capsys):
+    """``build --deep1b URL`` with a user, a password and a presigned query: the store's metadata,
+    its build.json (the command in the provenance), the manifest, the ``--summary`` and what is
+    printed hold neither secret, and the URL is still recorded as the source, without them."""
+    from .conftest import write_recipe
+
+    data = sources["fbin"].read_bytes()
+    server = Server(lambda a, b: data[a:b], len(data))
+    try:
+        secret = server.url.replace("http://", "http://user:hunter2@") + "?X-Amz-Signature=s3cr3t"
+        assert main(["build", "--scale", str(write_recipe(tmp_path / "tiny.toml")), f"--deep1b={secret}",
+                     "--fas", str(sources["fas"]), "--out", str(tmp_path / "data"), "-v",
+                     "--summary", str(tmp_path / "summary.json")]) == 0
+    finally:
+        server.close()
+    printed = capsys.readouterr()
+    written = [p.read_text() for p in (tmp_path / "data").rglob("*.json")] + [(tmp_path / "summary.json").read_text()]
+    for text in (printed.out, printed.err, *written):
+        assert "hunter2" not in text and "s3cr3t" not in text and "user:" not in text
+    build = json.loads((tmp_path / "data" / "tiny.zarr" / "build.json").read_text())
+    assert f"--deep1b={server.url}" in build["provenance"]["command"]

@@ -383,3 +383,34 @@ def test_stages_import_this_vprscale_not_a_folder_of_the_current_directory(tmp_p
     done = subprocess.run(vprscale_argv("methods"), cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "coarsehash" in done.stdout
     assert not (tmp_path / "ran").exists()
+
+
+def test_a_stage_urls_password_and_signature_are_never_recorded(tmp_path, sources, monkeypatch):
+    """A build stage reading Deep1B by a URL with a password and a presigned query: the pipeline's
+    state, run summaries and log hold neither secret, and a URL signed anew (the same file) leaves
+    the stage up to date."""
+    import vprscale.jobs.pipeline as pl
+
+    from .conftest import write_recipe
+    from .test_fetch import Server
+
+    data = sources["fbin"].read_bytes()
+    server = Server(lambda a, b: data[a:b], len(data))
+    recipe = write_recipe(tmp_path / "r.toml")
+    (tmp_path / "store").mkdir()
+    monkeypatch.setattr(pl, "_run_stage", lambda *args: {"store": str(tmp_path / "store")})
+
+    def run(signature: str) -> str:
+        url = server.url.replace("http://", "http://user:hunter2@") + f"?X-Amz-Signature={signature}"
+        path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") +
+                      f'[[stages]]\nname = "b"\nkind = "build"\nscale = "{recipe}"\ndeep1b = "{url}"\n'
+                      f'fas = "{sources["fas"]}"\n')
+        return run_pipeline(path)["stages"][0]["status"]
+
+    try:
+        assert run("s3cr3t") == "ran" and run("an0ther") == "skipped"
+    finally:
+        server.close()
+    recorded = [p.read_text() for p in (tmp_path / "out").rglob("*") if p.is_file()]
+    assert recorded and not [t for t in recorded if "hunter2" in t or "s3cr3t" in t or "an0ther" in t]
+    assert any(server.url in t for t in recorded)

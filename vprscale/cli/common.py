@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from vprscale.core.errors import InputError
-from vprscale.core.objects import is_url, public
+from vprscale.core.objects import is_url, public, redact
 
 EXIT_USAGE = 2  # bad input
 EXIT_FAILURE = 1  # vprscale itself failed
@@ -65,7 +65,7 @@ def write_summary(args: argparse.Namespace, data: dict) -> None:
     if getattr(args, "summary", None):
         path = Path(args.summary)
         tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(json.dumps(data, indent=1, default=str))
+        tmp.write_text(json.dumps(redact(data), indent=1, default=str))  # no URL's password or signature
         tmp.replace(path)
 
 

@@ -45,6 +45,22 @@ def public(url: str) -> str:
     return urllib.parse.urlunsplit((parts.scheme, host, parts.path, "", ""))
 
 
+def redact(value: Any) -> Any:
+    """``value`` as it may be shown or recorded (a command line's arguments, a stage's parameters,
+    a summary): every URL in it, whole or after a ``=`` (``--deep1b=URL``, ``night=URL``), without
+    user name, password, query or fragment (:func:`public`); lists and mappings item by item."""
+    if isinstance(value, dict):
+        return {k: redact(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [redact(v) for v in value]
+    if not isinstance(value, str):
+        return value
+    if is_url(value):
+        return public(value)
+    head, eq, tail = value.partition("=")
+    return f"{head}={public(tail)}" if eq and is_url(tail) else value
+
+
 def location(spec: str | os.PathLike) -> Path | Remote:
     """Where an argument points: a :class:`Remote` for a URL, else a local path."""
     return Remote(spec) if is_url(spec) else Path(spec)

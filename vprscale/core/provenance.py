@@ -20,6 +20,7 @@ from typing import Any
 
 import vprscale
 from vprscale.core import commit
+from vprscale.core.objects import redact
 
 PARQUET_KEY = b"vprscale.provenance"
 _command: list[str] = []
@@ -27,7 +28,7 @@ _command: list[str] = []
 
 def set_command(argv: list[str]) -> None:
     """The command line this process runs (the CLI says it once, at its start)."""
-    _command[:] = argv
+    _command[:] = redact(argv)  # a URL's password or signature is never recorded
 
 
 @cache
@@ -56,7 +57,7 @@ def provenance(command: str | None = None, **extra: Any) -> dict[str, Any]:
     """The provenance record of an output made now, by ``command`` (default: this process's command line)."""
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     if command is None:
-        command = shlex.join(_command or sys.argv)  # outside the CLI: the process's own command line
+        command = shlex.join(_command or redact(sys.argv))  # outside the CLI: the process's own command line
     return {**code_state(), "command": command,
             "cpu": cpu_model(), "cores": os.cpu_count(), "load_average": [round(x, 2) for x in load],
             "host": platform.node(), "python": sys.version.split()[0],

@@ -36,6 +36,7 @@ import vprscale
 from vprscale.core.digests import DigestCache
 from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.manifest import check_manifest, read_manifest
+from vprscale.core.objects import redact
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import exclusive
 from vprscale.dataset.recipe import read_toml, shipped
@@ -237,7 +238,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 prev = state.get(stage.name, {})
                 reasons = _reasons(stage, parts, prev, ran, force)
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp,
-                                         "params": stage.params,
+                                         "params": redact(stage.params),
                                          "places": estimates.places(stage.params, stage.kind, kinds)}
                 if not reasons:
                     outputs[stage.name] = prev["outputs"]
@@ -383,7 +384,8 @@ def _parts(stage: Stage, upstream: dict[str, str], graph: Any, digests: DigestCa
         for ref in value if isinstance(value, list) else [value]:
             if isinstance(ref, str) and ref in upstream:
                 refs[f"{key}:{ref}"] = upstream[ref]
-    return json.loads(json.dumps({"kind": stage.kind, "params": stage.params, "upstream": refs,
+    # a URL's password or signature is not part of what the stage computes, nor recorded
+    return json.loads(json.dumps({"kind": stage.kind, "params": redact(stage.params), "upstream": refs,
                                   "inputs": _inputs(stage, digests), "code": stage_code(stage.kind, graph)},
                                  sort_keys=True, default=str))
 
@@ -517,7 +519,7 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
     argv = stage_command(pipe, stage, outputs, scheduler)
     summary_file = pipe.out / "runs" / f".{stage.name}.summary.json"
     summary_file.unlink(missing_ok=True)
-    print("$ vprscale " + " ".join(shlex.quote(a) for a in argv), file=console)
+    print("$ vprscale " + shlex.join(redact(argv)), file=console)
     proc = subprocess.Popen(vprscale_argv(*argv, "--summary", str(summary_file)),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
     for line in proc.stdout:
