@@ -414,3 +414,23 @@ def test_a_stage_urls_password_and_signature_are_never_recorded(tmp_path, source
     recorded = [p.read_text() for p in (tmp_path / "out").rglob("*") if p.is_file()]
     assert recorded and not [t for t in recorded if "hunter2" in t or "s3cr3t" in t or "an0ther" in t]
     assert any(server.url in t for t in recorded)
+
+
+def test_planning_runs_no_code_of_a_stages_method(tmp_path, monkeypatch, capsys):
+    """``run --dry-run`` of an eval stage whose method is ``evilpkg.sub:Meth`` in the working
+    directory digests the method's source file without importing anything: neither the package's
+    ``__init__`` nor the module runs; a method that is not there is one line."""
+    package = tmp_path / "evilpkg"
+    package.mkdir()
+    for name in ("__init__.py", "sub.py"):
+        (package / name).write_text(f"open({str(tmp_path / ('ran-' + name))!r}, 'w').write('x')\nclass Meth: pass\n")
+    stages = ('[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "i"\nkind = "index"\n'
+              'store = "b"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "b"\nindex = "i"\n'
+              'methods = ["evilpkg.sub:Meth"]\n')
+    path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") + stages)
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", str(path), "--dry-run"]) == 0
+    assert not list(tmp_path.glob("ran-*"))
+    gone = _write(tmp_path / "q.toml", BASE.format(out=tmp_path / "out") + stages.replace("sub:", "gone:"))
+    assert main(["run", str(gone), "--dry-run"]) == 2
+    assert "evilpkg.gone" in capsys.readouterr().err and not list(tmp_path.glob("ran-*"))

@@ -16,7 +16,7 @@ Relative paths are taken from the current directory (run pipelines from the repo
 from __future__ import annotations
 
 import hashlib
-import importlib.util
+import importlib.machinery
 import io
 import json
 import logging
@@ -333,13 +333,28 @@ def _method_source(spec: str) -> str:
 
     with_working_directory()
     module = installed_methods().get(spec, spec).partition(":")[0]
-    try:
-        found = importlib.util.find_spec(module)
-    except (ImportError, ValueError):
-        found = None
-    if found is None or not found.origin or not Path(found.origin).is_file():
+    origin = _module_file(module)
+    if origin is None:
         raise InputError(f"methods: {spec}: no module {module} to import")
-    return hashlib.sha256(Path(found.origin).read_bytes()).hexdigest()
+    return hashlib.sha256(origin.read_bytes()).hexdigest()
+
+
+def _module_file(module: str) -> Path | None:
+    """The source file of ``module``, found on the import path package by package without importing
+    anything (``importlib.util.find_spec`` of ``a.b`` runs ``a``'s ``__init__``: planning a run,
+    ``--dry-run`` included, must run none of a method's code); None if there is none."""
+    search: list[str] | None = None  # sys.path
+    found = None
+    for part in module.split("."):
+        try:
+            found = importlib.machinery.PathFinder.find_spec(part, search)
+        except (ImportError, ValueError):
+            return None
+        if found is None:
+            return None
+        search = list(found.submodule_search_locations or [])
+    origin = Path(found.origin) if found is not None and found.origin else None
+    return origin if origin is not None and origin.is_file() else None
 
 
 def _inputs(stage: Stage, digests: DigestCache) -> dict[str, Any]:
