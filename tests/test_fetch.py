@@ -42,7 +42,17 @@ class Behaviour:
     cut_from: int | None = None  # send half of every range that starts at or after this byte, and close
     ignore_ranges: bool = False  # answer 200 with the whole file
     delay_s: float = 0.0  # pause per 64 KiB sent (a slow link)
+    redirect: str | None = None  # answer every GET with a 302 to this URL
+    change_after: int | None = None  # after this many requests, serve other bytes under another ETag
     requests: list[str] = field(default_factory=list)
+    authorizations: list[str | None] = field(default_factory=list)
+
+
+class _QuietServer(ThreadingHTTPServer):
+    def handle_error(self, request, client_address) -> None:
+        """A client that hangs up mid-answer (a fetch cut off on purpose) is no error of the test's."""
+        if not isinstance(sys.exc_info()[1], ConnectionError):
+            super().handle_error(request, client_address)
 
 
 class Server:
@@ -63,6 +73,17 @@ class Server:
                 b = server.behaviour
                 rng = self.headers.get("Range", "")
                 b.requests.append(rng)
+                b.authorizations.append(self.headers.get("Authorization"))
+                if b.redirect:
+                    self.send_response(302)
+                    self.send_header("Location", b.redirect)
+                    self.send_header("Content-Length", "0")
+                    self.end_headers()
+                    return
+                if b.change_after is not None and len(b.requests) > b.change_after:
+                    data = server.content(0, server.size)
+                    server.content, server.etag = (lambda a, z: bytes(reversed(data))[a:z]), '"changed"'
+                    b.change_after = None
                 if not rng.startswith("bytes=") or b.ignore_ranges:
                     start, stop, status = 0, server.size, 200
                 else:
@@ -95,7 +116,7 @@ class Server:
                     self.wfile.flush()
                     self.connection.shutdown(2)  # mid-answer: the client sees a short read
 
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd = _QuietServer(("127.0.0.1", 0), Handler)
         self.httpd.daemon_threads = True
         self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/DEEP/base.1B.fbin"
         self.thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
@@ -341,3 +362,117 @@ def test_a_urls_password_and_signature_reach_no_output_record_or_summary(sources
         assert "hunter2" not in text and "s3cr3t" not in text and "user:" not in text
     build = json.loads((tmp_path / "data" / "tiny.zarr" / "build.json").read_text())
     assert f"--deep1b={server.url}" in build["provenance"]["command"]
+
+
+def test_credentials_never_follow_a_redirect_to_another_origin(served, tmp_path):
+    """A mirror that redirects to another origin (a CDN, anyone): the fetch follows it, the
+    user's Basic credentials go to the mirror only."""
+    server, data = served
+    mirror = Server(lambda a, b: b"", 0)
+    try:
+        mirror.behaviour.redirect = server.url
+        secret = mirror.url.replace("http://", "http://user:hunter2@")
+        assert main(["fetch", "deep1b", "--rows", "1K", "--url", secret, "--out", str(tmp_path), "-q"]) == 0
+        assert mirror.behaviour.authorizations and all(a and a.startswith("Basic ")
+                                                       for a in mirror.behaviour.authorizations)
+        assert server.behaviour.authorizations and not any(server.behaviour.authorizations)
+        assert (tmp_path / "base.1K.fbin").read_bytes()[8:] == data[8 : 8 + 1000 * DIM * 4]
+    finally:
+        mirror.close()
+
+
+@pytest.mark.parametrize("command", ["fetch", "build"])
+def test_a_file_that_changes_while_it_is_read_is_never_stitched(command, sources, tmp_path, capsys):
+    """The remote file is replaced (another ETag) after a few requests: the fetch, and a build
+    reading it by URL, stop in one line with nothing published; run again, they read the new
+    file whole."""
+    from .conftest import write_recipe
+
+    data = sources["fbin"].read_bytes() if command == "build" else deep_rows(20_000)
+    server = Server(lambda a, b: data[a:b], len(data))
+    server.etag = '"v1"'
+    server.behaviour.change_after = 4
+    if command == "fetch":
+        argv = ["fetch", "deep1b", "--rows", "20K", "--url", server.url, "--out", str(tmp_path / "o"),
+                "--connections", "1"]
+        made = tmp_path / "o" / "base.20K.fbin"
+    else:
+        argv = ["build", "--scale", str(write_recipe(tmp_path / "tiny.toml")), "--deep1b", server.url, "--fas",
+                str(sources["fas"]), "--out", str(tmp_path / "o"), "--workers", "1"]
+        made = tmp_path / "o" / "tiny.zarr"
+    try:
+        fails(capsys, argv, "changed while it was read", "run the command again")
+        assert not made.exists()
+        if command == "fetch":
+            assert main([*argv, "-q"]) == 2  # header and rows of the new file: the header now says 0 rows
+            assert not made.exists()
+    finally:
+        server.close()
+
+
+def test_a_download_that_trickles_is_cut_off_and_resumable(served, tmp_path, capsys, monkeypatch):
+    """A server that sends slower than the minimum rate holds no job forever: its answers are cut
+    off and retried, and the run stops in one line, resumable."""
+    server, _ = served
+    monkeypatch.setattr("vprscale.core.ranged.MIN_RATE", 1 << 30)
+    monkeypatch.setattr("vprscale.core.ranged.TIMEOUT_S", 1.0)
+    monkeypatch.setattr("vprscale.core.ranged.PART_BYTES", 1 << 20)  # 16 blocks of 64 KiB, one each 0.2 s:
+    monkeypatch.setattr("vprscale.core.ranged.RETRIES", 1)  # about 6 an answer, so 2 answers are not enough
+    server.behaviour.delay_s = 0.2
+    fails(capsys, ["fetch", "deep1b", "--rows", "20K", "--url", server.url, "--out", str(tmp_path),
+                   "--connections", "1"],
+          "slower than", "run the same command again to resume")
+    assert not (tmp_path / "base.20K.fbin").exists()
+
+
+def test_a_source_without_a_version_is_never_served_stale_from_the_cache(tmp_path, monkeypatch):
+    """A server that names no version (no ETag, no Last-Modified) changes its file, same size: the
+    next read by URL gets the new bytes, not the cached copy."""
+    from vprscale.dataset.sources.remote import fetched_copy
+
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "cache"))
+    old, new = os.urandom(3 << 20), os.urandom(3 << 20)
+    server = Server(lambda a, b: old[a:b], len(old))
+    try:
+        first, _ = fetched_copy(server.url, quiet=True)
+        assert first.read_bytes() == old
+        server.content = lambda a, b: new[a:b]
+        again, _ = fetched_copy(server.url, quiet=True)
+        assert again.read_bytes() == new
+    finally:
+        server.close()
+
+
+def test_a_planted_partial_link_is_refused_and_its_target_untouched(served, tmp_path, capsys):
+    """Someone plants ``.base.1K.fbin.partial`` as a link to a file of theirs: the fetch refuses in one
+    line, writes nothing through it and publishes nothing."""
+    server, _ = served
+    target = tmp_path / "precious"
+    target.write_bytes(b"mine")
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / ".base.1K.fbin.partial").symlink_to(target)
+    fails(capsys, ["fetch", "deep1b", "--rows", "1K", "--url", server.url, "--out", str(tmp_path / "o")],
+          "symbolic link")
+    assert target.read_bytes() == b"mine" and not (tmp_path / "o" / "base.1K.fbin").exists()
+
+
+def test_a_fetch_that_filled_the_disk_resumes_with_what_it_holds(small_filesystem, capsys, monkeypatch):
+    """The free-space check counts what the partial download already holds: a run stopped half
+    way on a nearly full disk resumes, where asking for the whole file again would be refused."""
+    data = deep_rows(500)  # 192 KB on a 300 KB filesystem, in parts of 32 KiB
+    monkeypatch.setattr("vprscale.core.ranged.PART_BYTES", 1 << 15)
+    server = Server(lambda a, b: data[a:b], len(data))
+    out = small_filesystem / "o"
+    argv = ["fetch", "deep1b", "--rows", "500", "--url", server.url, "--out", str(out), "--connections", "1"]
+    try:
+        server.behaviour.cut_from = len(data) // 2
+        fails(capsys, argv, "run the same command again to resume")
+        held = (out / ".base.500.fbin.partial").stat().st_blocks * 512
+        assert 0 < held < len(data)
+        free = os.statvfs(small_filesystem).f_bavail * os.statvfs(small_filesystem).f_frsize
+        (small_filesystem / "filler").write_bytes(bytes(free - (len(data) - held) - 8192))
+        server.behaviour.cut_from = None
+        assert main([*argv, "-q"]) == 0
+        assert (out / "base.500.fbin").read_bytes() == data
+    finally:
+        server.close()

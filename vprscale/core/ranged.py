@@ -6,9 +6,14 @@ where it belongs in a hidden work file beside the output. Every finished part is
 its CRC32C; a killed run, or one whose connection dropped, starts again from the record, keeps
 the parts whose bytes still check out and fetches the rest. Nothing is trusted blindly: a part
 must come back as ``206 Partial Content`` for exactly the range asked (a server that ignores
-ranges, or lies about lengths, is an error naming the URL), and an answer cut short is retried
-from where it stopped. What a URL carries besides its address (a user name, a password, a
-signed query string) is never logged or recorded (:func:`public`).
+ranges, or lies about lengths, is an error naming the URL), an answer cut short is retried
+from where it stopped, and one that trickles in slower than ``MIN_RATE`` is cut off and retried
+(a per-read timeout alone lets a server that sends a byte a second hold a job forever). Every
+answer must carry the validator (ETag, else Last-Modified) the file had when it was first asked
+for, so the bytes of two versions of a file are never stitched together. What a URL carries
+besides its address (a user name, a password, a signed query string) is never logged or
+recorded (:func:`public`), and its credentials are never sent to another origin that a
+redirect names.
 """
 
 from __future__ import annotations
@@ -40,10 +45,35 @@ BLOCK = 1 << 20  # bytes read from a response at a time
 RETRIES = 5  # attempts a part gets before the run stops (resumable) with one line
 TIMEOUT_S = 30.0  # a connection silent this long counts as dropped
 BACKOFF_S = 0.5  # the first retry's pause; doubled for each further one
+MIN_RATE = 64 << 10  # bytes a second an answer must average (after TIMEOUT_S of grace), else it counts as dropped
 
 
 class Dropped(OSError):
     """A transfer that stopped before its range was whole (retried; resumable)."""
+
+
+def _origin(url: str) -> tuple[str, str, int | None]:
+    parts = urllib.parse.urlsplit(url)
+    return parts.scheme.lower(), (parts.hostname or "").lower(), parts.port
+
+
+class _SameOriginAuth(urllib.request.HTTPRedirectHandler):
+    """Follows a redirect with the URL's credentials only where it stays on their origin (scheme,
+    host and port): a mirror that redirects elsewhere (a CDN, anyone) never receives them."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        new = super().redirect_request(req, fp, code, msg, headers, newurl)
+        if new is not None and _origin(newurl) != _origin(req.full_url):
+            new.remove_header("Authorization")
+        return new
+
+
+_OPENER = urllib.request.build_opener(_SameOriginAuth)
+
+
+def _validator(resp: http.client.HTTPResponse) -> str:
+    """What names the version of the file an answer came from: its ETag, else its Last-Modified."""
+    return resp.headers.get("ETag") or resp.headers.get("Last-Modified") or ""
 
 
 def _request(url: str, start: int, stop: int) -> urllib.request.Request:
@@ -58,10 +88,11 @@ def _request(url: str, start: int, stop: int) -> urllib.request.Request:
     return urllib.request.Request(url, headers=headers)
 
 
-def _open(url: str, start: int, stop: int) -> http.client.HTTPResponse:
-    """The response to ``GET`` bytes ``[start, stop)``, checked to be exactly that range."""
+def _open(url: str, start: int, stop: int, version: str = "") -> http.client.HTTPResponse:
+    """The response to ``GET`` bytes ``[start, stop)``, checked to be exactly that range of the
+    file's version ``version`` (where the server names versions)."""
     try:
-        resp = urllib.request.urlopen(_request(url, start, stop), timeout=TIMEOUT_S)  # noqa: S310 - http(s) only
+        resp = _OPENER.open(_request(url, start, stop), timeout=TIMEOUT_S)
     except urllib.error.HTTPError as exc:
         if exc.code == 416:
             raise InputError(f"{public(url)}: the server has no bytes {start:,}-{stop - 1:,} (the file is shorter "
@@ -92,6 +123,10 @@ def _open(url: str, start: int, stop: int) -> http.client.HTTPResponse:
         resp.close()
         raise InputError(f"{public(url)}: asked for bytes {start:,}-{stop - 1:,}, the server answered "
                          f"{got or 'no Content-Range'} with {length or 'no'} Content-Length")
+    if version and _validator(resp) != version:
+        resp.close()
+        raise InputError(f"{public(url)}: the file changed while it was read (it was {version}, now "
+                         f"{_validator(resp) or 'unnamed'}); run the command again: it starts over from the new file")
     return resp
 
 
@@ -102,7 +137,7 @@ def probe(url: str) -> tuple[int, str]:
     try:
         with _open(url, 0, 1) as resp:
             total = resp.headers["Content-Range"].rpartition("/")[2]
-            version = resp.headers.get("ETag") or resp.headers.get("Last-Modified") or ""
+            version = _validator(resp)
             resp.read()
     except Dropped as exc:
         raise InputError(f"{public(url)}: no answer ({exc}); check the URL and the network") from None
@@ -111,30 +146,35 @@ def probe(url: str) -> tuple[int, str]:
     return int(total), version
 
 
-def read_range(url: str, start: int, stop: int) -> bytes:
-    """Bytes ``[start, stop)`` of a remote file (a header, a small file), retried as a part is."""
+def read_range(url: str, start: int, stop: int, version: str = "") -> bytes:
+    """Bytes ``[start, stop)`` of a remote file (a header, a small file), retried as a part is, of
+    its version ``version`` (:func:`probe`'s) where given."""
     buf = bytearray(stop - start)
     try:
         _fetch_into(url, start, stop, lambda at, data: buf.__setitem__(slice(at - start, at - start + len(data)),
-                                                                        data))
+                                                                        data), version)
     except Dropped as exc:
         raise InputError(f"{exc}; check the URL and the network") from None
     return bytes(buf)
 
 
-def _fetch_into(url: str, start: int, stop: int, write) -> None:
+def _fetch_into(url: str, start: int, stop: int, write, version: str = "") -> None:
     """Bytes ``[start, stop)`` handed to ``write(offset, data)`` as they arrive; a dropped
-    connection is retried from the first byte not yet written."""
+    connection, or an answer slower than ``MIN_RATE``, is retried from the first byte not yet
+    written."""
     at, failures = start, 0
     while at < stop:
         try:
-            with _open(url, at, stop) as resp:
+            with _open(url, at, stop, version) as resp:
+                deadline = time.monotonic() + TIMEOUT_S + (stop - at) / MIN_RATE
                 while at < stop:
-                    data = resp.read(min(BLOCK, stop - at))
+                    data = resp.read1(min(BLOCK, stop - at))
                     if not data:
                         raise Dropped(f"the answer stopped at byte {at:,} of {start:,}-{stop - 1:,}")
                     write(at, data)
                     at += len(data)
+                    if at < stop and time.monotonic() > deadline:
+                        raise Dropped(f"the answer came slower than {MIN_RATE >> 10} KiB/s")
                 if resp.read(1):
                     raise InputError(f"{public(url)}: the server sent more than bytes {start:,}-{stop - 1:,}")
         except (Dropped, ConnectionError, TimeoutError, http.client.HTTPException) as exc:
@@ -166,8 +206,12 @@ def download(plan: Plan, connections: int = 4, quiet: bool = False) -> Path:
     work = out.with_name(f".{out.name}.partial")
     record_file = out.with_name(f".{out.name}.parts.json")
     parts = [(a, min(plan.size, a + PART_BYTES)) for a in range(0, plan.size, PART_BYTES)]
+    for path in (work, record_file, out):
+        if path.is_symlink():
+            raise InputError(f"{path}: a symbolic link; a download writes and publishes only files of its own: "
+                             "remove the link")
     done = _kept_parts(work, record_file, plan)
-    fd = os.open(work, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(work, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
     try:
         os.ftruncate(fd, plan.size)
         todo = [p for p in parts if str(p[0]) not in done]
@@ -184,7 +228,7 @@ def download(plan: Plan, connections: int = 4, quiet: bool = False) -> Path:
             def write(at: int, data: bytes) -> None:
                 os.pwrite(fd, data, at)
 
-            _fetch_into(plan.url, a, b, write)
+            _fetch_into(plan.url, a, b, write, plan.version)
             crc.update(os.pread(fd, b - a, a))  # what is on disk, not what was sent
             return a, crc.hexdigest().decode()
 

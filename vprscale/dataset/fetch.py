@@ -107,8 +107,9 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
         base = "base" if req.source == "deep1b" else "query.public"
         name = f"{base}.{label(rows)}.{'fvecs' if req.format == 'fvecs' else 'fbin'}"
     out = req.out / name
+    fetched = out if req.format == "fbin" else req.out / f"{base}.{label(rows)}.fbin"
     need = size * (2 if req.format == "fvecs" else 1)  # fvecs is written beside the fetched rows, then they go
-    free = shutil.disk_usage(req.out).free
+    free = shutil.disk_usage(req.out).free + _held(fetched.with_name(f".{fetched.name}.partial"))
     if need > free:
         raise InputError(f"--out {req.out}: {name} needs {need / 2**30:,.1f} GiB and the disk there has "
                          f"{free / 2**30:,.1f} GiB free (--rows fetches the first rows only)")
@@ -116,7 +117,7 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
         if out.exists() and not req.force:
             raise InputError(f"--out {req.out}: already holds {name}; --force fetches it again and keeps the old "
                              f"one beside, as {name}.previous")
-        plan = Plan(url, out if req.format == "fbin" else req.out / f"{base}.{label(rows)}.fbin", size, version)
+        plan = Plan(url, fetched, size, version)
         work = download(plan, req.connections, req.quiet)
         if header is not None:
             with open(work, "r+b") as fh:
@@ -140,14 +141,22 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
     return {"file": str(out), **manifest}
 
 
+def _held(partial: Path) -> int:
+    """Disk space a resumable download already holds (its work file is sparse: only what arrived)."""
+    try:
+        return partial.lstat().st_blocks * 512 if partial.is_file() and not partial.is_symlink() else 0
+    except OSError:
+        return 0
+
+
 def _fbin_plan(url: str, rows: int | None) -> tuple[int, int, int, bytes, str]:
     """``(rows, dim, bytes to fetch, the crop's header, the remote version)`` of an ``.fbin`` at
     ``url``, its size checked against its header (a file cut short, or a header that lies, is
     refused here)."""
-    n, dim = struct.unpack("<II", read_range(url, 0, 8))
+    size, version = probe(url)
+    n, dim = struct.unpack("<II", read_range(url, 0, 8, version))
     if n == 0 or not 0 < dim <= MAX_DIM:
         raise InputError(f"{public(url)}: not an .fbin file (its header says {n:,} rows of {dim:,} dimensions)")
-    size, version = probe(url)
     if size != 8 + 4 * dim * n:
         raise InputError(f"{public(url)}: {size:,} bytes, but its header says {n:,} rows of {dim} float32, "
                          f"{8 + 4 * dim * n:,} bytes: a truncated or foreign file")

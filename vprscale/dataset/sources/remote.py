@@ -29,15 +29,17 @@ PART = 64 << 20  # bytes a request of a whole-file fetch asks for
 
 class Ranges:
     """Byte ranges of one remote file; holds its URL (and, off HTTP, its picklable filesystem), so
-    tasks in other processes or on other machines read for themselves."""
+    tasks in other processes or on other machines read for themselves. Once probed, every HTTP
+    read must come from the version of the file the probe saw."""
 
     def __init__(self, url: str) -> None:
         self.url, self.name = url, public(url)
         self._remote = None if HTTP.match(url) else Remote(url)
+        self._version = ""  # the HTTP validator reads are held to, from probe()
 
     def read(self, start: int, stop: int) -> bytes:
         if self._remote is None:
-            return read_range(self.url, start, stop)
+            return read_range(self.url, start, stop, self._version)
         with storage_errors(self.url):
             data = self._remote.fs.cat_file(self._remote.path, start=start, end=stop)
         if len(data) != stop - start:
@@ -48,7 +50,8 @@ class Ranges:
     def probe(self) -> tuple[int, str | None]:
         """The file's size and its version (an HTTP validator, an object's ETag)."""
         if self._remote is None:
-            return probe(self.url)
+            size, self._version = probe(self.url)
+            return size, self._version
         with storage_errors(self.url):
             info = self._remote.fs.info(self._remote.path)
         if info.get("type") == "directory":
@@ -65,8 +68,8 @@ class RemoteFbinSource(RowSource):
     def __init__(self, url: str) -> None:
         self.ranges = Ranges(url)
         self.name = self.ranges.name
-        n, d = struct.unpack("<II", self.ranges.read(0, 8))
         size, self.version = self.ranges.probe()
+        n, d = struct.unpack("<II", self.ranges.read(0, 8))
         if d == 0 or size != 8 + 4 * n * d:
             raise InputError(f"{self.name}: header says n = {n}, d = {d} (a file of {8 + 4 * n * d:,} bytes) but the "
                              f"server has {size:,} bytes")
@@ -128,7 +131,7 @@ def fetched_copy(url: str, quiet: bool = False) -> tuple[Path, dict[str, Any]]:
     size, version = ranges.probe()
     key = hashlib.sha256(f"{ranges.name}|{size}|{version}".encode()).hexdigest()[:16]
     target = cache_root() / "sources" / key / (ranges.name.rpartition("/")[2] or "source")
-    if not (target.is_file() and target.stat().st_size == size):
+    if not (target.is_file() and target.stat().st_size == size and (version or _same_ends(ranges, target))):
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.tmp")  # tasks fetch at once
         bar = None if quiet else ChunkProgress(f"fetch {ranges.name}", -(-size // PART), unit="parts")
@@ -143,6 +146,18 @@ def fetched_copy(url: str, quiet: bool = False) -> tuple[Path, dict[str, Any]]:
             tmp.unlink(missing_ok=True)
     sampled = file_fingerprint(target)["sha256_head_tail"]
     return target, {"url": ranges.name, "bytes": size, "version": version, "sha256_head_tail": sampled}
+
+
+def _same_ends(ranges: Ranges, copy: Path, sample: int = 1 << 20) -> bool:
+    """Whether a cached copy still holds the remote file's first and last ``sample`` bytes: where
+    the server names no version (no ETag, no Last-Modified), what the cache may be trusted on (a
+    zip's, an ``.npz``'s, last bytes hold every member's CRC32)."""
+    size = copy.stat().st_size
+    with open(copy, "rb") as fh:
+        head = fh.read(min(sample, size))
+        fh.seek(max(0, size - sample))
+        tail = fh.read()
+    return ranges.read(0, len(head)) == head and ranges.read(size - len(tail), size) == tail
 
 
 def _first_dim(part: Ranges) -> int:
