@@ -23,7 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_floors_contract_holds():
     """import-linter's layers contract in pyproject.toml: no floor imports a floor above it
     (function-level imports included)."""
-    done = subprocess.run(["lint-imports", "--config", str(ROOT / "pyproject.toml")], cwd=ROOT,
+    beside = Path(sys.executable).parent / "lint-imports"  # this environment's, activated or not
+    done = subprocess.run([str(beside) if beside.is_file() else "lint-imports", "--config",
+                           str(ROOT / "pyproject.toml")], cwd=ROOT,
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
     assert "0 broken" in done.stdout
