@@ -47,6 +47,16 @@ def test_a_statement_longer_than_a_file_name_runs(evaluated):
     assert lines[0].startswith('"hash","x0"') and len(lines) == 3
 
 
+def test_a_long_statements_csv_is_the_result_alone(evaluated):
+    """A statement that runs for seconds (DuckDB would draw its progress bar after 2 s, on standard
+    output) writes its CSV and nothing else there."""
+    done = _vprscale("sql", str(evaluated), "SELECT count(*) AS n FROM range(600000000) t(i) WHERE hash(i) % 7 = 0",
+                     "--csv")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[0] == '"n"' and done.stdout.splitlines()[1].isdigit()
+    assert len(done.stdout.splitlines()) == 2
+
+
 @pytest.mark.parametrize("argv", [["methods"], ["occupancy", "{index}"], ["results", "{index}"],
                                   ["results", "{index}", "--queries", "--csv"], ["verify", "{index}"]])
 def test_a_closed_pipe_ends_quietly(evaluated, argv):
@@ -288,3 +298,74 @@ def test_synth_does_not_write_over_a_dataset_without_force(tmp_path, capsys):
     assert main([*argv, "--force", "--quiet"]) == 0  # its own files are replaced: nothing more kept
     assert sorted(p.name for p in tmp_path.rglob("*.previous*")) == ["base.fbin.previous"]
     assert {f: f.read_bytes() for f in ours} == ours
+
+
+def _snapshot(path: Path) -> dict[str, bytes]:
+    """Every file under ``path`` (or ``path`` itself) with its bytes."""
+    if path.is_file():
+        return {"": path.read_bytes()}
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+# Every command that writes an output, and the output it would write over: (argv, what is there)
+REPLACED = {
+    "build over a folder of someone's": (["build", "--scale", "20K", "--out", "{tmp}"], "{tmp}/20K.zarr/"),
+    "index over an index of other parameters": (["index", "{store}", "--d", "10", "--out", "{index}"], None),
+    "index over an unevaluated index of others": (["index", "{store}", "--d", "10", "--out", "{index}"], "no eval"),
+    "index over a folder of someone's": (["index", "{store}", "--d", "10", "--out", "{tmp}/x.index"],
+                                         "{tmp}/x.index/"),
+    "eval over an evaluation": (["eval", "{store}", "{index}", "--L", "1", "--noise", "qm1", "--no-baseline",
+                                 "--repeats", "1"], None),
+    "eval over a folder of someone's": (["eval", "{store}", "{index}", "--L", "1", "--out", "{tmp}/e"], "{tmp}/e/"),
+    "report over a folder of someone's": (["report", "{index}", "--out", "{tmp}/r"], "{tmp}/r/"),
+    "localise over a file": (["localise", "{index}", "{store}/query_qm1", "--L", "5", "--out", "{tmp}/m.csv"],
+                             "{tmp}/m.csv"),
+    "a summary over a file": (["localise", "{index}", "{store}/query_qm1", "--L", "5", "--summary", "{tmp}/s.json"],
+                              "{tmp}/s.json"),
+    "fetch over a file": (["fetch", "deep1b", "--rows", "1K", "--url", "{url}", "--out", "{tmp}"],
+                          "{tmp}/base.1K.fbin"),
+}
+
+
+@pytest.mark.parametrize("case", list(REPLACED))
+def test_no_command_replaces_an_output_without_force(case, evaluated, tiny_store, tmp_path, capsys):
+    """The one rule for every command that writes: an existing output, or anything of someone's where
+    an output would go, is refused in one line (exit 2) unless ``--force`` says replace, and then
+    only an output of vprscale's, kept beside; nothing there changes."""
+    from .test_fetch import Server, deep_rows
+
+    index = tmp_path / "tiny.index"
+    shutil.copytree(evaluated, index)
+    argv, theirs = REPLACED[case]
+    data = deep_rows(1000)
+    server = Server(lambda a, b: data[a:b], len(data))
+    fill = {"tmp": str(tmp_path), "store": str(tiny_store), "index": str(index), "url": server.url}
+    argv = [a.format(**fill) for a in argv]
+    target = Path(theirs.format(**fill)) if theirs and theirs != "no eval" else index
+    if theirs == "no eval":
+        shutil.rmtree(index / "eval")
+    elif theirs and theirs.endswith("/"):
+        target.mkdir(parents=True)
+        (target / "results.csv").write_text("method,recall\nmine,0.9\n")
+    elif theirs:
+        target.write_text("mine\n")
+    before = _snapshot(target)
+    capsys.readouterr()
+    try:
+        assert main(argv) == 2
+    finally:
+        server.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"vprscale {argv[0]}: error:"), err
+    assert _snapshot(target) == before
+
+
+def test_localise_replaces_its_output_with_force_and_keeps_it_beside(evaluated, tiny_store, tmp_path):
+    out = tmp_path / "m.csv"
+    out.write_text("mine\n")
+    argv = ["localise", str(evaluated), f"{tiny_store}/query_qm1", "--L", "5", "--out", str(out), "-q"]
+    assert main([*argv, "--force"]) == 0
+    assert out.read_text().startswith('"frame",') and (tmp_path / "m.csv.previous").read_text() == "mine\n"
+    summary = ["--summary", str(tmp_path / "s.json"), "--out", str(tmp_path / "n.csv"), "--force"]
+    assert main([*argv[:-3], *summary]) == 0
+    assert main([*argv[:-3], *summary]) == 0  # a summary of its own is rewritten

@@ -448,6 +448,10 @@ def test_best_operating_points_are_each_familys_best_within_the_budget(compared,
     assert (got.bytes_per_place <= budget.get("--best-bytes", np.inf)).all()
     assert (got.qps_per_core >= budget.get("--best-qps", 0)).all()
     assert sorted(got.recall.round(12)) == sorted(expected.round(12))
+    assert main(["results", str(compared["out"]), *flags]) == 0  # the table for the eye names each method
+    shown = capsys.readouterr().out.splitlines()
+    assert "family" in shown[0] and "qps_per_core" in shown[0]
+    assert {f for f in got.family} <= {f for f in got.family if any(f in line for line in shown[1:])}
 
 
 def test_best_needs_the_recall_table_and_a_held_radius(compared, capsys):

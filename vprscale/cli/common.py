@@ -60,12 +60,17 @@ def csv_of(kind: type) -> Callable[[str], list]:
     return parse
 
 
+SUMMARY_MARK = "summary_of"  # the key that says a JSON file is a summary vprscale wrote (and may write again)
+
+
 def write_summary(args: argparse.Namespace, data: dict) -> None:
-    """``--summary FILE``: the command's summary as JSON (what pipelines read back), written whole."""
+    """``--summary FILE``: the command's summary as JSON (what pipelines read back), written whole;
+    it replaces only a summary of an earlier run (:func:`check_outputs` refused anything else)."""
     if getattr(args, "summary", None):
         path = Path(args.summary)
         tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(json.dumps(redact(data), indent=1, default=str))  # no URL's password or signature
+        record = {SUMMARY_MARK: f"vprscale {args.command}", **redact(data)}  # no URL's password or signature
+        tmp.write_text(json.dumps(record, indent=1, default=str))
         tmp.replace(path)
 
 
@@ -138,6 +143,10 @@ def _check_not_over_inputs(args: argparse.Namespace) -> None:
     """No output flag may name one of the command's inputs, lie inside one, or lie inside a
     store or index the command does not own (paths resolved, symlinks followed)."""
     inputs = _flag_paths(args, getattr(args, "input_flags", ()))
+    summary = Path(args.summary) if getattr(args, "summary", None) else None
+    if summary is not None and (summary.exists() or summary.is_symlink()) and not _our_summary(summary):
+        raise InputError(f"--summary {summary}: exists and is not a summary vprscale wrote; not replaced "
+                         "(give a new file, or remove it)")
     for out_flag, out in _flag_paths(args, OUTPUT_FLAGS):
         target = out.resolve()
         for in_flag, src in inputs:
@@ -156,6 +165,15 @@ def _check_not_over_inputs(args: argparse.Namespace) -> None:
             if out == src or out.startswith(src + "/"):
                 raise InputError(f"--{out_flag} {public(out)}: would write {'over' if out == src else 'into'} the "
                                  f"input {public(src)} (--{in_flag})")
+
+
+def _our_summary(path: Path) -> bool:
+    """Whether ``path`` is a regular file holding a summary vprscale wrote (an earlier run's)."""
+    try:
+        record = json.loads(path.read_text()) if path.is_file() and not path.is_symlink() else None
+    except (OSError, ValueError):
+        return False
+    return isinstance(record, dict) and str(record.get(SUMMARY_MARK, "")).startswith("vprscale ")
 
 
 def check_outputs(args: argparse.Namespace) -> None:

@@ -23,6 +23,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                         "batch's ranking)")
     p.add_argument("--out", help="a .parquet or .csv file of (frame, centre, match, n_r, score), one row per "
                                  "frame (default: CSV on standard output)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file (kept beside, as .previous)")
     p.set_defaults(func=run, input_flags=INPUTS)
 
 
@@ -30,6 +31,6 @@ def run(args: argparse.Namespace) -> int:
     from vprscale.jobs.localise import localise
 
     summary = localise(local_output(args.index), args.queries, args.L, mode=args.mode, out=args.out or "-",
-                       top=args.top)
+                       top=args.top, force=args.force)
     write_summary(args, summary)
     return 0

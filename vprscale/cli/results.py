@@ -36,8 +36,10 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 
 
 # What a reader asks of a recall row first: which method, configured how, at which point, how well.
-TABLE_COLUMNS = ("run", "scale", "noise", "method", "params", "mode", "L", "part", "radius", "recall", "recall_lo",
-                 "recall_hi", "recall_at_20", "n_queries", "nr_mean", "bytes_per_place", "us_per_query")
+# (--best-*: each operating point's method family, its parameters and queries per second per core)
+TABLE_COLUMNS = ("run", "scale", "noise", "method", "family", "params", "mode", "L", "part", "radius", "recall",
+                 "recall_lo", "recall_hi", "recall_at_20", "n_queries", "nr_mean", "bytes_per_place", "us_per_query",
+                 "qps_per_core")
 METRE_COLUMNS = tuple("radius_m" if c == "radius" else c for c in TABLE_COLUMNS)
 QUERY_COLUMNS = ("run", "noise", "method", "params", "mode", "L", "centre", "gt", "match", "score", "n_r")
 
@@ -62,10 +64,12 @@ def _shown(table, all_columns: bool, queries: bool, metres: bool = False):
     keep = [c for c in (QUERY_COLUMNS if queries else METRE_COLUMNS if metres else TABLE_COLUMNS)
             if c in table.column_names]
     table = table.select(keep)
-    for name in ("recall", "recall_lo", "recall_hi", "recall_at_20", "nr_mean", "bytes_per_place", "us_per_query"):
-        if name in table.column_names:  # three decimals (one for µs) read at a glance
+    for name in ("recall", "recall_lo", "recall_hi", "recall_at_20", "nr_mean", "bytes_per_place", "us_per_query",
+                 "qps_per_core"):
+        if name in table.column_names:  # three decimals (one for µs and queries a second) read at a glance
             table = table.set_column(table.column_names.index(name), name,
-                                     pc.round(table.column(name), 1 if name == "us_per_query" else 3))
+                                     pc.round(table.column(name), 1 if name in ("us_per_query", "qps_per_core")
+                                              else 3))
     return table
 
 

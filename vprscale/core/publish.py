@@ -227,6 +227,25 @@ def keep_beside(path: Path, kept: Path | None = None) -> Path:
     return kept
 
 
+def check_file_output(out: Path, force: bool, flag: str = "--out") -> None:
+    """Refuse, before any work, to write a single-file output over an existing file without
+    ``force`` (or over a directory or a link at all): the file counterpart of an output folder's
+    rules (:func:`publish_file` publishes it)."""
+    if out.is_symlink() or out.is_dir():
+        raise InputError(f"{flag} {out}: is a {'symbolic link' if out.is_symlink() else 'directory'}; give a "
+                         "file name")
+    if out.exists() and not force:
+        raise InputError(f"{flag} {out}: exists; --force replaces it and keeps it beside, as {out.name}.previous")
+
+
+def publish_file(tmp: Path, out: Path) -> None:
+    """Put a finished file in place (``out`` whole or not at all), an existing one kept beside
+    (``.previous``: what ``--force`` replaces is kept, as for folders)."""
+    if out.exists():
+        keep_beside(out)
+    tmp.replace(out)
+
+
 class ObjectOutput:
     """The lifecycle of one output on object storage; the same calls as
     :class:`~vprscale.core.publish.PartialOutput` (``open``, ``done``, ``mark``, ``publish``).

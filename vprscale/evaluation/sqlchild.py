@@ -167,7 +167,9 @@ def connect(paths: str | Path | list, memory_limit: str = "2GB", threads: int = 
         settings = [("temp_directory", spill), ("memory_limit", memory_limit), ("threads", threads),
                     ("max_temp_directory_size", spill_limit), ("enable_external_access", False),
                     ("autoinstall_known_extensions", False), ("autoload_known_extensions", False),
-                    ("allow_community_extensions", False), ("lock_configuration", True)]
+                    ("allow_community_extensions", False),
+                    # DuckDB draws its progress bar on standard output, where a result (CSV, JSON) goes
+                    ("enable_progress_bar", False), ("lock_configuration", True)]
         for name, value in settings:  # the names are ours; the values go in as bound parameters
             try:
                 con.execute(f"SET {name} = ?", [value])

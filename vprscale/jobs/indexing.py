@@ -12,6 +12,7 @@ index only sorts the lists.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from vprscale.core.blocks import chunk_bounds
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import cache_folder, upload
+from vprscale.core.manifest import NAME
 from vprscale.core.objects import Remote, location, shown
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
@@ -41,6 +43,8 @@ from vprscale.method.indexfile import (
     write_meta,
     write_model,
 )
+
+log = logging.getLogger(__name__)
 
 
 def _hash_chunk(x: np.ndarray, mean: np.ndarray, comp: np.ndarray,
@@ -87,6 +91,8 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
     if remote:
         check_writable(remote.parent)
         refuse_foreign(remote)  # before the work: what is there is replaced only if vprscale wrote it
+        if not force and (remote / NAME).exists():
+            raise InputError(f"--out {remote}: holds an index; --force replaces it")
     identity = store_identity(group)
     timings = Timings(quiet)
     t0 = time.perf_counter()
@@ -95,6 +101,15 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         partial.recover()
         if final.exists() and not (final / "index.json").is_file():
             raise InputError(f"--out {final}: exists and is not a vprscale index; not replaced")
+        if final.exists() and not force and not remote:  # an existing output is replaced only with --force
+            old = load_index_meta(final)
+            same_store = (old.get("store") or {}).get("identity") == identity
+            if not same_store or (old["d"], old["k"]) != (d_eff, k):
+                of = "other parameters" if same_store else "another store"
+                raise InputError(f"--out {final}: holds an index of {of} (d = {old['d']}, K = {old['k']}); --force "
+                                 "replaces it and keeps its evaluations beside")
+            log.info(f"{final} is complete (d = {d_eff}, K = {k}, this store); --force rebuilds it")
+            return {"index": str(final), **old, "parts_published": index_parts(final)}
         if (final / "eval").is_dir() and any((final / "eval").iterdir()) and not force:
             raise InputError(f"{final}: holds evaluations in eval/; re-indexing would orphan them "
                              "(--force keeps them beside the new index, in <index>.previous-eval/)")

@@ -28,6 +28,7 @@ import zarr
 
 from vprscale.core.errors import InputError
 from vprscale.core.progress import ChunkProgress
+from vprscale.core.publish import check_file_output, publish_file
 from vprscale.dataset.store import open_complete_group
 from vprscale.method.index import Index
 from vprscale.method.indexfile import load_index_meta
@@ -111,10 +112,11 @@ class MatchWriter:
 
 
 def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper", out: str | Path | None = None,
-             quiet: bool = False, top: int | None = None) -> dict[str, Any]:
+             quiet: bool = False, top: int | None = None, force: bool = False) -> dict[str, Any]:
     """Localise every frame of ``queries``; returns a summary, and writes the rows to ``out`` (a
-    ``.parquet`` or ``.csv`` file, whole or not at all; ``"-"``: CSV on standard output) when given,
-    with each window's ``top`` best candidates as columns ``top_1 …`` when asked for."""
+    ``.parquet`` or ``.csv`` file, whole or not at all, an existing one replaced only with
+    ``force`` and kept beside; ``"-"``: CSV on standard output) when given, with each window's
+    ``top`` best candidates as columns ``top_1 …`` when asked for."""
     meta = load_index_meta(index)
     path = Path(queries)
     if not path.exists():
@@ -125,8 +127,7 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     to_stdout = out == "-"
     if out is not None and not to_stdout:
         out = Path(out)
-        if out.is_dir():
-            raise InputError(f"--out {out}: is a directory; give a file name")
+        check_file_output(out, force)
         if out.suffix.lower() not in OUT_FORMATS:
             raise InputError(f"--out {out}: name a .parquet or .csv file (the suffix says the format)")
         if not out.parent.is_dir():
@@ -139,6 +140,9 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
         matcher = OnlineMatcher(Index.load(index), L, mode, n_best=top or 1)
     except ValueError as exc:
         raise InputError(str(exc)) from None
+    # the kernels compiled (a first run: numba's) before the matching is timed, on frames of no consequence
+    OnlineMatcher(matcher.index, L, mode, n_best=top or 1).push_many(np.zeros((L + 1, width), np.float32),
+                                                                     return_score=True, return_top=bool(top))
     lag = centre_lag(L)
     progress = None if quiet else ChunkProgress("localise", (rows + READ_ROWS - 1) // READ_ROWS)
     tmp = None if out is None or to_stdout else out.with_name(f".{out.name}.partial")
@@ -174,7 +178,7 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
             tmp.unlink(missing_ok=True)  # never a partial file left to look like matches
         raise
     if tmp is not None:
-        tmp.replace(out)
+        publish_file(tmp, out)
     if not quiet:
         log.info(f"localised {rows:,} frames: {secs:.1f} s of matching ({secs / max(1, rows) * 1e6:.1f} µs a frame)")
     return {"frames": rows, "L": L, "mode": mode, "seconds": secs, "us_per_frame": secs / max(1, rows) * 1e6,
