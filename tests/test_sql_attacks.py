@@ -184,7 +184,7 @@ def test_a_killed_console_leaves_no_spill_directory(arena):
     import sys
     import tempfile
 
-    base = Path(tempfile.gettempdir()) / "vprscale-sql"
+    base = Path(tempfile.gettempdir()) / f"vprscale-sql-{os.getuid()}"
     proc = subprocess.Popen([sys.executable, "-m", "vprscale.cli", "sql", str(arena["index"]),
                              "SELECT count(*) FROM range(1000000000000)", "--timeout", "120"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -196,3 +196,30 @@ def test_a_killed_console_leaves_no_spill_directory(arena):
     proc.wait()
     run_sql(arena["index"], "SELECT 1 AS one", fmt="csv")  # the next console removes what the killed one left
     assert not list(base.glob(f"{proc.pid}-*"))
+
+
+@pytest.mark.parametrize("planted", ["link", "others"])
+def test_a_planted_spill_base_removes_nothing(arena, tmp_path, planted):
+    """On a shared temporary folder someone plants ``vprscale-sql-<uid>`` as a link to a folder of
+    yours, or as a folder anyone may write in, holding ``<digits>-…`` folders of no live process:
+    a console uses a private folder of its own instead and removes none of them."""
+    import os
+    import subprocess
+    import sys
+
+    tmpdir, victim = tmp_path / "tmp", tmp_path / "victim"
+    (victim / "999999999-work").mkdir(parents=True)
+    (victim / "999999999-work" / "thesis.tex").write_text("years of work")
+    tmpdir.mkdir()
+    base = tmpdir / f"vprscale-sql-{os.getuid()}"
+    if planted == "link":
+        base.symlink_to(victim)
+        kept = victim / "999999999-work" / "thesis.tex"
+    else:
+        (base / "999999999-work").mkdir(parents=True)
+        base.chmod(0o777)
+        kept = base / "999999999-work"
+    done = subprocess.run([sys.executable, "-m", "vprscale.cli", "sql", str(arena["index"]), "SELECT 1 AS one",
+                           "--csv"], capture_output=True, text=True, env={**os.environ, "TMPDIR": str(tmpdir)})
+    assert done.returncode == 0 and done.stdout.split() == ['"one"', "1"], done.stderr
+    assert kept.exists()

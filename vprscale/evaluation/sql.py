@@ -26,6 +26,7 @@ import multiprocessing
 import os
 import re
 import shutil
+import stat
 import tempfile
 import time
 from collections.abc import Iterator
@@ -144,14 +145,28 @@ def check_sources(paths: list[Path]) -> None:
 
 def _spill_dir() -> str:
     """A fresh spill directory for this process, after removing those of processes that are gone
-    (a killed console cannot remove its own)."""
+    (a killed console cannot remove its own).
+
+    Their base, ``$TMPDIR/vprscale-sql-<uid>``, is used only when it is this user's own private
+    directory (not a link, not another's, nobody else may write in it), and only this user's
+    directories in it are ever removed: on a shared ``/tmp`` anyone could plant a link there."""
     import psutil
 
-    base = Path(tempfile.gettempdir()) / "vprscale-sql"
-    base.mkdir(exist_ok=True)
+    base = Path(tempfile.gettempdir()) / f"vprscale-sql-{os.getuid()}"
+    try:
+        base.mkdir(mode=0o700, exist_ok=True)
+        info = os.lstat(base)
+    except OSError:
+        info = None
+    if info is None or not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+        return tempfile.mkdtemp(prefix="vprscale-sql-")  # a base that is not ours: a private folder, nothing removed
     for old in base.iterdir():
         pid = old.name.split("-")[0]
-        if pid.isdigit() and not psutil.pid_exists(int(pid)):
+        try:
+            mine = stat.S_ISDIR(os.lstat(old).st_mode) and os.lstat(old).st_uid == os.getuid()
+        except OSError:
+            continue
+        if mine and pid.isdigit() and not psutil.pid_exists(int(pid)):
             shutil.rmtree(old, ignore_errors=True)
     return tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base)
 
