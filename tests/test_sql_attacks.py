@@ -211,15 +211,16 @@ def test_a_planted_spill_base_removes_nothing(arena, tmp_path, planted):
     (victim / "999999999-work").mkdir(parents=True)
     (victim / "999999999-work" / "thesis.tex").write_text("years of work")
     tmpdir.mkdir()
-    base = tmpdir / f"vprscale-sql-{os.getuid()}"
-    if planted == "link":
-        base.symlink_to(victim)
-        kept = victim / "999999999-work" / "thesis.tex"
-    else:
-        (base / "999999999-work").mkdir(parents=True)
-        base.chmod(0o777)
-        kept = base / "999999999-work"
+    kept = []
+    for base in (tmpdir / f"vprscale-sql-{os.getuid()}", tmpdir / "vprscale-sql"):  # this one's, and older ones'
+        if planted == "link":
+            base.symlink_to(victim)
+            kept.append(victim / "999999999-work" / "thesis.tex")
+        else:
+            (base / "999999999-work").mkdir(parents=True)
+            base.chmod(0o777)
+            kept.append(base / "999999999-work")
     done = subprocess.run([sys.executable, "-m", "vprscale.cli", "sql", str(arena["index"]), "SELECT 1 AS one",
                            "--csv"], capture_output=True, text=True, env={**os.environ, "TMPDIR": str(tmpdir)})
     assert done.returncode == 0 and done.stdout.split() == ['"one"', "1"], done.stderr
-    assert kept.exists()
+    assert all(k.exists() for k in kept)
