@@ -288,3 +288,71 @@ def test_a_zarr_array_declaring_more_rows_than_it_holds_is_one_line(tiny_index, 
     arr[:10] = np.ones((10, 96), np.float32)
     fails(capsys, ["localise", str(tiny_index), str(tmp_path / "huge.zarr"), "--L", "5"],
           "declares 100,000,000,000 rows", "1 are written")
+
+
+@pytest.mark.parametrize("where", ["not a scheduler", "no workers", "not an address"])
+def test_a_scheduler_that_cannot_run_the_job_is_one_line_in_time(where, tiny_store, tmp_path, capsys, monkeypatch):
+    """``--scheduler`` at a port where another server listens, at a scheduler with no worker, or at
+    something that is no address: one line and exit 2 within the waits, never a hang."""
+    import http.server
+    import threading
+
+    monkeypatch.setattr("vprscale.core.cluster.CONNECT_S", 2.0)
+    monkeypatch.setattr("vprscale.core.cluster.WORKERS_S", 2.0)
+    stop = []
+    if where == "not a scheduler":
+        httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+        threading.Thread(target=httpd.serve_forever, daemon=True).start()
+        stop.append(httpd.shutdown)
+        address, words = f"tcp://127.0.0.1:{httpd.server_address[1]}", ("no Dask scheduler answered",)
+    elif where == "no workers":
+        from distributed import LocalCluster
+
+        cluster = LocalCluster(n_workers=0, processes=False, dashboard_address=None, scheduler_port=0)
+        stop.append(cluster.close)
+        address, words = cluster.scheduler_address, ("has no worker", "leave --scheduler out")
+    else:
+        address, words = "not a url", ("--scheduler not a url",)
+    started = time.monotonic()
+    try:
+        fails(capsys, ["index", str(tiny_store), "--d", "12", "--out", str(tmp_path / "i.index"), "--scheduler",
+                       address], *words)
+    finally:
+        for s in stop:
+            s()
+    assert time.monotonic() - started < 30 and not (tmp_path / "i.index").exists()
+
+
+@pytest.mark.slow
+def test_a_scheduler_killed_mid_job_is_one_line_and_the_job_resumes(sources, tmp_path):
+    """The scheduler is killed while a build runs on it: one line and exit 2, no traceback (not
+    "a bug in vprscale"); the same command, locally, finishes the store."""
+    from .conftest import write_recipe
+
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    sched = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                              "--port", str(port), "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", f"tcp://127.0.0.1:{port}",
+                               "--nthreads", "1", "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    argv = [sys.executable, "-m", "vprscale.cli", "build", "--scale", str(write_recipe(tmp_path / "tiny.toml")),
+            "--deep1b", str(sources["fbin"]), "--fas", str(sources["fas"]), "--out", str(tmp_path / "o")]
+    try:
+        job = subprocess.Popen([*argv, "--scheduler", f"tcp://127.0.0.1:{port}"], env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        done = tmp_path / "o" / ".tiny.zarr.partial" / ".done"
+        while not (done.is_dir() and any(done.iterdir())) and time.monotonic() < deadline:
+            time.sleep(0.05)  # the build is under way on the cluster once a first unit of it is done
+        sched.kill()
+        _, err = job.communicate(timeout=300)
+    finally:
+        for p in (worker, sched):
+            p.kill()
+            p.wait(timeout=30)
+    assert job.returncode == 2, err
+    assert "Traceback" not in err and "bug in vprscale" not in err, err
+    assert "Dask cluster failed" in err.strip().splitlines()[-1]
+    assert subprocess.run([*argv, "-q"], env=env, capture_output=True).returncode == 0

@@ -35,7 +35,7 @@ from vprscale.cli import (
 )
 from vprscale.cli.common import EXIT_FAILURE, EXIT_USAGE, HelpFormatter, check_outputs, disk_full, shared_flags
 from vprscale.cli.examples import epilog
-from vprscale.core.errors import InputError, JobFailed
+from vprscale.core.errors import CLUSTER, InputError, JobFailed, raised_by
 from vprscale.core.objects import storage_failure
 from vprscale.core.provenance import set_command
 
@@ -100,6 +100,8 @@ def configure_logging(level: int) -> None:
     log.handlers[:] = [h for h in log.handlers if isinstance(h, logging.NullHandler)] + [handler]
     log.setLevel(level)
     log.propagate = False
+    # distributed logs a lost scheduler or worker as tracebacks of its own; the command says it in one line
+    logging.getLogger("distributed").setLevel(level if level <= logging.DEBUG else logging.CRITICAL)
 
 
 def _closed_pipe() -> int:
@@ -140,6 +142,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         if storage_failure(exc):
             return _storage_failed(args, exc)
+        if raised_by(exc, CLUSTER):
+            return _cluster_failed(args, exc)
         if not disk_full(exc, args):  # the system's failure, not the input's: one line, exit 1, work kept
             if level <= logging.DEBUG:
                 traceback.print_exception(exc, file=sys.stderr)
@@ -157,6 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, not a traceback
         if storage_failure(exc):
             return _storage_failed(args, exc)
+        if raised_by(exc, CLUSTER):
+            return _cluster_failed(args, exc)
         return _bug(args, exc, level)
     finally:
         set_command([])  # this command's line is not the provenance of what the process makes next
@@ -167,6 +173,15 @@ def _storage_failed(args: argparse.Namespace, exc: BaseException) -> int:
     retries): one line and exit 2, as a dropped download is; what was marked done stays for the re-run."""
     what = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
     print(f"vprscale {args.command}: error: the storage failed: {what}; finished work is kept: run the same "
+          "command again to resume", file=sys.stderr)
+    return EXIT_USAGE
+
+
+def _cluster_failed(args: argparse.Namespace, exc: BaseException) -> int:
+    """The Dask cluster failed under a job (its scheduler or a worker gone): one line and exit 2, as
+    a storage that failed; what was marked done stays for the re-run."""
+    what = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+    print(f"vprscale {args.command}: error: the Dask cluster failed: {what}; finished work is kept: run the same "
           "command again to resume", file=sys.stderr)
     return EXIT_USAGE
 

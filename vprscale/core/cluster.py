@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import resource
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
@@ -16,6 +17,9 @@ if TYPE_CHECKING:
     from distributed import Client
 
 from vprscale.core.errors import InputError
+
+CONNECT_S = 20.0  # a scheduler that has not answered by then is none (a port of something else hangs a client)
+WORKERS_S = 30.0  # a scheduler without a worker by then cannot run the job
 
 
 def single_threaded_blas() -> None:
@@ -79,13 +83,13 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
     """
     check_query_planning()
     if scheduler:
-        from distributed import Client  # imported only here: 0.3 s a local run need not pay
-
-        try:
-            client = Client(scheduler, timeout="10s", set_as_default=True)
-        except OSError as exc:
-            raise InputError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
+        client = _connect(scheduler)
         with client, threadpool_limits(limits=1, user_api="blas"):
+            try:
+                client.wait_for_workers(1, timeout=WORKERS_S)
+            except TimeoutError:
+                raise InputError(f"--scheduler {scheduler}: the scheduler has no worker (waited {WORKERS_S:.0f} s); "
+                                 "start workers, or leave --scheduler out to run here") from None
             client.run(single_threaded_blas)
             client.run(reuse_task_memory)
             yield client
@@ -98,6 +102,34 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
     with (threadpool_limits(limits=1, user_api="blas"),
           dask.config.set(scheduler=dask.threaded.get, num_workers=workers)):
         yield None
+
+
+def _connect(scheduler: str) -> Client:
+    """A client of the scheduler at ``scheduler``, within ``CONNECT_S`` or one line: distributed's own
+    timeout does not cover a port that accepts the connection and never answers (another server)."""
+    from distributed import Client  # imported only here: 0.3 s a local run need not pay
+
+    made: dict[str, object] = {}
+
+    def connect() -> None:
+        try:
+            made["client"] = Client(scheduler, timeout=f"{CONNECT_S:.0f}s", set_as_default=True)
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            made["error"] = exc
+
+    trying = threading.Thread(target=connect, name="vprscale-connect", daemon=True)
+    trying.start()
+    trying.join(CONNECT_S + 5)
+    error = made.get("error")
+    if trying.is_alive() or isinstance(error, OSError | TimeoutError):
+        why = f"cannot connect: {error}" if error else f"no Dask scheduler answered within {CONNECT_S:.0f} s"
+        raise InputError(f"--scheduler {scheduler}: {why}") from None
+    if isinstance(error, ValueError | TypeError):  # an address distributed cannot parse
+        raise InputError(f"--scheduler {scheduler}: not a scheduler address ({error}); e.g. tcp://host:8786") \
+            from None
+    if error is not None:
+        raise error
+    return made["client"]
 
 
 def peak_rss_bytes() -> int:

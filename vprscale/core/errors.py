@@ -1,8 +1,11 @@
-"""The one exception type that means "the user gave us something wrong".
+"""The one exception type that means "the user gave us something wrong", and how to tell the
+failures of what a job runs on (a storage, a cluster) from vprscale's own.
 
-The CLI turns it into a one-line message and exit status 2; everything else is a bug and
-keeps its traceback.
+The CLI turns an input error into a one-line message and exit status 2; so too a storage or a
+cluster that failed under a job (its work is kept for the re-run); everything else is a bug.
 """
+
+CLUSTER = ("distributed", "tornado")  # the Dask cluster's client and its networking
 
 
 class InputError(ValueError):
@@ -22,3 +25,15 @@ class QueryError(InputError):
 
 class JobFailed(RuntimeError):
     """A job of vprscale's own failed (a pipeline stage crashed): exit status 1, not bad input."""
+
+
+def raised_by(exc: BaseException, packages: tuple[str, ...]) -> bool:
+    """Whether ``exc``, or an error in its chain of causes, was raised by these packages' code."""
+    seen: BaseException | None = exc
+    for _ in range(8):  # the chain of causes is short; a cycle is not followed
+        if seen is None:
+            return False
+        if type(seen).__module__.startswith(packages):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False

@@ -21,7 +21,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from vprscale.core.errors import InputError
+from vprscale.core.errors import InputError, raised_by
 
 SCHEME = re.compile(r"^([a-z][a-z0-9+.-]*)://", re.IGNORECASE)
 BOOKKEEPING = (".job.json", ".done/", ".work/")
@@ -108,14 +108,7 @@ def storage_errors(url: str) -> Iterator[None]:
 def storage_failure(exc: BaseException) -> bool:
     """Whether an error came from a storage client (raised by it, or by fsspec translating one of
     its errors): the storage's failure (an endpoint gone, a connection dropped), not vprscale's."""
-    seen: BaseException | None = exc
-    for _ in range(8):  # the chain of causes is short; a cycle is not followed
-        if seen is None:
-            return False
-        if type(seen).__module__.startswith(CLIENTS):
-            return True
-        seen = seen.__cause__ or seen.__context__
-    return False
+    return raised_by(exc, CLIENTS)
 
 
 def _first_line(exc: BaseException) -> str:
