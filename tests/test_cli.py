@@ -369,3 +369,42 @@ def test_localise_replaces_its_output_with_force_and_keeps_it_beside(evaluated, 
     summary = ["--summary", str(tmp_path / "s.json"), "--out", str(tmp_path / "n.csv"), "--force"]
     assert main([*argv[:-3], *summary]) == 0
     assert main([*argv[:-3], *summary]) == 0  # a summary of its own is rewritten
+
+
+@pytest.mark.parametrize(("command", "closes", "status"), [
+    ("results {index}", ">&-", 2),
+    ("sql {index} 'SELECT 1 AS one'", ">&-", 2),
+    ("localise {index} {store}/query_qm1 --L 5", ">&-", 2),
+    ("localise {index} {store}/query_qm1 --L 5 --out {tmp}/m.csv", "2>&-", 0),
+    ("eval {store} {index} --L 1 --noise qm1 --no-baseline --repeats 1 --out {tmp}/e", "2>&- >&-", 0),
+])
+def test_closed_standard_streams(command, closes, status, evaluated, tiny_store, tmp_path):
+    """A command whose product is standard output, run with it closed, says so in one line (exit 2);
+    one whose product is a file writes it whatever streams the caller closed (no message to lose)."""
+    line = command.format(index=evaluated, store=tiny_store, tmp=tmp_path)
+    done = subprocess.run(["bash", "-c", f"{sys.executable} -m vprscale.cli {line} {closes}"], capture_output=True,
+                          text=True)
+    assert done.returncode == status, done.stderr
+    if status == 2:
+        assert done.stderr.strip().splitlines() == [done.stderr.strip()] and "standard output is closed" in done.stderr
+    else:
+        assert (tmp_path / "m.csv").is_file() or (tmp_path / "e" / "results.parquet").is_file()
+
+
+def test_a_name_is_text_on_a_terminal(evaluated, tmp_path, capsys):
+    """A method's name holding a terminal escape sequence (an evaluation folder someone hands you)
+    is shown with its control characters made visible by ``results``, never sent raw."""
+    import pyarrow.parquet as pq
+
+    from vprscale.core.manifest import write_manifest
+
+    folder = tmp_path / "eval"
+    shutil.copytree(evaluated / "eval", folder)
+    table = pq.read_table(folder / "results.parquet").to_pandas()
+    table["method"] = "\x1b]0;owned\x07\x1b[2J" + table["method"]
+    table.to_parquet(folder / "results.parquet")
+    write_manifest(folder)
+    capsys.readouterr()
+    assert main(["results", str(folder), "--where", "L = 1"]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\x07" not in out and "\\x1b]0;owned\\x07\\x1b[2J" in out

@@ -223,6 +223,7 @@ def test_a_resumed_fetch_starts_over_when_the_remote_file_changed(served, tmp_pa
     ("missing", ("not found (HTTP 404)",)),
     ("refused", ("cannot connect",)),
     ("scheme", ("http:// or https://",)),
+    ("port", ("127.0.0.1:99999", "not a URL that can be fetched", "out of range")),
 ])
 def test_a_bad_source_is_one_line_and_leaves_nothing(misbehave, words, served, tmp_path, capsys):
     server, data = served
@@ -239,6 +240,8 @@ def test_a_bad_source_is_one_line_and_leaves_nothing(misbehave, words, served, t
         server.close()
     elif misbehave == "scheme":
         url = "ftp://127.0.0.1/base.1B.fbin"
+    elif misbehave == "port":
+        url = "http://127.0.0.1:99999/base.1B.fbin"
     fails(capsys, ["fetch", "deep1b", "--rows", rows, "--url", url, "--out", str(tmp_path / "o")], *words)
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 

@@ -196,6 +196,7 @@ def test_positions_count_every_reference_within_a_radius_in_metres(own_files, tm
     ("rows", "ref_pos.npy: 5,999 reference positions for 6,000 rows"),
     ("columns", "ref_pos.npy: reference positions must be numbers in 2 or 3 columns"),
     ("name", "names.txt: line 2 ('b.jpg') has no @UTM_east@UTM_north@"),
+    ("number", "names.txt: line 2 ('@1.2.3@4@.jpg') has no @UTM_east@UTM_north@"),
     ("nan", "ref_pos.npy: row 7 of the reference positions is not a finite number"),
 ])
 def test_bad_positions_are_one_line_and_write_nothing(own_files, tmp_path, capsys, case, message):
@@ -209,13 +210,13 @@ def test_bad_positions_are_one_line_and_write_nothing(own_files, tmp_path, capsy
     elif case == "nan":
         ref_pos[7, 1] = np.nan
     np.save(tmp_path / "ref_pos.npy", ref_pos)
-    (tmp_path / "names.txt").write_text("x/@1@2@.jpg\nb.jpg\n")
+    (tmp_path / "names.txt").write_text("x/@1@2@.jpg\n" + ("@1.2.3@4@.jpg" if case == "number" else "b.jpg") + "\n")
     argv = ["build", "--ref", str(own_files["ref"]), "--query", f"day={own_files['day']}", "--gt",
             str(own_files["gt"]), "--ref-pos", str(tmp_path / "ref_pos.npy"), "--out", str(tmp_path / "data")]
     if case != "one side":
-        argv += ["--query-pos", str(tmp_path / ("names.txt" if case == "name" else "q.npy"))]
+        argv += ["--query-pos", str(tmp_path / ("names.txt" if case in ("name", "number") else "q.npy"))]
         np.save(tmp_path / "q.npy", np.zeros((1_500, 2)))
-    if case == "name":
+    if case in ("name", "number"):
         argv[argv.index("--ref-pos") + 1] = str(tmp_path / "names.txt")
     fails(capsys, argv, message)
     assert not (tmp_path / "data").exists() or not any((tmp_path / "data").iterdir())

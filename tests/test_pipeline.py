@@ -43,6 +43,7 @@ BASE = 'name = "t"\nout = "{out}"\n'
     ('[[stages]]\nname = ".."\nkind = "build"\nscale = "20K"\n', "stage name '..' must be letters"),
     ('[[stages]]\nname = "a/b"\nkind = "build"\nscale = "20K"\n', "stage name 'a/b' must be letters"),
     (f'[[stages]]\nname = "{"x" * 101}"\nkind = "build"\nscale = "20K"\n', "at most 100 characters"),
+    ("x = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply to be a pipeline"),
 ])
 def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
     out = tmp_path / "out"

@@ -321,6 +321,8 @@ def test_a_scheduler_that_cannot_run_the_job_is_one_line_in_time(where, tiny_sto
         for s in stop:
             s()
     assert time.monotonic() - started < 30 and not (tmp_path / "i.index").exists()
+    # nothing of the failed client is left to this process's Dask: a local job runs as ever
+    assert main(["index", str(tiny_store), "--d", "12", "--out", str(tmp_path / "j.index"), "-q"]) == 0
 
 
 @pytest.mark.slow

@@ -113,11 +113,31 @@ def _closed_pipe() -> int:
 
 
 LIGHT = ("methods", "verify", "sql", "results")  # commands that run no kernel (and should not import numba)
+PRINTS_ITS_PRODUCT = ("results", "sql", "occupancy", "methods")  # what they make is standard output (localise too,
+# without --out)
+
+
+def _closed_streams(args: argparse.Namespace) -> str | None:
+    """Standard streams the caller closed (``>&-``, ``2>&-``): an error message when the command's
+    product is standard output, else None with each closed stream pointed at /dev/null (a job's
+    files are still written; only its messages go nowhere, and its exit status still tells)."""
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - for the rest of the process
+    if sys.stdout is None:
+        if args.command in PRINTS_ITS_PRODUCT or (args.command == "localise" and not args.out):
+            return "standard output is closed: nowhere to write what this command prints (redirect it" + (
+                ", or give --out)" if args.command == "localise" else ")")
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the rest of the process
+    return None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser().parse_args(argv)
+    closed = _closed_streams(args)
+    if closed:
+        print(f"vprscale {args.command}: error: {closed}", file=sys.stderr)
+        return EXIT_USAGE
     level = getattr(args, "verbosity", logging.INFO)
     configure_logging(level)
     if args.command not in LIGHT:

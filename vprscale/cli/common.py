@@ -143,10 +143,6 @@ def _check_not_over_inputs(args: argparse.Namespace) -> None:
     """No output flag may name one of the command's inputs, lie inside one, or lie inside a
     store or index the command does not own (paths resolved, symlinks followed)."""
     inputs = _flag_paths(args, getattr(args, "input_flags", ()))
-    summary = Path(args.summary) if getattr(args, "summary", None) else None
-    if summary is not None and (summary.exists() or summary.is_symlink()) and not _our_summary(summary):
-        raise InputError(f"--summary {summary}: exists and is not a summary vprscale wrote; not replaced "
-                         "(give a new file, or remove it)")
     for out_flag, out in _flag_paths(args, OUTPUT_FLAGS):
         target = out.resolve()
         for in_flag, src in inputs:
@@ -192,6 +188,10 @@ def check_outputs(args: argparse.Namespace) -> None:
     for flag, path in _flag_paths(args, OUTPUT_FLAGS):
         if str(path) != "-":  # standard output
             _check_writable_beside(flag, path)
+    summary = Path(args.summary) if getattr(args, "summary", None) else None
+    if summary is not None and (summary.exists() or summary.is_symlink()) and not _our_summary(summary):
+        raise InputError(f"--summary {summary}: exists and is not a summary vprscale wrote; not replaced "
+                         "(give a new file, or remove it)")
 
 
 def _check_writable_beside(flag: str, path: Path) -> None:

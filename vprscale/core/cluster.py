@@ -105,31 +105,48 @@ def dask_client(scheduler: str | None = None, workers: int = 2) -> Iterator[Clie
 
 
 def _connect(scheduler: str) -> Client:
-    """A client of the scheduler at ``scheduler``, within ``CONNECT_S`` or one line: distributed's own
-    timeout does not cover a port that accepts the connection and never answers (another server)."""
+    """A client of the scheduler at ``scheduler``, or one line within ``CONNECT_S``: the address is
+    first asked who it is (distributed's client waits forever for an answer from a port where
+    another server listens, and sets itself as Dask's scheduler before it does), then the client
+    is made."""
     from distributed import Client  # imported only here: 0.3 s a local run need not pay
 
-    made: dict[str, object] = {}
+    answer: dict[str, object] = {}
 
-    def connect() -> None:
+    def ask() -> None:  # in a thread of its own: its own event loop, whatever the caller runs
+        import asyncio
+
+        from distributed.comm import connect
+
+        async def identity() -> object:
+            comm = await connect(scheduler, timeout=CONNECT_S)
+            try:
+                await comm.write({"op": "identity", "reply": True})
+                return await comm.read()
+            finally:
+                await comm.close()
+
         try:
-            made["client"] = Client(scheduler, timeout=f"{CONNECT_S:.0f}s", set_as_default=True)
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-            made["error"] = exc
+            answer["reply"] = asyncio.run(asyncio.wait_for(identity(), CONNECT_S))
+        except (OSError, TimeoutError) as exc:
+            answer["error"] = exc
+        except (ValueError, TypeError) as exc:  # an address distributed cannot parse
+            answer["bad"] = exc
 
-    trying = threading.Thread(target=connect, name="vprscale-connect", daemon=True)
-    trying.start()
-    trying.join(CONNECT_S + 5)
-    error = made.get("error")
-    if trying.is_alive() or isinstance(error, OSError | TimeoutError):
-        why = f"cannot connect: {error}" if error else f"no Dask scheduler answered within {CONNECT_S:.0f} s"
-        raise InputError(f"--scheduler {scheduler}: {why}") from None
-    if isinstance(error, ValueError | TypeError):  # an address distributed cannot parse
-        raise InputError(f"--scheduler {scheduler}: not a scheduler address ({error}); e.g. tcp://host:8786") \
-            from None
-    if error is not None:
-        raise error
-    return made["client"]
+    asking = threading.Thread(target=ask, name="vprscale-scheduler-probe", daemon=True)
+    asking.start()
+    asking.join(CONNECT_S + 5)
+    reply = answer.get("reply")
+    if "bad" in answer:
+        raise InputError(f"--scheduler {scheduler}: not a scheduler address ({answer['bad']}); "
+                         "e.g. tcp://host:8786")
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        why = f" ({answer['error']})" if str(answer.get("error") or "") else ""
+        raise InputError(f"--scheduler {scheduler}: no Dask scheduler answered within {CONNECT_S:.0f} s{why}")
+    try:
+        return Client(scheduler, timeout=f"{CONNECT_S:.0f}s", set_as_default=True)
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"--scheduler {scheduler}: cannot connect: {exc}") from None
 
 
 def peak_rss_bytes() -> int:

@@ -38,10 +38,11 @@ def is_url(spec: str | os.PathLike | None) -> bool:
 
 def public(url: str) -> str:
     """``url`` as it may be shown or recorded: without user name, password, query or fragment."""
-    parts = urllib.parse.urlsplit(url)
-    host = parts.hostname or ""
-    if parts.port:
-        host = f"{host}:{parts.port}"
+    try:
+        parts = urllib.parse.urlsplit(url)
+    except ValueError:  # not even a URL (an unbalanced IPv6 bracket): its scheme alone
+        return url.partition("://")[0] + "://…"
+    host = parts.netloc.rpartition("@")[2]  # as written (a bad port too: named, not raised), without user:password
     return urllib.parse.urlunsplit((parts.scheme, host, parts.path, "", ""))
 
 

@@ -78,7 +78,13 @@ def _validator(resp: http.client.HTTPResponse) -> str:
 
 def _request(url: str, start: int, stop: int) -> urllib.request.Request:
     """A range request; a user name and password in the URL (a mirror's) become Basic authorisation."""
-    parts = urllib.parse.urlsplit(url)
+    try:
+        parts = urllib.parse.urlsplit(url)
+        parts.port  # noqa: B018 - raises for a port out of range
+    except ValueError as exc:
+        raise InputError(f"{public(url)}: not a URL that can be fetched ({exc})") from None
+    if not parts.hostname:
+        raise InputError(f"{public(url)}: names no host")
     headers = {"Range": f"bytes={start}-{stop - 1}", "User-Agent": "vprscale", "Accept-Encoding": "identity"}
     if parts.username is not None:
         pair = f"{urllib.parse.unquote(parts.username)}:{urllib.parse.unquote(parts.password or '')}"

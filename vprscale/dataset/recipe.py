@@ -160,3 +160,5 @@ def read_toml(path: Path, kind: str) -> dict[str, Any]:
         raise InputError(f"{path}: not valid TOML: {exc}") from None
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not UTF-8 text (byte {exc.start}); TOML files are UTF-8") from None
+    except RecursionError:  # the parser recurses once per level of [ or {
+        raise InputError(f"{path}: arrays or tables nested too deeply to be a {kind}") from None

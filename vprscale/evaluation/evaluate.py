@@ -29,6 +29,7 @@ from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import cache_folder, upload
 from vprscale.core.objects import Remote, shown
+from vprscale.core.plaintext import terminal
 from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, refuse_foreign, shared
@@ -508,8 +509,8 @@ def _write_parquet(path: Path, rows: list[dict], columns: dict, record: dict) ->
 def _summary_table(rows: list[dict]) -> str:
     """The printed summary: one line per method, parameters, mode, L and part (recall at 0, 5 and
     20 frames); ``vprscale results`` shows every column."""
-    keys = [(r["noise"], r["method"], r.get("params") or "-", r["mode"] or "-", "-" if r["d"] is None else r["d"],
-             r["L"], r["part"]) for r in rows]
+    keys = [(terminal(r["noise"]), terminal(r["method"]), terminal(r.get("params") or "-"), r["mode"] or "-",
+             "-" if r["d"] is None else r["d"], r["L"], r["part"]) for r in rows]  # names as text on a terminal
     width = max([len("params"), *(len(k[2]) for k in keys)])
     lines = [f"{'noise':<5} {'method':<20} {'params':<{width}} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
              f"{'R@0':>6} {'R@5':>6} {'R@20':>6} {'N_r':>7} {'B/place':>8} {'µs/q':>10} {'ops/q':>11}"]

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from vprscale.core.errors import InputError, QueryError
+from vprscale.core.plaintext import terminal
 from vprscale.evaluation.results import eval_folder
 from vprscale.method.indexmeta import load_index_meta
 
@@ -74,7 +75,9 @@ def format_table(table, fmt: str, max_rows: int | None = None, max_width: int | 
     cut = max_rows is not None and n_rows > max_rows
     head = (max_rows + 1) // 2 if cut else n_rows
     picked = table.take(list(range(head)) + list(range(n_rows - (max_rows - head), n_rows))) if cut else table
-    rows = [["NULL" if v is None else str(v) for v in r.values()] for r in picked.to_pylist()]
+    # a cell is text on a terminal: a name holding an escape sequence shows it, never runs it
+    rows = [["NULL" if v is None else terminal(v) for v in r.values()] for r in picked.to_pylist()]
+    cols = [terminal(c) for c in cols]
     if cut:
         rows.insert(head, ["…"] * len(cols))
     if max_width is not None:

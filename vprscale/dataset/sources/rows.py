@@ -69,7 +69,7 @@ def read_labels(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
     return np.asarray(a, np.int64)
 
 
-UTM = re.compile(r"@(-?[0-9.]+(?:[eE][-+]?[0-9]+)?)@(-?[0-9.]+(?:[eE][-+]?[0-9]+)?)@")
+NUMBER = r"-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?"  # a coordinate in an image's name
 
 
 def read_positions(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
@@ -91,10 +91,11 @@ def read_positions(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
             raise InputError(f"{p}: {what}: not a readable text file of image names ({exc})") from None
         pos = np.empty((len(lines), 2))
         for i, line in enumerate(lines):
-            found = UTM.search(Path(line.strip()).name)
-            if not found:
-                raise InputError(f"{p}: line {i + 1:,} ({line.strip()[:80]!r}) has no @UTM_east@UTM_north@ in its name")
-            pos[i] = float(found.group(1)), float(found.group(2))
+            fields = Path(line.strip()).name.split("@")  # …@UTM_east@UTM_north@…: the first two fields after an @
+            if len(fields) < 4 or not all(re.fullmatch(NUMBER, f) for f in fields[1:3]):
+                raise InputError(f"{p}: line {i + 1:,} ({line.strip()[:80]!r}) has no @UTM_east@UTM_north@ in its name "
+                                 "(two numbers between its first three @)")
+            pos[i] = float(fields[1]), float(fields[2])
     if len(pos) != n:
         raise InputError(f"{p}: {len(pos):,} {what} for {n:,} rows")
     bad = np.flatnonzero(~np.isfinite(pos).all(axis=1))
