@@ -1,6 +1,8 @@
 """Your own descriptors as a store (``vprscale build --ref … --query NAME=… --gt …``): every
 command reads it, and bad input is one line with nothing written."""
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -189,6 +191,12 @@ def test_positions_count_every_reference_within_a_radius_in_metres(own_files, tm
     assert "## Recall within metres" in text
     assert f"| ref | NIGHT | all | 20 | CoarseHash d=13 (aligned) | 25 | {best.n_queries} | {100 * best.recall:.1f} |" \
         in text
+    # a report of your own data: every figure it shows is there, no noise level it does not hold, no
+    # comparison with the paper's datasets, which these are not
+    shown = re.findall(r"!\[[^]]*\]\(([^)]+)\)", text)
+    assert shown and all((tmp_path / "report" / name).is_file() for name in shown)
+    assert "QM1" not in text and "QM2" not in text and "cannot be downloaded" not in text
+    assert "## The paper's text figures beside ours" not in text
 
 
 @pytest.mark.parametrize(("case", "message"), [
@@ -230,3 +238,27 @@ def test_radius_in_metres_needs_a_store_with_positions(own_files, tmp_path, caps
     assert main(["index", str(out / "walk.zarr"), "--out", str(tmp_path / "i"), "-q"]) == 0
     fails(capsys, ["eval", str(out / "walk.zarr"), str(tmp_path / "i"), "--radius-m", "25"], "holds no positions")
     fails(capsys, ["eval", str(out / "walk.zarr"), str(tmp_path / "i"), "--radius-m", "25,-1"], "above 0")
+
+
+def test_the_truth_follows_from_positions_when_no_gt_is_given(own_files, tmp_path, capsys):
+    """``--ref-pos`` and ``--query-pos`` without ``--gt``: each query row's truth is its nearest
+    reference by position (ties: the smaller row), or none beyond ``--gt-radius-m``; as a brute-force
+    search finds it. Without positions ``--gt`` is still asked for, in one line."""
+    from .test_reliability import fails
+
+    rng = np.random.default_rng(7)
+    ref_pos = rng.integers(0, 400, size=(6_000, 2)).astype(np.float64)  # on a grid of metres: ties happen
+    query_pos = ref_pos[np.arange(1_000, 2_500)] + rng.normal(scale=4.0, size=(1_500, 2))
+    query_pos[:40] += 10_000  # far from every reference: no truth
+    np.save(tmp_path / "ref_pos.npy", ref_pos)
+    np.save(tmp_path / "query_pos.npy", query_pos)
+    argv = ["build", "--ref", str(own_files["ref"]), "--query", f"day={own_files['day']}", "--out",
+            str(tmp_path / "data"), "--name", "walk", "--gt-radius-m", "6", "-q"]
+    fails(capsys, argv, "--gt missing")
+    positions = ["--ref-pos", str(tmp_path / "ref_pos.npy"), "--query-pos", str(tmp_path / "query_pos.npy")]
+    assert main([*argv, *positions]) == 0
+    gt = zarr.open_group(tmp_path / "data" / "walk.zarr", mode="r")["gt"][:]
+    distance = np.linalg.norm(query_pos[:, None, :] - ref_pos[None, :, :], axis=2)
+    expected = np.where(distance.min(axis=1) <= 6, distance.argmin(axis=1), -1)  # argmin: the first of equals
+    np.testing.assert_array_equal(gt, expected)
+    assert (gt[:40] == -1).all() and (gt >= 0).sum() > 1_000

@@ -126,7 +126,7 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     evaluation, report = two_noise_report
     page = report / "report.html"
     text = page.read_text()
-    loaded = _chromium("--dump-dom", page.as_uri())
+    loaded = _chromium("--dump-dom", page.as_uri() + "#noise=all&L=all")  # every row, as the address asks
     assert ":CONSOLE" not in loaded.stderr, loaded.stderr
     dom = loaded.stdout
     assert 'data-drawn="yes"' in dom and '<pre id="page-errors" hidden=""></pre>' in dom
@@ -142,7 +142,13 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     rows_m = _json.loads(text.split('<script id="rows-m" type="application/json">', 1)[1].split("</script>", 1)[0])
     res_m = pd.read_parquet(evaluation / "results_m.parquet")
     assert len(rows_m) == len(res_m) > 0 and {r["radius_m"] for r in rows_m} == {5, 25}
-    _chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri())
+    opened = _chromium("--dump-dom", page.as_uri()).stdout  # the opening view: one noise level, a legend
+    table = opened.split('id="fig-radius-table"', 1)[1].split("</table>", 1)[0]
+    assert 'data-noise="qm1"' in table and 'data-noise="qm2"' not in table
+    assert opened.split('id="fig-qps"', 1)[1].split('id="fig-bytes"', 1)[0].count('class="legend"') == 1
+    asked = _chromium("--dump-dom", page.as_uri() + "#noise=qm2").stdout.split('id="fig-radius-table"', 1)[1]
+    assert 'data-noise="qm2"' in asked.split("</table>", 1)[0] and 'data-noise="qm1"' not in asked.split("</table>")[0]
+    _chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri() + "#noise=all&L=all")
     shot = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB")).reshape(-1, 3).astype(int)
     colours = _json.loads(re.search(r"var COLOURS = (\{.*?\}), SYMBOLS", text).group(1))
     assert set(colours) == {"CoarseHash", "baseline", "PQ4np"}

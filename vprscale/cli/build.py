@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_int, write_summary
+from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_float, positive_int, write_summary
 from vprscale.core.errors import InputError
 
 # what it reads: no output may be written over them
@@ -22,7 +22,11 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     own.add_argument("--ref", help="reference rows: .npy, .fbin or fvecs")
     own.add_argument("--query", action="append", default=[], metavar="NAME=PATH",
                      help="a query set (rows aligned with the other sets'), evaluated as --noise NAME; repeatable")
-    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth")
+    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth (with "
+                                  "--ref-pos and --query-pos: optional, the nearest reference by position)")
+    own.add_argument("--gt-radius-m", type=positive_float, default=25.0, metavar="R",
+                     help="without --gt: a query row's truth is its nearest reference within R metres, else none "
+                          "(default 25, VPR-methods-evaluation's positives)")
     own.add_argument("--part", help=".npy of 0/1 per query row (0s first): two parts reported apart (optional)")
     own.add_argument("--ref-pos", metavar="PATH",
                      help="positions of the references in metres, for eval --radius-m: an .npy of (east, north) or "
@@ -73,9 +77,11 @@ def _build_own(args: argparse.Namespace) -> int:
     for flag in ("scale", "deep1b", "fas", "layout"):
         if getattr(args, flag):
             raise InputError(f"--{flag}: a recipe's option; your own descriptors (--ref) are stored as given")
-    missing = [f for f, v in (("--ref", args.ref), ("--query", args.query), ("--gt", args.gt)) if not v]
+    positions = bool(args.ref_pos and args.query_pos)  # the truth follows from them where --gt is not given
+    missing = [f for f, v in (("--ref", args.ref), ("--query", args.query), ("--gt", args.gt or positions)) if not v]
     if missing:
-        raise InputError(f"build: {' and '.join(missing)} missing (your own descriptors need --ref, --query, --gt)")
+        raise InputError(f"build: {' and '.join(missing)} missing (your own descriptors need --ref, --query, and "
+                         "--gt or --ref-pos with --query-pos)")
     if args.dry_run:
         raise InputError("--dry-run: plans a recipe's build; your own descriptors are copied as they are")
     queries = dict(parse_query(q) for q in args.query)
@@ -83,7 +89,8 @@ def _build_own(args: argparse.Namespace) -> int:
         raise InputError("--query: a name is given twice")
     summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=args.gt, part=args.part, out=Path(args.out),
                                    name=args.name, stride=args.stride, force=args.force, workers=args.workers,
-                                   scheduler=args.scheduler, ref_pos=args.ref_pos, query_pos=args.query_pos))
+                                   scheduler=args.scheduler, ref_pos=args.ref_pos, query_pos=args.query_pos,
+                                   gt_radius_m=args.gt_radius_m))
     print(format_summary(summary))
     write_summary(args, summary)
     return 0

@@ -53,13 +53,14 @@ class OwnRequest:
 
     ref: str
     queries: dict[str, str]  # noise name → file
-    gt: str
+    gt: str | None  # None: each query row's nearest reference by position, within gt_radius_m
     out: Path
     part: str | None = None
     name: str | None = None  # the store's (and results' scale column's) name; default: the ref file's stem
     ref_pos: str | None = None  # positions in metres of the references and of the query rows (both or neither)
     query_pos: str | None = None
     stride: int = 1  # the evaluation's default query stride z
+    gt_radius_m: float = 25.0  # without --gt: how far a query row's nearest reference may be to be its truth
     force: bool = False
     workers: int = 2
     scheduler: str | None = None
@@ -96,12 +97,15 @@ def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource], np.n
             raise InputError(f"{q.name}: {q.n_rows:,} rows, but the other query sets have {n_query:,}: query sets "
                              "are the same traverse in other conditions, row for row")
         n_query = q.n_rows
-    gt = read_labels(req.gt, n_query, "ground truth")
+    if req.gt is None and (req.ref_pos is None or req.query_pos is None):
+        raise InputError("--gt missing: give each query row's reference row, or --ref-pos and --query-pos to take "
+                         "the nearest reference by position")
+    gt = np.full(n_query, -1, np.int64) if req.gt is None else read_labels(req.gt, n_query, "ground truth")
     bad = np.flatnonzero((gt < -1) | (gt >= ref.n_rows))
     if len(bad):
         raise InputError(f"{req.gt}: row {bad[0]:,} holds {gt[bad[0]]}, not a reference row (0 … {ref.n_rows - 1:,}) "
                          "or −1 (no truth)")
-    if not (gt >= 0).any():
+    if req.gt is not None and not (gt >= 0).any():
         raise InputError(f"{req.gt}: no query row has a truth (all −1): nothing could be evaluated")
     part = np.zeros(n_query, np.int64) if req.part is None else read_labels(req.part, n_query, "part")
     if not np.isin(part, (0, 1)).all() or (np.diff(part) < 0).any():
@@ -123,6 +127,18 @@ def check_positions(req: OwnRequest, n_ref: int, n_query: int) -> tuple[np.ndarr
         raise InputError(f"{req.query_pos}: {query_pos.shape[1]} coordinates a row, the reference positions have "
                          f"{ref_pos.shape[1]}")
     return ref_pos, query_pos
+
+
+def truth_from_positions(ref_pos: np.ndarray, query_pos: np.ndarray, radius_m: float) -> np.ndarray:
+    """Each query row's nearest reference by position (ties: the smaller row), or −1 where none lies
+    within ``radius_m`` metres: the truth VPR-methods-evaluation derives from UTM positions."""
+    from scipy.spatial import cKDTree
+
+    k = min(16, len(ref_pos))  # ties are broken among the 16 nearest (exact unless more lie at one distance)
+    dist, idx = cKDTree(ref_pos).query(query_pos, k=k)
+    dist, idx = dist.reshape(len(query_pos), k), idx.reshape(len(query_pos), k)
+    nearest = np.where(dist == dist[:, :1], idx, np.iinfo(np.int64).max).min(axis=1)
+    return np.where(dist[:, 0] <= radius_m, nearest, -1).astype(np.int64)
 
 
 def chunk_rows(n_rows: int, row_bytes: int) -> int:
@@ -154,6 +170,13 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
     """Write the store ``<out>/<name>.zarr``; returns the summary the CLI prints."""
     ref, queries, gt, part = check_inputs(req)
     positions = check_positions(req, ref.n_rows, len(gt))
+    if req.gt is None:
+        if not req.gt_radius_m > 0:
+            raise InputError(f"--gt-radius-m {req.gt_radius_m}: must be above 0 metres")
+        gt = truth_from_positions(*positions, req.gt_radius_m)
+        if not (gt >= 0).any():
+            raise InputError(f"--query-pos {req.query_pos}: no query row lies within {req.gt_radius_m:g} m of a "
+                             "reference: nothing could be evaluated (check both files' coordinates, or --gt-radius-m)")
     name = req.name or Path(req.ref).stem
     if not NAME.fullmatch(name.lower()) or name != name.lower():
         raise InputError(f"--name {name}: lower-case letters, digits and _, starting with a letter")
@@ -165,6 +188,7 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
     identity = {"recipe": {"scale": name, "dim": ref.dim, "query_stride": req.stride, "own": True},
                 "sources": {"ref": ref.fingerprint(), **{f"query_{n}": q.fingerprint() for n, q in queries.items()},
                             "gt": _digest(gt), "part": _digest(part),
+                            **({"gt_from_positions_within_m": req.gt_radius_m} if req.gt is None else {}),
                             **({"ref_pos": _digest(positions[0]), "query_pos": _digest(positions[1])}
                                if positions else {})},
                 "rescale": None, "seed": None}

@@ -8,11 +8,30 @@
   var TABLE = ["scale", "noise", "L", "family", "params", "radius", "recall", "recall_lo", "recall_hi",
                "bytes_per_place", "us_per_query", "qps_per_core", "n_queries"];
   var TABLE_M = TABLE.slice(0, 5).concat(["part", "radius_m"], TABLE.slice(6));
+  var LEGEND_MAX = 12;  // entries a legend holds and stays readable
 
   function values(key) {
     var seen = [];
     ROWS.forEach(function (r) { if (r[key] !== null && seen.indexOf(r[key]) < 0) { seen.push(r[key]); } });
     return key === "L" || key === "radius" ? seen.sort(function (a, b) { return a - b; }) : seen;
+  }
+  // The page opens on one readable view (the first noise level, L = 50 where it was evaluated,
+  // recall within 20 frames); the filters live in the address (#noise=qm2&L=all), so a view can
+  // be bookmarked or sent, and "all" brings every row back.
+  function opening(key, opts) {
+    if (key === "noise") { return opts.length > 1 ? String(opts[1]) : "all"; }
+    if (key === "L") { return opts.indexOf(50) >= 0 ? "50" : String(opts[opts.length - 1]); }
+    if (key === "radius") { return opts.indexOf(20) >= 0 ? "20" : String(opts[opts.length - 1]); }
+    return "all";
+  }
+  var asked = {};
+  location.hash.replace(/^#/, "").split("&").forEach(function (kv) {
+    var i = kv.indexOf("=");
+    if (i > 0) { asked[decodeURIComponent(kv.slice(0, i))] = decodeURIComponent(kv.slice(i + 1)); }
+  });
+  function remember() {
+    var kv = FILTERS.map(function (f) { return encodeURIComponent(f[0]) + "=" + encodeURIComponent(chosen(f[0])); });
+    history.replaceState(null, "", "#" + kv.join("&"));
   }
   var bar = document.getElementById("filters");
   FILTERS.forEach(function (f) {
@@ -21,8 +40,9 @@
     sel.id = "filter-" + f[0];
     var opts = f[0] === "radius" ? values("radius") : ["all"].concat(values(f[0]));
     opts.forEach(function (v) { var o = document.createElement("option"); o.value = v; o.textContent = v; sel.appendChild(o); });
-    if (f[0] === "radius") { sel.value = opts.indexOf(20) >= 0 ? "20" : String(opts[opts.length - 1]); }
-    sel.addEventListener("change", draw);
+    var wanted = asked[f[0]];
+    sel.value = wanted !== undefined && opts.map(String).indexOf(wanted) >= 0 ? wanted : opening(f[0], opts);
+    sel.addEventListener("change", function () { remember(); draw(); });
     label.appendChild(sel);
     bar.appendChild(label);
   });
@@ -114,7 +134,10 @@
                     yaxis: {title: {text: "recall" + (radiusFigure ? "" : " within " + chosen("radius") + " frames") + " (%)"},
                             range: [0, 102]}};
       var drawnTraces = traces(rows, f[2], radiusFigure);
-      layout.showlegend = drawnTraces.length <= 30;  // beyond, the legend would hide the plot: hover names each line
+      layout.showlegend = drawnTraces.length <= LEGEND_MAX;  // beyond, a legend is unreadable: hover names each line
+      layout.annotations = drawnTraces.length > LEGEND_MAX ? [{text: drawnTraces.length + " lines: choose a noise level, " +
+        "L or method above for a legend (hover names each line)", xref: "paper", yref: "paper", x: 0, y: 1.06,
+        showarrow: false, font: {size: 11, color: "#555"}, xanchor: "left"}] : [];
       Plotly.react(f[0], drawnTraces, layout, {responsive: true, displaylogo: false});
       table(f[0], rows, metres ? TABLE_M : TABLE);
       document.getElementById(f[0]).dataset.points = String(rows.length);

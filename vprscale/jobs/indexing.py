@@ -101,6 +101,9 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
         partial.recover()
         if final.exists() and not (final / "index.json").is_file():
             raise InputError(f"--out {final}: exists and is not a vprscale index; not replaced")
+        if (final / "eval").is_dir() and any((final / "eval").iterdir()) and not force:
+            raise InputError(f"{final}: holds evaluations in eval/; re-indexing would orphan them "
+                             "(--force keeps them beside the new index, in <index>.previous-eval/)")
         if final.exists() and not force and not remote:  # an existing output is replaced only with --force
             old = load_index_meta(final)
             same_store = (old.get("store") or {}).get("identity") == identity
@@ -110,9 +113,6 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
                                  "replaces it and keeps its evaluations beside")
             log.info(f"{final} is complete (d = {d_eff}, K = {k}, this store); --force rebuilds it")
             return {"index": str(final), **old, "parts_published": index_parts(final)}
-        if (final / "eval").is_dir() and any((final / "eval").iterdir()) and not force:
-            raise InputError(f"{final}: holds evaluations in eval/; re-indexing would orphan them "
-                             "(--force keeps them beside the new index, in <index>.previous-eval/)")
         partial.open()
         if layout["kind"] == "compact":
             chunk = group["ref_hash"].chunks[0]
