@@ -47,6 +47,7 @@ def test_a_statement_longer_than_a_file_name_runs(evaluated):
     assert lines[0].startswith('"hash","x0"') and len(lines) == 3
 
 
+@pytest.mark.slow
 def test_a_long_statements_csv_is_the_result_alone(evaluated):
     """A statement that runs for seconds (DuckDB would draw its progress bar after 2 s, on standard
     output) writes its CSV and nothing else there."""
@@ -371,6 +372,7 @@ def test_localise_replaces_its_output_with_force_and_keeps_it_beside(evaluated, 
     assert main([*argv[:-3], *summary]) == 0  # a summary of its own is rewritten
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("command", "closes", "status"), [
     ("results {index}", ">&-", 2),
     ("sql {index} 'SELECT 1 AS one'", ">&-", 2),
