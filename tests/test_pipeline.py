@@ -435,3 +435,15 @@ def test_planning_runs_no_code_of_a_stages_method(tmp_path, monkeypatch, capsys)
     gone = _write(tmp_path / "q.toml", BASE.format(out=tmp_path / "out") + stages.replace("sub:", "gone:"))
     assert main(["run", str(gone), "--dry-run"]) == 2
     assert "evilpkg.gone" in capsys.readouterr().err and not list(tmp_path.glob("ran-*"))
+
+
+def test_a_plan_of_unmeasured_stages_gives_no_figure_rather_than_zero(tmp_path, capsys):
+    """A dry run whose stages were never measured (no earlier run, no costs file) says it cannot
+    estimate, instead of a total of 0 s and 0 GB."""
+    path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") +
+                  '[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "i"\nkind = "index"\n'
+                  'store = "b"\n')
+    capsys.readouterr()
+    assert main(["run", str(path), "--dry-run"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.startswith("estimated: nothing") and "0 s" not in last and "0.00 GB" not in last

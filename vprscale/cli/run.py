@@ -31,7 +31,13 @@ def run(args: argparse.Namespace) -> int:
             cost = f" [{_cost(s['estimate'])}]" if s["run"] else ""
             print(f"{'run ' if s['run'] else 'skip'}  {s['name']} ({s['kind']}): {why}{cost}")
         total = summary["estimate"]
-        left = f"; {total['unmeasured']} stage(s) unmeasured, left out" if total["unmeasured"] else ""
+        running = sum(1 for s in summary["stages"] if s["run"])
+        if running and total["unmeasured"] == running:  # nothing to add up: no figure, not a zero
+            print(f"estimated: nothing (none of the {running} stage(s) to run was ever measured here, nor has a "
+                  "costs file beside the pipeline: docs/pipelines.md)")
+            return 0
+        left = (f"; at least that: {total['unmeasured']} of the {running} stage(s) to run never measured, left out"
+                if total["unmeasured"] else "")
         print(f"estimated: {_duration(total['seconds'])} of wall time, peak memory {_gb(total['peak_bytes'])}, "
               f"{_gb(total['disk_bytes'])} on disk{left}")
         return 0
