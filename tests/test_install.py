@@ -26,7 +26,7 @@ def test_every_package_is_listed_for_the_wheel():
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "vprscale").rglob("__init__.py")}
     assert found <= listed
-    assert {"vprscale.recipes", "vprscale.pipelines"} <= listed
+    assert {"vprscale.recipes", "vprscale.pipelines", "vprscale.docs"} <= listed
 
 
 def test_the_version_is_the_changelogs_newest_section_and_the_citations():
@@ -140,6 +140,8 @@ def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
     assert built["vprscale"] == __version__
     assert built["commit"] == (head.stdout.strip() if head.returncode == 0 else None)
+    shown = vprscale("build", "--help").stdout.rsplit("docs: ", 1)[1].strip()  # the pages, installed with it
+    assert Path(shown).is_file() and Path(shown).is_relative_to(venv) and (Path(shown).parent / "protocol.md").is_file()
     plan = vprscale("run", "quickstart", "--dry-run")
     assert plan.returncode == 0, plan.stderr
     assert "build-20K (build)" in plan.stdout and "report (report)" in plan.stdout

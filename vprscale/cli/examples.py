@@ -3,6 +3,8 @@ ones the README's quickstart leaves behind (``data/quickstart``)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 Q = "data/quickstart"
 INDEX = f"{Q}/20K-d15-k2.index"
 
@@ -55,4 +57,15 @@ def epilog(command: str) -> str:
     lines = ["examples:"]
     for cmd, what in EXAMPLES.get(command, []):
         lines += [f"  {cmd}", f"      {what}"]
-    return "\n".join(lines) + "\n\ndocs: docs/README.md"
+    return "\n".join(lines) + f"\n\ndocs: {docs_index()}"
+
+
+def docs_index() -> str:
+    """Where the documentation's index is on this machine: in the installed package (a wheel's
+    ``vprscale/docs``), else in the checkout vprscale is imported from."""
+    from importlib.resources import files
+
+    try:
+        return str(files("vprscale.docs") / "README.md")
+    except ModuleNotFoundError:
+        return str(Path(__file__).resolve().parents[2] / "docs" / "README.md")
