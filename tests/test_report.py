@@ -6,6 +6,7 @@ import json
 import re
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -86,6 +87,20 @@ def test_report_opens_with_provenance_and_flags_mixed_commits(tmp_path):
     _publish(second, {"wall_s": 1.0, "provenance": {**record, "commit": "b" * 40, "dirty": True}})
     head = open(write_report([first, second], tmp_path / "two")["report"]).read().split("## Figures")[0]
     assert "**These results come from 2 different commits** (aaaaaaaaaaaa, bbbbbbbbbbbb (dirty tree))" in head
+
+
+def test_a_report_shows_paths_of_this_machine_relative(tmp_path, monkeypatch):
+    """The provenance block shows the working directory's and home's paths relative (a report is
+    committed and read elsewhere); the evaluation's own record keeps them whole."""
+    monkeypatch.chdir(tmp_path)
+    first = _results(tmp_path)
+    record = {"vprscale": "0.5.0", "commit": "a" * 40, "dirty": False, "cpu": "Test CPU", "cores": 2,
+              "command": f"vprscale eval {tmp_path}/data/s.zarr {Path.home()}/i.index", "load_average": [0, 0, 0],
+              "time": "2026-11-30T00:00:00+00:00"}
+    _publish(first, {"wall_s": 1.0, "provenance": record})
+    head = open(write_report([first], tmp_path / "one")["report"]).read().split("## Figures")[0]
+    assert str(tmp_path) not in head and str(Path.home()) + "/" not in head
+    assert "`vprscale eval data/s.zarr ~/i.index`" in head and "- results ev:" in head
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

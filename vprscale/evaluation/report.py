@@ -270,23 +270,34 @@ def _provenance_block(evals: list[dict]) -> list[str]:
     me = provenance()
     lines = ["## Provenance", "",
              f"- report: vprscale {me['vprscale']}, commit {_commit(me)}, {me['time']}, on {me['cpu']} "
-             f"({me['cores']} cores), {markdown_code(me['command'])}"]
+             f"({me['cores']} cores), {markdown_code(_here(me['command']))}"]
     commits = set()
     for e in evals:
         rec = e.get("provenance")
         if not rec:
-            lines.append(f"- results {markdown(e['_run'])}: no provenance recorded (written by a vprscale before 0.3)")
+            lines.append(f"- results {markdown(_here(e['_run']))}: no provenance recorded (written by a vprscale "
+                         "before 0.3)")
             commits.add("unknown")
             continue
         commits.add(_commit(rec))
-        lines.append(f"- results {markdown(e['_run'])}: vprscale {rec['vprscale']}, commit {_commit(rec)}, "
+        lines.append(f"- results {markdown(_here(e['_run']))}: vprscale {rec['vprscale']}, commit {_commit(rec)}, "
                      f"{rec['time']}, {rec['cpu']} ({rec['cores']} cores, "
                      f"load {', '.join(map(str, rec['load_average']))} at start), "
-                     f"{markdown_code(rec['command'])}")
+                     f"{markdown_code(_here(rec['command']))}")
     if len(commits) > 1:
         lines.append(f"- **These results come from {len(commits)} different commits** "
                      f"({', '.join(sorted(commits))}); figures from different commits are not one run.")
     return [*lines, ""]
+
+
+def _here(text: str) -> str:
+    """``text`` (a command, a path) with this working directory's and home's absolute paths shown
+    relative (``data/…``, ``~/…``): a report is read, and committed, on other machines. The
+    evaluations' own records keep the absolute paths."""
+    text = str(text)
+    for folder, shown in ((Path.cwd(), ""), (Path.home(), "~/")):
+        text = text.replace(f"{folder}/", shown)
+    return text
 
 
 def _commit(rec: dict) -> str:
