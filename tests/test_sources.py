@@ -184,6 +184,25 @@ def test_fas_validation(tmp_path, changes, message):
         open_fas(_npz(tmp_path, **changes))
 
 
+def test_a_compressed_member_is_checked_before_it_is_unpacked(tmp_path, monkeypatch):
+    """A small compressed ``.npz`` whose descriptor member unpacks to hundreds of MB of the wrong
+    shape, or whose ground truth is far longer than the queries, is refused from its headers:
+    nothing is unpacked into the cache, nothing that large is loaded."""
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "cache"))
+    base = {"arr_0": np.zeros((20, 128), "f4"), "arr_1": np.zeros((10, 128), "f4"), "arr_2": np.arange(10),
+            "arr_3": np.zeros((20, 3)), "arr_4": np.zeros((10, 3))}
+    np.savez_compressed(tmp_path / "wide.npz", **{**base, "arr_0": np.zeros(50_000_000, "f8")})  # 400 MB in 0.4
+    with pytest.raises(InputError, match="arr_0 must be a 2-D float32 array"):
+        open_fas(tmp_path / "wide.npz")
+    assert not list((tmp_path / "cache").rglob("*.npy")) and not list((tmp_path / "cache").rglob("*.tmp"))
+    np.savez_compressed(tmp_path / "long.npz", **{**base, "arr_2": np.zeros(50_000_000, "i8")})
+    loaded = []
+    monkeypatch.setattr(np, "load", lambda *a, **k: loaded.append(a) or np.zeros(0))
+    with pytest.raises(InputError, match="arr_2 must be 10 integer ground-truth indices, got shape"):
+        open_fas(tmp_path / "long.npz")
+    assert not loaded
+
+
 def test_fas_missing_array_and_not_a_zip(tmp_path):
     np.savez(tmp_path / "m.npz", arr_0=np.zeros((2, 2), "f4"))
     with pytest.raises(InputError, match="missing array arr_1"):

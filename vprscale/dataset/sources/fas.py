@@ -87,6 +87,23 @@ def _npy_header(fh) -> tuple[tuple, bool, np.dtype]:
     return read(fh)
 
 
+def _member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, shown: str) -> tuple[tuple, np.dtype]:
+    """The shape and dtype a member's ``.npy`` header declares, read before any of its data (a
+    small compressed file may unpack to gigabytes), checked to agree with the member's size."""
+    key = info.filename.removesuffix(".npy")
+    try:
+        with zf.open(info) as member:
+            shape, _, dtype = _npy_header(member)
+            start = member.tell()
+    except (ValueError, zipfile.BadZipFile, EOFError, OSError) as exc:
+        raise InputError(f"{shown}: {key} is not an .npy array ({str(exc).splitlines()[0]})") from None
+    size = start + int(np.prod(shape, dtype=object)) * np.dtype(dtype).itemsize
+    if size != info.file_size:
+        raise InputError(f"{shown}: {key}'s header declares shape {shape} {dtype} ({size:,} bytes) but the member "
+                         f"holds {info.file_size:,}")
+    return shape, np.dtype(dtype)
+
+
 def open_fas(path: str | os.PathLike, quiet: bool = False) -> Traverse:
     """Open and validate an FAS100K ``.npz`` (shapes, dtypes, ``0 ≤ gt < len(ref)``), a local file
     or a URL (fetched once into the cache: the FAS PCA reads it whole several times)."""
@@ -120,9 +137,17 @@ def _open_npz(p: Path, fp: dict[str, Any], shown: str, origin: str | None = None
                 offset, shape, fortran, dtype = _member_layout(zf, fh, info)
                 target = p
             else:
+                shape, dtype = _member_header(zf, info, shown)
+                if len(shape) != 2 or dtype != np.dtype("<f4"):  # checked before a byte of it is unpacked
+                    raise InputError(f"{shown}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
                 target = cache_root() / f"{fp['sha256_head_tail'][:16]}-{fp['bytes']}" / f"{key}.npy"
                 if not target.is_file() or target.stat().st_size != info.file_size:  # missing, or cut short
                     target.parent.mkdir(parents=True, exist_ok=True)
+                    free = shutil.disk_usage(target.parent).free
+                    if info.file_size > free:
+                        raise InputError(f"{shown}: {key} unpacks to {info.file_size / 2**30:,.1f} GiB and the "
+                                         f"cache, {target.parent}, has {free / 2**30:,.1f} GiB free "
+                                         "($VPRSCALE_CACHE moves it)")
                     tmp = target.with_suffix(".tmp")
                     try:
                         with zf.open(info) as src, open(tmp, "wb") as dst:
@@ -140,7 +165,12 @@ def _open_npz(p: Path, fp: dict[str, Any], shown: str, origin: str | None = None
 
         ref, query = descriptors("arr_0"), descriptors("arr_1")
         small = {}
-        for k in ("arr_2", "arr_3", "arr_4"):
+        for k, rows in (("arr_2", query.n_rows), ("arr_3", ref.n_rows), ("arr_4", query.n_rows)):
+            shape, _ = _member_header(zf, members[k], shown)
+            if k == "arr_2" and shape != (rows,):  # checked before it is loaded: a header may claim billions
+                raise InputError(f"{shown}: arr_2 must be {rows} integer ground-truth indices, got shape {shape}")
+            if k != "arr_2" and (len(shape) != 2 or shape[0] != rows or shape[1] not in (2, 3)):
+                raise InputError(f"{shown}: {k} must hold {rows} positions (n × 2 or n × 3), got shape {shape}")
             try:
                 small[k] = np.load(zf.open(members[k]), allow_pickle=False)
             except ValueError as exc:  # a pickled (object) array, or not an .npy member at all
