@@ -111,6 +111,13 @@ def test_sql_on_a_damaged_index(tiny_index, tmp_path, capsys):
     _fails(capsys, ["sql", str(broken), "SELECT 1"], "buckets.parquet")
 
 
+def test_synth_of_more_than_the_disk_holds_writes_nothing(tmp_path, capsys):
+    """10^11 rows (about 77 TB) are refused before a byte is written, naming the rows asked for."""
+    _fails(capsys, ["synth", "--out", str(tmp_path / "s"), "--deep1b-rows", "100000000000"], "GiB free",
+           "--deep1b-rows 100,000,000,000")
+    assert not any(p.is_file() for p in (tmp_path / "s").rglob("*"))
+
+
 def test_synth_out_a_file(tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("x")

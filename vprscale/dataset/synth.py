@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 from vprscale.core.errors import InputError
@@ -31,21 +32,31 @@ def write_synthetic(out: Path, deep1b_rows: int, fas_dim: int, seed: int,
     if held and not force:
         raise InputError(f"--out {out}: already holds {held[0]}; --force replaces the synthetic files there "
                          "(or give another --out)")
+    fas = FasParams(dim=fas_dim)
+    need = 2 * deep1b_rows * 4 * (96 + 1) + 4 * fas_dim * (fas.n_ref + fas.n_query)  # fvecs and fbin; the npz
+    free = shutil.disk_usage(out).free + sum(f.stat().st_size for p in held for f in _files(p))  # replaced ones
+    if need > free:
+        raise InputError(f"--out {out}: the files need {need / 2**30:,.1f} GiB and the disk there has "
+                         f"{free / 2**30:,.1f} GiB free (--deep1b-rows {deep1b_rows:,}, --fas-dim {fas_dim})")
     ours = _written_before(out)
     for path in held:
-        files = sorted(f for f in path.rglob("*") if f.is_file()) if path.is_dir() else [path]
+        files = _files(path)
         if any(_identity(f) != ours.get(str(f.relative_to(out))) for f in files):
             keep_beside(path)  # not (all) synth's own: kept, not replaced
     deep = SyntheticDeep1B(deep1b_rows, seed)
     fvecs = write_fvecs(deep, out / "Deep1B" / "base", rows_per_file=rows_per_file or deep1b_rows)
     fbin = write_fbin(deep, out / "Deep1B" / "base.fbin")
-    fas = write_fas_npz(SyntheticFAS(seed, FasParams(dim=fas_dim)).traverse(),
-                        out / "FAS" / "FAS_uniSam5_all.npz")
-    written = [*fvecs, fbin, fas]
+    npz = write_fas_npz(SyntheticFAS(seed, fas).traverse(), out / "FAS" / "FAS_uniSam5_all.npz")
+    written = [*fvecs, fbin, npz]
     tmp = out / f".{RECORD}.tmp"
     tmp.write_text(json.dumps({str(f.relative_to(out)): _identity(f) for f in written}, indent=0))
     tmp.replace(out / RECORD)
     return written
+
+
+def _files(path: Path) -> list[Path]:
+    """The files of ``path``: itself, or every file under it."""
+    return sorted(f for f in path.rglob("*") if f.is_file()) if path.is_dir() else [path]
 
 
 def _identity(path: Path) -> list[int]:
