@@ -384,6 +384,33 @@ def test_denied_credentials_are_one_line_and_never_shown(s3, recipe, monkeypatch
     assert CREDENTIALS["AWS_SECRET_ACCESS_KEY"] not in err
 
 
+@pytest.mark.parametrize("failure", ["denied", "dead endpoint"])
+@pytest.mark.parametrize("command", ["verify", "index", "results"])
+def test_a_storage_that_fails_a_read_is_named_not_taken_for_a_missing_store(s3, tiny_store, monkeypatch, capsys,
+                                                                           failure, command):
+    """Reading a store, an index or an evaluation by URL when the storage refuses the credentials or
+    does not answer: one line saying so, not "not a vprscale store"."""
+    import socket
+
+    import moto.settings
+    import s3fs
+
+    url = f"s3://{BUCKET}/data/tiny.zarr"
+    if failure == "denied":
+        monkeypatch.setattr(moto.settings, "INITIAL_NO_AUTH_ACTION_COUNT", 0)
+    else:
+        with socket.socket() as sock:  # a port that was free a moment ago: nothing listens there
+            sock.bind(("127.0.0.1", 0))
+            monkeypatch.setenv("AWS_ENDPOINT_URL", f"http://127.0.0.1:{sock.getsockname()[1]}")
+        monkeypatch.setenv("AWS_MAX_ATTEMPTS", "1")
+    s3fs.S3FileSystem.clear_instance_cache()
+    capsys.readouterr()
+    assert main([command, url]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not a vprscale" not in err, err
+    assert ("access denied" if failure == "denied" else "storage failed") in err, err
+
+
 def _upload(local: Path, url: str) -> None:
     remote = Remote(url)
     remote.fs.put_file(str(local), remote.path)

@@ -160,15 +160,23 @@ class Remote:
         the job's own earlier run) may have written it since, and a cached listing would hide that."""
         self.fs.invalidate_cache(self.path)
 
-    def is_file(self) -> bool:
+    def _info(self) -> dict[str, Any] | None:
+        """What the storage says of this place; None where nothing is there. Asked of ``info``, not
+        of ``isfile``/``exists``, which answer False for a denied request or a dead endpoint too:
+        those are the storage's failures, one line each (:func:`storage_errors`), never "not there"."""
         self._fresh()
         with storage_errors(self.url):
-            return self.fs.isfile(self.path)
+            try:
+                return self.fs.info(self.path)
+            except FileNotFoundError:
+                return None
+
+    def is_file(self) -> bool:
+        info = self._info()
+        return info is not None and info.get("type") == "file"
 
     def exists(self) -> bool:
-        self._fresh()
-        with storage_errors(self.url):
-            return self.fs.exists(self.path)
+        return self._info() is not None
 
     def read_bytes(self) -> bytes:
         self._fresh()
