@@ -100,8 +100,6 @@ def configure_logging(level: int) -> None:
     log.handlers[:] = [h for h in log.handlers if isinstance(h, logging.NullHandler)] + [handler]
     log.setLevel(level)
     log.propagate = False
-    # distributed logs a lost scheduler or worker as tracebacks of its own; the command says it in one line
-    logging.getLogger("distributed").setLevel(level if level <= logging.DEBUG else logging.CRITICAL)
 
 
 def _closed_pipe() -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import logging
 import resource
 import threading
 from collections.abc import Iterator
@@ -111,6 +112,11 @@ def _connect(scheduler: str) -> Client:
     is made."""
     from distributed import Client  # imported only here: 0.3 s a local run need not pay
 
+    if not logging.getLogger("vprscale").isEnabledFor(logging.DEBUG):
+        # distributed sets up logging of its own when imported, and would print a lost scheduler's or
+        # worker's tracebacks on stderr; the job says it in one line (they show with --verbose)
+        for handler in logging.getLogger("distributed").handlers:  # its loggers' records all end there
+            handler.setLevel(logging.CRITICAL)
     answer: dict[str, object] = {}
 
     def ask() -> None:  # in a thread of its own: its own event loop, whatever the caller runs
