@@ -594,3 +594,14 @@ def test_no_command_removes_objects_it_did_not_write(s3, sources, tiny_store, ti
         assert Remote(prefix).files() == {"results.csv": len(theirs[f"{prefix}/results.csv"]), "notes/a.txt": 7}, name
         assert all(Remote(url).read_bytes() == data for url, data in theirs.items()), name
         Remote(prefix).remove()
+
+
+def test_a_key_with_a_hash_is_shown_and_written_under_its_own_name(s3, tiny_store, tiny_index, capsys):
+    """``#`` is part of an object's name on S3 (not a URL fragment, as over http): an evaluation
+    written to ``…/run#2`` is there, and every line that names it names it whole."""
+    url = f"s3://{BUCKET}/runs/run#2"
+    assert str(Remote(url)) == url
+    assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline", "-q",
+                 "--repeats", "1", "--out", url]) == 0
+    assert "eval.json" in Remote(url).files()
+    assert url in capsys.readouterr().out

@@ -37,13 +37,16 @@ def is_url(spec: str | os.PathLike | None) -> bool:
 
 
 def public(url: str) -> str:
-    """``url`` as it may be shown or recorded: without user name, password, query or fragment."""
+    """``url`` as it may be shown or recorded: without user name, password or query (a presigned
+    URL's signature), nor, over http(s), the fragment; on object storage a ``#`` is part of a key's
+    name, and is kept."""
     try:
         parts = urllib.parse.urlsplit(url)
     except ValueError:  # not even a URL (an unbalanced IPv6 bracket): its scheme alone
         return url.partition("://")[0] + "://…"
     host = parts.netloc.rpartition("@")[2]  # as written (a bad port too: named, not raised), without user:password
-    return urllib.parse.urlunsplit((parts.scheme, host, parts.path, "", ""))
+    fragment = "" if parts.scheme.lower() in ("http", "https") else parts.fragment
+    return urllib.parse.urlunsplit((parts.scheme, host, parts.path, "", fragment))
 
 
 def redact(value: Any) -> Any:
