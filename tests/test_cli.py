@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import os
 import pty
+import re
 import select
 import shutil
 import subprocess
@@ -134,10 +135,12 @@ def test_the_sql_shell_on_a_terminal(evaluated, tmp_path):
         os.write(fd, b"\x03")
         term.expect(b"cancelled")
         term.expect(b"sql> ")
-        os.write(fd, b"SELECT nope FROM buckets;\n")
+        os.write(fd, b"SELECT size,\n  nope FROM buckets;\n")  # a statement over two lines
         term.expect(b"sql> ")
         os.write(fd, b"SELECT 6 * 7 AS answer;\n")
         term.expect(b"(1 rows)")
+        term.expect(b"sql> ")
+        os.write(fd, b".tables\n")
         term.expect(b"sql> ")
         time.sleep(0.5)  # readline has the terminal now: Ctrl-D on an empty line is the end of input
         os.write(fd, b"\x04")
@@ -150,7 +153,10 @@ def test_the_sql_shell_on_a_terminal(evaluated, tmp_path):
     assert "Traceback" not in text and "KeyboardInterrupt" not in text
     assert "cancelled" in text and "42" in text
     assert 'Referenced column "nope" not found' in text and "Candidate bindings" in text  # the context line
-    assert "SELECT 6 * 7 AS answer;" in history.read_text()
+    assert "LINE 2:   nope FROM buckets;" in text and "          ^^^^" in text  # the line, a caret under it
+    assert re.search(r"hash \w+, size \w+, best_id \w+", text)  # .tables: each view's columns and types
+    kept = history.read_text().splitlines()
+    assert "SELECT size, nope FROM buckets;" in kept and ";" not in kept and "SELECT 6 * 7 AS answer;" in kept
 
 
 def test_report_is_not_replaced_without_force_and_is_kept_with_it(evaluated, tmp_path, capsys):

@@ -82,6 +82,12 @@ class Shell:
         elif word == ".tables":
             for name, files in views(self.roots).items():
                 print(f"{name:<10} {', '.join(map(str, files))}")
+                try:  # the view's columns, from an empty result of it (the names are ours, not typed)
+                    schema = self.box.query(f"SELECT * FROM {name} LIMIT 0", self.timeout).schema
+                except InputError as exc:
+                    print(f"{'':<10} (its columns cannot be read: {exc})")
+                    continue
+                print(f"{'':<10} " + ", ".join(f"{f.name} {f.type}" for f in schema))
         else:
             print(HELP if word == ".help" else f"unknown command {word}; .help lists them", file=sys.stderr)
         return True
@@ -120,7 +126,23 @@ class Shell:
             buf.append(line)
             if line.rstrip().endswith(";"):
                 query, buf = "\n".join(buf), []
+                _one_history_entry(query)
                 self.run(query)
+
+
+def _one_history_entry(statement: str) -> None:
+    """A statement typed over several lines comes back from the history as one entry (readline
+    keeps each line apart: the up arrow would bring back a lone ``;``)."""
+    lines = statement.count("\n") + 1
+    try:
+        import readline
+    except ImportError:
+        return
+    if lines < 2 or readline.get_current_history_length() < lines:
+        return
+    for _ in range(lines):
+        readline.remove_history_item(readline.get_current_history_length() - 1)
+    readline.add_history(" ".join(part.strip() for part in statement.splitlines()))
 
 
 def shell(paths: list[str], timeout: float = 30.0, memory_limit: str = "2GB", threads: int = 2) -> int:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import tempfile
@@ -245,10 +246,32 @@ def query_table(con: duckdb.DuckDBPyConnection, query: str, timeout: float):
     if isinstance(exc, duckdb.InterruptException):
         raise InputError("query: cancelled" if _cancel.asked else f"query: stopped at the {timeout:g} s timeout")
     if isinstance(exc, duckdb.Error):
-        raise QueryError(f"query: {str(exc).strip()}") from None
+        raise QueryError(f"query: {with_place(str(exc).strip(), query)}") from None
     if exc is not None:
         raise exc
     return box["table"]
+
+
+# Errors DuckDB words without a place in the statement, and the name in them that has one
+_NAMED = re.compile(r'(?:Referenced column "([^"]+)" not found|Table with name (\S+) does not exist|'
+                    r'Scalar Function with name (\S+) does not exist|Referenced table "([^"]+)" not found)')
+
+
+def with_place(message: str, query: str) -> str:
+    """``message`` with the line of ``query`` it is about and a caret under the place, as DuckDB's
+    parser errors have (its binder and catalog errors name a column, table or function only)."""
+    if "\nLINE " in message:
+        return message
+    found = _NAMED.search(message)
+    name = found and next(g for g in found.groups() if g)
+    at = re.search(rf"(?<![\w\"]){re.escape(name.rstrip('!'))}(?![\w\"])", query, re.I) if name else None
+    if at is None:
+        return message
+    line_no = query.count("\n", 0, at.start())
+    line = query.splitlines()[line_no]
+    column = at.start() - (query.rfind("\n", 0, at.start()) + 1)
+    prefix = f"LINE {line_no + 1}: "
+    return f"{message}\n\n{prefix}{line}\n{' ' * (len(prefix) + column)}{'^' * len(at.group())}"
 
 
 def serve(pipe, index: list[str], memory_limit: str, threads: int, spill: str, cap: int) -> None:
