@@ -279,6 +279,18 @@ def test_a_read_only_folder_is_refused_before_any_work(read_only_folder, tiny_st
     assert not any(ro.iterdir()) and not (ro.parent / "i").exists()
 
 
+def test_a_pipeline_whose_out_is_read_only_is_one_line(read_only_folder, tmp_path, capsys):
+    """A pipeline's ``out`` on a read-only filesystem: planning works, running is refused in one
+    line naming the pipeline and the folder (it failed as "a bug in vprscale")."""
+    path = tmp_path / "p.toml"
+    path.write_text(f'name = "p"\nout = "{read_only_folder / "out"}"\n[[stages]]\nname = "b"\nkind = "build"\n'
+                    'scale = "20K"\n')
+    capsys.readouterr()
+    assert main(["run", str(path), "--dry-run"]) == 0
+    fails(capsys, ["run", str(path)], str(path), str(read_only_folder / "out"))
+    assert not any(read_only_folder.iterdir())
+
+
 def test_a_zarr_array_declaring_more_rows_than_it_holds_is_one_line(tiny_index, tmp_path, capsys):
     """10^11 declared rows with one chunk written: refused at once, not a 2 TB allocation or hours
     of fill values matched as frames."""

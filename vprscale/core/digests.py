@@ -12,6 +12,7 @@ changed bytes.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -62,8 +63,13 @@ class DigestCache:
         """Write the cache (atomically) if a digest was computed."""
         if not self.changed:
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_name(f".{self.path.name}.tmp")
-        tmp.write_text(json.dumps({"format": FORMAT, "files": self.known}, indent=0, sort_keys=True))
-        tmp.replace(self.path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(json.dumps({"format": FORMAT, "files": self.known}, indent=0, sort_keys=True))
+            tmp.replace(self.path)
+        except OSError:  # a cache: where it cannot be written (a read-only folder), digests are computed again
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            return
         self.changed = False

@@ -38,7 +38,7 @@ from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.manifest import check_manifest, read_manifest
 from vprscale.core.objects import redact
 from vprscale.core.provenance import provenance
-from vprscale.core.publish import exclusive
+from vprscale.core.publish import check_writable, exclusive
 from vprscale.dataset.recipe import read_toml, shipped
 from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import estimates
@@ -215,7 +215,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
             digests.save()
         total = estimates.totals([d["estimate"] for d in decisions if d["run"]], [d["estimate"] for d in decisions])
         return {"name": pipe.name, "dry_run": True, "stages": decisions, "estimate": total}
-    pipe.out.mkdir(parents=True, exist_ok=True)
+    check_writable(pipe.out, f"{pipe.path}: out")  # before any stage: its state, logs and summaries are written there
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     runs = pipe.out / "runs"
     runs.mkdir(exist_ok=True)
