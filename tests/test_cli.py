@@ -66,7 +66,10 @@ def test_a_closed_pipe_ends_quietly(evaluated, argv):
     argv = [a.format(index=evaluated) for a in argv]
     cmd = f"{sys.executable} -m vprscale.cli {' '.join(argv)} | head -c 1; echo \" ${{PIPESTATUS[0]}}\" >&2"
     done = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True)
-    assert done.stderr.strip().splitlines() == ["0"], done.stderr
+    # what is left besides the exit status: nothing (a first run in a new checkout may say that it
+    # compiles numba's kernels, as every command's first run does: not part of what is tested here)
+    said = [x.strip() for x in done.stderr.strip().splitlines() if not x.startswith("compiling numba kernels")]
+    assert said == ["0"], done.stderr
 
 
 class _Terminal:
