@@ -419,3 +419,21 @@ def test_a_name_is_text_on_a_terminal(evaluated, tmp_path, capsys):
     assert main(["results", str(folder), "--where", "L = 1"]) == 0
     out = capsys.readouterr().out
     assert "\x1b" not in out and "\x07" not in out and "\\x1b]0;owned\\x07\\x1b[2J" in out
+
+
+@pytest.mark.slow
+def test_a_large_result_streams_as_csv_and_json_and_is_refused_as_a_table(evaluated, capsys):
+    """A statement of 150,000 rows: ``--csv`` and ``--json`` write it batch by batch, the same text as
+    whole (one header); laid out as an aligned table it is refused in one line (every cell a Python
+    string: 30M rows took 15 GB of the parent), pointing at --csv."""
+    from vprscale.evaluation.sql import run_sql
+
+    query = "SELECT i, i * 0.5 AS half, 'p' || i AS name FROM range(150000) t(i) ORDER BY i"
+    for fmt in ("csv", "json"):
+        capsys.readouterr()
+        assert main(["sql", str(evaluated), query, f"--{fmt}"]) == 0
+        assert capsys.readouterr().out == run_sql(str(evaluated), query, fmt=fmt)
+    capsys.readouterr()
+    assert main(["sql", str(evaluated), query.replace("150000", "250000")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "250,000 rows" in err and "--csv" in err

@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from vprscale.evaluation.results import eval_folder, load_tables
-    from vprscale.evaluation.sql import format_table, sandbox
+    from vprscale.evaluation.sql import sandbox, write_table
 
     args.paths = [str(local_output(p)) for p in args.paths]  # by URL: a verified copy in the cache
 
@@ -114,10 +114,7 @@ def run(args: argparse.Namespace) -> int:
             table = box.query(query, args.timeout)
     if args.best_bytes is not None or args.best_qps is not None:
         table = _best(table, args)
-    if args.format == "table":
-        width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None
-        print(format_table(_shown(table, args.all_columns, args.queries, args.metres), "table", max_width=width),
-              end="")
-    else:
-        print(format_table(table, args.format), end="")
+    width = shutil.get_terminal_size().columns if args.format == "table" and sys.stdout.isatty() else None
+    shown = _shown(table, args.all_columns, args.queries, args.metres) if args.format == "table" else table
+    write_table(shown, args.format, sys.stdout, max_width=width)
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from vprscale.cli.common import bounded_int, local_output, positive_float
@@ -50,6 +51,6 @@ def run(args: argparse.Namespace) -> int:
         return shell(paths, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads)
     from vprscale.evaluation.sql import run_sql
 
-    print(run_sql(paths, query, fmt=args.format, timeout=args.timeout, memory_limit=args.memory_limit,
-                  threads=args.threads), end="")
+    run_sql(paths, query, fmt=args.format, timeout=args.timeout, memory_limit=args.memory_limit, threads=args.threads,
+            out=sys.stdout)
     return 0

@@ -53,6 +53,23 @@ def _flat(table):
 
 
 MAX_CELL = 40  # characters of a cell shown in a width-limited table (DuckDB's shell cuts long values too)
+TABLE_ROWS = 200_000  # rows laid out as an aligned table at most (every cell a Python string); CSV and JSON stream
+STREAM_ROWS = 65_536  # rows formatted at a time when CSV or JSON is written out
+
+
+def write_table(table, fmt: str, out, max_width: int | None = None) -> None:
+    """Write a result to the text stream ``out``: CSV and JSON lines a batch of rows at a time (a
+    result of tens of millions of rows costs its Arrow table and one batch, not gigabytes of Python
+    strings), an aligned table whole, up to ``TABLE_ROWS`` rows."""
+    if fmt == "table":
+        if table.num_rows > TABLE_ROWS:
+            raise InputError(f"the result holds {table.num_rows:,} rows, too many to lay out as a table (at most "
+                             f"{TABLE_ROWS:,}): --csv or --json write it row by row, or aggregate or LIMIT it")
+        out.write(format_table(table, "table", max_width=max_width))
+        return
+    for start in range(0, max(table.num_rows, 1), STREAM_ROWS):
+        text = format_table(table.slice(start, STREAM_ROWS), fmt)
+        out.write(text if start == 0 or fmt != "csv" else text.split("\n", 1)[1])  # one header line
 
 
 def format_table(table, fmt: str, max_rows: int | None = None, max_width: int | None = None) -> str:
@@ -296,9 +313,14 @@ def sandbox(index: str | Path | list, memory_limit: str = "2GB", threads: int = 
 
 
 def run_sql(index: str | Path | list, query: str, fmt: str = "table", timeout: float = 30.0, memory_limit: str = "2GB",
-            threads: int = 2) -> str:
-    """One read-only query over an index and/or evaluation folders, formatted as a table, CSV or JSON lines."""
+            threads: int = 2, out=None) -> str | None:
+    """One read-only query over an index and/or evaluation folders, formatted as a table, CSV or JSON
+    lines: returned as text, or written to the text stream ``out`` (:func:`write_table`)."""
     if not timeout > 0:
         raise InputError(f"--timeout {timeout}: must be a positive number of seconds")
     with sandbox(index, memory_limit, threads) as box:
-        return format_table(box.query(query, timeout), fmt)
+        table = box.query(query, timeout)
+    if out is None:
+        return format_table(table, fmt)
+    write_table(table, fmt, out)
+    return None
