@@ -101,6 +101,7 @@ def test_a_report_shows_paths_of_this_machine_relative(tmp_path, monkeypatch):
     head = open(write_report([first], tmp_path / "one")["report"]).read().split("## Figures")[0]
     assert str(tmp_path) not in head and str(Path.home()) + "/" not in head
     assert "`vprscale eval data/s.zarr ~/i.index`" in head and "- results ev:" in head
+    assert str(tmp_path) not in (tmp_path / "one" / "recall_table.csv").read_text()
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

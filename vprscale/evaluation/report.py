@@ -406,6 +406,8 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     (out / "report.md").write_text(text)
     write_html(res, metres, _provenance_block(evals), REPORT_TITLE.removeprefix("# "), out)
     small = res[res.radius.isin([0, 5, 10, 20])].drop(columns=["store", "index"], errors="ignore")
+    if "run" in small.columns:  # as the provenance block shows them: relative to here
+        small = small.assign(run=small["run"].map(_here))
     small.to_csv(out / "recall_table.csv", index=False)
     return {"report": str(out / "report.md"), "figures": figures}
 
