@@ -58,6 +58,17 @@ def test_an_evaluation_without_its_manifest_is_refused(index, tmp_path, capsys):
         fails(capsys, argv, "no manifest.json", "re-create it", "vprscale eval")
 
 
+def test_an_evaluation_without_its_manifest_and_its_record_s_provenance_is_refused(index, tmp_path, capsys):
+    """Removing the provenance key of eval.json too does not turn the checks off: the results' own
+    Parquet metadata still says a vprscale that publishes manifests wrote them."""
+    (index / "eval" / "manifest.json").unlink()
+    record = json.loads((index / "eval" / "eval.json").read_text())
+    record.pop("provenance")
+    (index / "eval" / "eval.json").write_text(json.dumps(record))
+    for argv in _readers_of_results(index, tmp_path):
+        fails(capsys, argv, "no manifest.json", "re-create it")
+
+
 def test_an_index_of_format_3_without_its_manifest_is_refused(index, tiny_store, tmp_path, capsys):
     (index / "manifest.json").unlink()
     ids = np.load(index / "ids.npy")  # what the missing manifest would have caught

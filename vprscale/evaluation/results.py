@@ -48,8 +48,20 @@ def eval_folder(path: str | Path, full: bool = False) -> Path:
                              "evaluation through one")
     indexes = " ".join(map(str, record.get("indexes") or ["INDEX"]))
     usual = f"vprscale eval {record.get('store', 'STORE')} {indexes} --out {folder}"
-    check_manifest(folder, full=full, remake=remake(record, f"{usual} --force"))
+    check_manifest(folder, full=full, remake=remake(record, f"{usual} --force", published=_published(folder)))
     return folder
+
+
+def _published(folder: Path) -> bool:
+    """Whether the results' own Parquet metadata carries vprscale's provenance: written by a vprscale
+    that publishes a manifest, so one missing is a deletion, whatever eval.json still says."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return PARQUET_KEY in (pq.read_metadata(folder / "results.parquet").metadata or {})
+    except (OSError, pa.ArrowInvalid):
+        return False
 
 
 def load_tables(*paths: str | Path, queries: bool = False,
