@@ -51,8 +51,8 @@ def public(url: str) -> str:
 
 def redact(value: Any) -> Any:
     """``value`` as it may be shown or recorded (a command line's arguments, a stage's parameters,
-    a summary): every URL in it, whole or after a ``=`` (``--deep1b=URL``, ``night=URL``), without
-    user name, password, query or fragment (:func:`public`); lists and mappings item by item."""
+    a summary): every URL in it, whole or after a ``=`` (``--deep1b=URL``, ``night=URL``), as
+    :func:`public` shows it (no user name, password or query); lists and mappings item by item."""
     if isinstance(value, dict):
         return {k: redact(v) for k, v in value.items()}
     if isinstance(value, list | tuple):

@@ -27,6 +27,7 @@ from vprscale.core.objects import Remote  # noqa: E402
 from vprscale.core.plaintext import markdown, markdown_code  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.core.publish import check_writable, exclusive, keep_beside, refuse_foreign  # noqa: E402
+from vprscale.dataset.recipe import known_scales  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
@@ -39,7 +40,6 @@ from vprscale.method.indexmeta import checked, read_index_meta  # noqa: E402
 
 PAPER = {"nr_L50": {"20K": 74, "1M": 57, "10M": 32}, "storage_mb": {"20K": 0.2, "1M": 8.4, "10M": 80.4},
          "ops_10M": 37_400, "baseline_ratio": 1300, "fas20K": (1, 98, 267)}
-PAPER_SCALES = ("20K", "1M", "10M", "100M", "1B")  # the ladder of the paper's recipe (and beyond it)
 STYLE = {1: ":", 50: "--", 100: "-"}
 COLOURS = {("coarsehash", "paper"): "tab:blue", ("coarsehash", "aligned"): "tab:green",
            ("coarsehash", None): "tab:blue", ("baseline", None): "tab:red"}
@@ -506,7 +506,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
     md += ["## Time (s), peak memory (GiB) and disk (GiB) per stage", "",
            _md_table(["scale", "d", "build s", "build GiB", "index s", "index GiB", "eval s", "eval GiB",
                       "store on disk", "index on disk"], rows), ""]
-    if any(s in PAPER_SCALES for s in scales):  # a store of your own data has no paper figure to stand beside
+    if set(scales) & set(known_scales()):  # a store of your own data has no paper figure to stand beside
         md += ["## The paper's text figures beside ours", "", *_paper_comparison(res, indexes, scales, mains), ""]
     return "\n".join(md)
 
