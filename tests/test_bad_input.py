@@ -164,7 +164,7 @@ def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys
 
     index = tmp_path / "y.index"
     assert main(["index", str(tiny_store), "--d", "8", "--out", str(index)]) == 0
-    before = (index / "ids.npy").read_bytes()
+    before = (index / "lists.parquet").read_bytes()
     capsys.readouterr()
     with shared(index):  # what `vprscale eval STORE y.index` holds while it runs
         _fails(capsys, ["index", str(tiny_store), "--d", "9", "--out", str(index), "--force"], "another vprscale job")
@@ -172,7 +172,7 @@ def test_index_and_eval_on_one_index_are_serialised(tiny_store, tmp_path, capsys
                      "--out", str(tmp_path / "second")]) == 0
     with exclusive(index):  # what `vprscale index --out y.index` holds while it writes
         _fails(capsys, ["eval", str(tiny_store), str(index), "--L", "1", "--no-baseline"], "another vprscale job")
-    assert (index / "ids.npy").read_bytes() == before
+    assert (index / "lists.parquet").read_bytes() == before
 
 
 def test_an_output_name_too_long_for_its_companions_is_one_line(tiny_store, tiny_index, tmp_path, capsys):

@@ -23,6 +23,7 @@ from vprscale.cli import main
 from vprscale.compared.codescore import REF_LEVEL_BYTES
 from vprscale.compared.faisscodes import ID_BYTES, training_rows
 from vprscale.evaluation.algorithms.faisscodes import FaissMethod
+from vprscale.method.index import Index
 from vprscale.method.kernels import N_BEST
 
 from .conftest import SMALL_TRAINING, faiss_own
@@ -162,7 +163,8 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_store, tiny_inde
     assert per_method["faiss:RaBitQ"][0] == faiss.index_factory(dim, "RaBitQ").sa_code_size()  # bits and factors
     assert per_method["faiss:HNSW32"][0] > 4 * dim + 2 * 32 * 4  # its row, and at least its bottom layer's links
     assert per_method["baseline"][0] == 4
-    engine = sum(np.load(tiny_index / f"{n}.npy", mmap_mode="r").nbytes for n in ("codes", "ids", "occupied", "starts"))
+    idx = Index.load(tiny_index)
+    engine = idx.codes.nbytes + sum(idx.lists.nbytes().values())
     assert per_method["coarsehash"][0] == pytest.approx(engine / 52_500)  # codes, packed ids and directory
     assert 12 / 8 + 16 / 8 < per_method["coarsehash"][0] < 12 / 8 + 16 / 8 + 1
 

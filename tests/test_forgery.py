@@ -9,6 +9,8 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from vprscale.cli import main
@@ -69,10 +71,11 @@ def test_an_evaluation_without_its_manifest_and_its_record_s_provenance_is_refus
         fails(capsys, argv, "no manifest.json", "re-create it")
 
 
-def test_an_index_of_format_3_without_its_manifest_is_refused(index, tiny_store, tmp_path, capsys):
+def test_an_index_of_format_3_or_later_without_its_manifest_is_refused(index, tiny_store, tmp_path, capsys):
     (index / "manifest.json").unlink()
-    ids = np.load(index / "ids.npy")  # what the missing manifest would have caught
-    np.save(index / "ids.npy", np.random.default_rng(0).permutation(ids))
+    lists = pq.read_table(index / "lists.parquet")  # what the missing manifest would have caught
+    ids = np.random.default_rng(0).permutation(lists["ref_id"].to_numpy())
+    pq.write_table(lists.set_column(1, "ref_id", pa.array(ids, pa.uint32())), index / "lists.parquet")
     for argv in (["occupancy", str(index)], ["sql", str(index), "SELECT 1"], ["verify", str(index)],
                  ["localise", str(index), str(tiny_store / "query_qm1"), "--L", "5"],
                  ["eval", str(tiny_store), str(index), "--L", "1", "--out", str(tmp_path / "e")]):

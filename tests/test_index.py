@@ -42,17 +42,45 @@ def test_lists_are_the_addresses_of_every_ref(tiny_index, tiny_store, model):
         np.testing.assert_array_equal(got[1:], np.setdiff1d(ids, got[:1]))
 
 
-def test_index_json_and_storage(tiny_index):
-    from vprscale.method.kernels import plane_words
+def test_any_parquet_reader_finds_the_lists_and_codes(tiny_index, tiny_store, model):
+    """The index's tables, read by DuckDB and pyarrow themselves (no vprscale between): every place
+    once in its address's list, sorted by (hash, ref_id), one single best a list (least error,
+    ties to the smaller id); the codes every place's address; the buckets the lists' sizes."""
+    import duckdb
 
+    ref = zarr.open_group(tiny_store, mode="r")["ref"][:]
+    y = project(ref, model["mean"], model["components"])
+    levels, err = quantize(y, model["centres"])
+    h = pack(levels, 2)
+    con = duckdb.connect()
+    lists = con.execute("SELECT hash, ref_id, best FROM read_parquet(?)", [str(tiny_index / "lists.parquet")]).df()
+    order = np.lexsort((np.arange(len(h)), h))
+    np.testing.assert_array_equal(lists["ref_id"].to_numpy(), order)  # sorted by hash, then id
+    np.testing.assert_array_equal(lists["hash"].to_numpy(), h[order])
+    best = lists[lists.best]
+    want = {a: ids[np.argmin(err[ids])] for a, ids in ((a, np.flatnonzero(h == a)) for a in np.unique(h))}
+    assert dict(zip(best.hash, best.ref_id, strict=True)) == want
+    counted = con.execute("SELECT hash, count(*) AS n FROM read_parquet(?) GROUP BY hash ORDER BY hash",
+                          [str(tiny_index / "lists.parquet")]).fetchnumpy()
+    buckets = pq.read_table(tiny_index / "buckets.parquet").to_pandas()
+    np.testing.assert_array_equal(counted["hash"], buckets["hash"])
+    np.testing.assert_array_equal(counted["n"], buckets["size"])
+    np.testing.assert_array_equal(buckets["offset"], np.r_[0, np.cumsum(buckets["size"])[:-1]])
+    codes = pq.read_table(tiny_index / "codes.parquet")
+    assert codes.schema.names == ["ref_id", "hash"]
+    np.testing.assert_array_equal(codes["ref_id"].to_numpy(), np.arange(len(h)))
+    np.testing.assert_array_equal(codes["hash"].to_numpy(), h)
+
+
+def test_index_json_and_storage(tiny_index):
     meta = json.loads((tiny_index / "index.json").read_text())
     assert meta["complete"] and meta["d"] == 12 and meta["k"] == 2 and meta["n_ref"] == 52_500
-    assert meta["format"] == 3 and meta["layout"]["id_bits"] == 16 and meta["layout"]["code_bits"] == 12
+    assert meta["format"] == 4 and meta["layout"]["id_bits"] == 16 and meta["layout"]["code_bits"] == 12
     st = meta["storage"]
     assert st["P1"]["paper"] == 8 * 52_500 and st["P1"]["packed"] == 12 * 52_500 // 8
     assert st["P3"]["paper"] == 8 * 12 * 96 and st["P4"]["paper"] == 8 * 96 and st["P2"]["paper"] == 8 * 12 * 2
-    # P1 on disk is the bit planes of every reference's address, 12 bits a place (plus padding and header)
-    assert st["P1"]["disk"] == (tiny_index / "codes.npy").stat().st_size == 8 * plane_words(52_500, 12) + 128
+    # P1 on disk is the codes table, under 12 bits a place (the addresses' skew compresses)
+    assert st["P1"]["disk"] == (tiny_index / "codes.parquet").stat().st_size < 12 * 52_500 // 8
     assert st["total"]["paper"] == sum(st[p]["paper"] for p in ("P1", "P2", "P3", "P4"))
 
 
@@ -67,12 +95,12 @@ def test_sql_lookup_and_formats(tiny_index, capsys):
     assert got == expected
     assert main(["sql", str(tiny_index), "SELECT count(*) AS n, sum(size) AS s FROM buckets", "--csv"]) == 0
     assert capsys.readouterr().out.splitlines()[1] == f"{idx.occupied},{idx.n_ref}"
-    assert main(["sql", str(tiny_index), "SELECT hash, best_id FROM buckets WHERE hash = " + str(h), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["best_id"] == idx.lists.best(np.array([700]))[0]
+    assert main(["sql", str(tiny_index), f"SELECT ref_id FROM lists WHERE best AND hash = {h}", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ref_id"] == idx.lists.best(np.array([700]))[0]
 
 
 def test_sql_lists_view_is_every_place_once(tiny_index, capsys):
-    """The ``lists`` view, read from the engine's packed ids, holds each place once at its own address."""
+    """The ``lists`` view holds each place once at its own address."""
     from vprscale.method.index import read_index
 
     idx = read_index(tiny_index)
@@ -148,7 +176,7 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path, d, k):
     chunks of any length)."""
     from vprscale.method.coarsehash import CoarseHasher
     from vprscale.method.index import Index
-    from vprscale.method.indexfile import ENGINE_FILES, write_arrays, write_lists
+    from vprscale.method.indexfile import TABLES, write_arrays, write_lists
 
     rng = np.random.default_rng(1)
     n = 100_000
@@ -156,7 +184,7 @@ def test_partitioned_lists_equal_the_in_memory_sort(tmp_path, d, k):
     err = rng.random(n).astype(np.float32)
     err[::7] = 0.5  # ties: the smallest id is the single best
     bounds = [(a, min(n, a + 7000)) for a in range(0, n, 7000)]
-    files = [*ENGINE_FILES.values(), "buckets.parquet"]
+    files = list(TABLES)
     got = {}
     for part_rows in (1 << 30, 5000):
         out = tmp_path / str(part_rows)
@@ -206,31 +234,83 @@ def _as_format_2(src, dst):
     (dst / "eval" / "eval.json").write_text('{"mine": 1}')
 
 
-def test_an_old_index_is_refused_then_upgraded_without_refitting(tiny_index, tiny_store, tmp_path, capsys):
+def _as_format_3(src, dst):
+    """The directory format 3 wrote for the lists of ``src``: the engine's succinct files (format 3's
+    own, the form the engine still decodes into), buckets for SQL, the model and a manifest."""
+    import shutil
+
+    from vprscale.core.manifest import write_manifest
+    from vprscale.method.engine import EngineWriter
+    from vprscale.method.index import read_index
+
+    idx = read_index(src)
+    dst.mkdir()
+    writer = EngineWriter(dst, idx.n_ref, idx.d, idx.k)
+    writer.codes(0, idx.ref_addresses())
+    offsets = idx.lists.starts.decode()
+    writer.lists(idx.lists.occupied.decode(), np.diff(offsets), idx.lists.ids_range(0, idx.n_ref))
+    layout = writer.close()
+    shutil.copy(src / "buckets.parquet", dst)
+    shutil.copytree(src / "model", dst / "model")
+    shutil.copy(src / "components.parquet", dst)
+    meta = json.loads((src / "index.json").read_text())
+    meta.update({"format": 3, "layout": layout})
+    (dst / "index.json").write_text(json.dumps(meta))
+    write_manifest(dst)
+    (dst / "eval").mkdir()
+    (dst / "eval" / "eval.json").write_text('{"mine": 1}')
+
+
+@pytest.mark.parametrize("fmt", [2, 3])
+def test_an_old_index_is_refused_then_upgraded_without_refitting(tiny_index, tiny_store, tmp_path, capsys, fmt):
+    from vprscale.method.indexfile import TABLES
+
     old = tmp_path / "old.index"
-    _as_format_2(tiny_index, old)
+    (_as_format_2 if fmt == 2 else _as_format_3)(tiny_index, old)
     assert main(["localise", str(old), str(tiny_store / "query_qm1"), "--out", str(tmp_path / "m.parquet")]) == 2
-    assert f"vprscale index --upgrade {old}" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"an index of format {fmt}" in err and f"vprscale index --upgrade {old}" in err
     assert main(["index", "--upgrade", str(old)]) == 0
     out = capsys.readouterr().out
-    assert "converted from format 2" in out and "the index is" in out and "× the floor" in out
-    for name in ("codes.npy", "ids.npy", "occupied.npy", "starts.npy", "buckets.parquet"):
+    assert f"converted from format {fmt}" in out and "the index is" in out and "× the floor" in out
+    for name in (*TABLES, "components.parquet", "model/centres.npy"):
         assert (old / name).read_bytes() == (tiny_index / name).read_bytes(), name  # what a fresh index writes
-    assert not (old / "best.npy").exists() and (old / "eval" / "eval.json").read_text() == '{"mine": 1}'
+    assert not list(old.glob("*.npy")) and (old / "eval" / "eval.json").read_text() == '{"mine": 1}'
     capsys.readouterr()
     assert main(["verify", str(old)]) == 2  # the index verifies; its evaluation, of before manifests, cannot be
     assert "index verified" in capsys.readouterr().out
     assert main(["index", "--upgrade", str(old)]) == 0
-    assert "format 3 already" in capsys.readouterr().out
+    assert "format 4 already" in capsys.readouterr().out
     assert main(["index", "--upgrade", str(tmp_path / "nowhere")]) == 2
     assert "no index.json" in capsys.readouterr().err
 
 
+def test_a_newer_index_is_refused_in_one_line(tiny_index, tmp_path, capsys):
+    """What an older vprscale meets: an index of a format it does not know, refused by name."""
+    import shutil
+
+    new = tmp_path / "new.index"
+    shutil.copytree(tiny_index, new)
+    meta = json.loads((new / "index.json").read_text())
+    (new / "index.json").write_text(json.dumps({**meta, "format": 5}))
+    assert main(["occupancy", str(new)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("index format 5 is newer than this vprscale reads (4); upgrade vprscale")
+    assert len(err.splitlines()) == 1
+
+
 def test_bench_format_times_both_layouts_on_the_same_matches(tiny_store, tiny_index, capsys):
-    """``bench format`` rebuilds format 2's plain arrays from the index, checks both layouts
-    give the same matches, and prints each one's cost and the ratio (no time is asserted)."""
+    """``bench format`` writes format 3's files of the index and rebuilds format 2's plain arrays,
+    checks every layout gives the same matches, and prints each one's bytes, cost and the ratios
+    (no time is asserted)."""
     assert main(["bench", "format", str(tiny_store), "--index", str(tiny_index), "--L", "20"]) == 0
     out = capsys.readouterr().out
+    for L in (1, 20):  # the tables against format 3's files of the same index, answers checked equal
+        assert re.search(rf"L = {L} paper, per query.*tables [\d.]+ .*files [\d.]+ .*tables / files = [\d.]+×", out)
+    new, old = (float(x) for x in re.search(r"format 4 \(Parquet tables\) ([\d.]+) B/place .*"
+                                            r"format 3 \(succinct .npy files\) ([\d.]+)", out).groups())
+    assert new < old and re.search(r"decode in memory [\d.]+ s, decode into the engine cache [\d.]+ s, "
+                                   r"from the cache [\d.]+ s", out)
     for what in ("per-frame work", "L = 1 paper", "L = 20 paper", "L = 20 aligned"):
         assert re.search(rf"{what}.*succinct [\d.]+ .*plain [\d.]+ .*succinct / plain = [\d.]+×", out), what
     plain, succinct = (float(x) for x in re.search(r"succinct ([\d.]+), plain ([\d.]+)", out).groups()[::-1])
@@ -252,3 +332,48 @@ def test_bench_online_prints_push_against_the_batch_for_each_L(tiny_store, tiny_
         push, _, _, many, batch, to_batch, to_many = (float(v) for v in line.groups())
         assert to_batch == pytest.approx(push / batch, rel=0.05, abs=0.01)  # of the unrounded figures
         assert to_many == pytest.approx(push / many, rel=0.05, abs=0.01)
+
+
+def test_a_large_index_is_decoded_once_into_a_checked_cache_and_mapped(tiny_index, tmp_path, monkeypatch, caplog):
+    """Above the in-memory size an index's tables are decoded once into the engine cache; later
+    loads memory-map it; a damaged or stale cache is decoded again, never read; where the cache
+    cannot be written the arrays are decoded in memory. The same arrays every way."""
+    import logging
+    import shutil
+
+    from vprscale.method import engine
+    from vprscale.method.index import read_index
+
+    want = read_index(tiny_index)  # in memory: below the threshold
+    monkeypatch.setattr(engine, "IN_MEMORY_PLACES", 0)
+    index = tmp_path / "copy.index"
+    shutil.copytree(tiny_index, index)
+
+    def same(idx):
+        np.testing.assert_array_equal(idx.codes, want.codes)
+        np.testing.assert_array_equal(idx.lists.ids, want.lists.ids)
+        np.testing.assert_array_equal(idx.lists.starts.decode(), want.lists.starts.decode())
+        np.testing.assert_array_equal(idx.lists.occupied.decode(), want.lists.occupied.decode())
+
+    caplog.set_level(logging.INFO, logger="vprscale.method.engine")
+    first = read_index(index)
+    same(first)
+    (cache,) = (tmp_path / "vprscale-cache" / "engines").iterdir()
+    assert "decoding" in caplog.text and isinstance(first.lists.ids, np.memmap)
+    caplog.clear()
+    again = read_index(index)
+    same(again)
+    assert "decoding" not in caplog.text and isinstance(again.codes, np.memmap)
+    ids = cache / "ids.npy"
+    ids.write_bytes(ids.read_bytes()[:-8] + b"\xff" * 8)  # damaged: the manifest's checksum differs
+    same(read_index(index))
+    assert "decoding" in caplog.text
+    caplog.clear()
+    manifest = json.loads((index / "manifest.json").read_text())
+    (index / "manifest.json").write_text(json.dumps(manifest, indent=2))  # re-published: another manifest
+    same(read_index(index))
+    assert "decoding" in caplog.text and len(list(cache.parent.iterdir())) == 1  # replaced, not beside
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "a-file" / "cache"))  # cannot be made, even by root
+    same(read_index(index))
+    assert "cannot be written" in caplog.text

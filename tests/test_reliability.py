@@ -14,6 +14,8 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from vprscale.cli import main
@@ -72,23 +74,33 @@ def test_overwritten_chunk_and_permuted_ids_are_caught(store_copy, tiny_store, t
     fails(capsys, ["verify", str(store_copy)], str(chunk), "content changed")
     index = tmp_path / "copy.index"
     shutil.copytree(tiny_index, index)
-    ids = np.load(index / "ids.npy")
-    np.save(index / "ids.npy", np.random.default_rng(0).permutation(ids))
+    lists = pq.read_table(index / "lists.parquet")  # the ids permuted, the file rewritten to its very size
+    ids = np.random.default_rng(0).permutation(lists["ref_id"].to_numpy())
+    _rewrite_same_size(index / "lists.parquet", lists.set_column(1, "ref_id", pa.array(ids, pa.uint32())))
     fails(capsys, ["eval", str(tiny_store), str(index), "--L", "1", "--out", str(tmp_path / "e")],
-          "ids.npy", "content changed")
-    fails(capsys, ["localise", str(index), str(tiny_store / "query_qm1")], "ids.npy", "content changed")
+          "lists.parquet", "content changed")
+    fails(capsys, ["localise", str(index), str(tiny_store / "query_qm1")], "lists.parquet", "content changed")
     assert not (tmp_path / "e").exists()
     assert main(["verify", str(tiny_index)]) == 0
     assert "verified" in capsys.readouterr().out
 
 
+def _rewrite_same_size(path: Path, table: pa.Table) -> None:
+    """``table`` written over ``path`` uncompressed, cut or padded to the file's size: what a same-size
+    edit leaves (only the checksum tells)."""
+    size = path.stat().st_size
+    pq.write_table(table, path, compression="none")
+    data = path.read_bytes()
+    path.write_bytes(data[:size].ljust(size, b"\0"))
+
+
 def test_truncated_and_deleted_index_files_are_one_line(tiny_index, tmp_path, capsys):
     index = tmp_path / "copy.index"
     shutil.copytree(tiny_index, index)
-    (index / "starts.npy").write_bytes((index / "starts.npy").read_bytes()[:-8])
-    fails(capsys, ["occupancy", str(index)], "starts.npy", "bytes, its manifest says")
-    (index / "starts.npy").unlink()
-    fails(capsys, ["sql", str(index), "SELECT 1"], "starts.npy", "missing")
+    (index / "buckets.parquet").write_bytes((index / "buckets.parquet").read_bytes()[:-8])
+    fails(capsys, ["occupancy", str(index)], "buckets.parquet", "bytes, its manifest says")
+    (index / "buckets.parquet").unlink()
+    fails(capsys, ["sql", str(index), "SELECT 1"], "buckets.parquet", "missing")
 
 
 @pytest.mark.parametrize("case", ["localise-ids", "localise-zarr-json", "index-summary-store", "build-summary-source",
@@ -100,8 +112,8 @@ def test_no_output_over_an_input(case, tiny_store, tiny_index, sources, tmp_path
     fbin = tmp_path / "d.fbin"
     shutil.copy(sources["fbin"], fbin)
     argv, target = {
-        "localise-ids": (["localise", str(index), str(store / "query_qm1"), "--out", str(index / "ids.npy")],
-                         index / "ids.npy"),
+        "localise-ids": (["localise", str(index), str(store / "query_qm1"), "--out", str(index / "lists.parquet")],
+                         index / "lists.parquet"),
         "localise-zarr-json": (["localise", str(index), str(fbin), "--out", str(store / "zarr.json")],
                                store / "zarr.json"),
         "index-summary-store": (["index", str(store), "--out", str(tmp_path / "new.index"), "--summary",
@@ -255,6 +267,8 @@ def test_one_line_where_a_traceback_was(tiny_store, tiny_index, tmp_path, capsys
 
 def test_a_full_disk_is_one_line_and_the_rerun_finishes(small_filesystem, tiny_store, capsys):
     out = small_filesystem / "t.index"
+    free = os.statvfs(small_filesystem).f_bavail * os.statvfs(small_filesystem).f_frsize
+    (small_filesystem / "filler").write_bytes(bytes(max(0, free - 100_000)))  # room for half an index
     fails(capsys, ["index", str(tiny_store), "--d", "12", "--out", str(out)], "the disk is full", "run the same")
     assert not out.exists()  # nothing half-published
     subprocess.run(["mount", "-o", "remount,size=20m", str(small_filesystem)], check=True)

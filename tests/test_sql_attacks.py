@@ -224,3 +224,17 @@ def test_a_planted_spill_base_removes_nothing(arena, tmp_path, planted):
                            "--csv"], capture_output=True, text=True, env={**os.environ, "TMPDIR": str(tmpdir)})
     assert done.returncode == 0 and done.stdout.split() == ['"one"', "1"], done.stderr
     assert all(k.exists() for k in kept)
+
+
+def test_a_long_tmpdir_still_runs_a_console(arena, tmp_path):
+    """The sandbox's forkserver listens on a Unix socket under $TMPDIR, whose path may hold 107
+    bytes: a console under a long $TMPDIR answers all the same."""
+    import os
+    import subprocess
+    import sys
+
+    tmpdir = tmp_path / ("t" * 90)
+    tmpdir.mkdir()
+    done = subprocess.run([sys.executable, "-m", "vprscale.cli", "sql", str(arena["index"]), "SELECT 1 AS one",
+                           "--csv"], capture_output=True, text=True, env={**os.environ, "TMPDIR": str(tmpdir)})
+    assert done.returncode == 0 and done.stdout.split() == ['"one"', "1"], done.stderr

@@ -65,8 +65,9 @@ def run(args: argparse.Namespace) -> int:
         if args.job == "online":
             print(bench.bench_online(args.target, args.index, (args.L,) if args.L else (1, 50, 100)))
         else:
-            from vprscale.jobs.formatbench import bench_format
+            from vprscale.jobs.formatbench import bench_format, bench_tables
 
+            print(bench_tables(args.target, args.index, args.L or 100))
             print(bench_format(args.target, args.index, (1, args.L or 100)))
     else:
         if not args.index:

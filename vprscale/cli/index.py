@@ -34,8 +34,8 @@ def run(args: argparse.Namespace) -> int:
         if args.store:
             raise InputError(f"--upgrade {args.upgrade}: converts an index; give no store ({args.store})")
         meta = upgrade_index(args.upgrade)
-        print(f"{args.upgrade}: format {meta['format']}" + (" (converted from format 2, no refit)"
-                                                             if meta.get("converted") else " already"))
+        print(f"{args.upgrade}: format {meta['format']}" + (f" (converted from format {meta['upgraded_from']}, "
+                                                             "no refit)" if meta.get("converted") else " already"))
         print(format_parts(index_parts(Path(args.upgrade)), meta["n_ref"], meta["d"], meta["k"]))
         write_summary(args, meta)
         return 0

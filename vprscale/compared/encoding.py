@@ -48,6 +48,7 @@ from vprscale.compared.faisscodes import FaissCodes, graph_rows
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import local_copy
 from vprscale.core.manifest import check_manifest, remake
+from vprscale.core.mapped import allocated_memmap
 from vprscale.core.objects import Remote
 
 # 2: residual IVF-PQ encodings hold their on-disk inverted lists and window arrays; 3: one window record per place
@@ -113,7 +114,7 @@ def encoding_dir(store: Path | Remote, factory: str) -> Path | Remote:
 def write_trained(codes: FaissCodes, out: Path, n_ref: int) -> None:
     """The trained (still empty) index, and an empty code array for ``n_ref`` references."""
     faiss.write_index(codes.index, str(out / "trained.faiss"))
-    np.lib.format.open_memmap(out / "codes.npy", mode="w+", dtype=np.uint8, shape=(n_ref, codes.code_bytes))
+    allocated_memmap(out / "codes.npy", np.uint8, (n_ref, codes.code_bytes))  # tasks map it to write
 
 
 def read_trained(out: Path, factory: str, dim: int) -> FaissCodes:
@@ -185,8 +186,7 @@ def write_searched(out: Path, factory: str, dim: int, done: Callable[[str], bool
     if not done("window"):
         codes = read_trained(out, factory, dim)
         codes.start(0)  # its per-list tables and an empty record array, whose width this takes
-        records = np.lib.format.open_memmap(out / f".{WINDOW}.tmp", mode="w+", dtype=np.uint8,
-                                            shape=(n_ref, codes.codes.shape[1]))
+        records = allocated_memmap(out / f".{WINDOW}.tmp", np.uint8, (n_ref, codes.codes.shape[1]))
         for i in range(0, n_ref, LOAD_ROWS):
             records[i : i + LOAD_ROWS] = codes.window_records(np.ascontiguousarray(stored[i : i + LOAD_ROWS]))
         records.flush()

@@ -195,7 +195,7 @@ def fig_storage(indexes, out, figures) -> bool:
     lists = [x for x in n if "lists" in by_n[x]]  # the paper leaves the inverted lists out; they cost the most
     if lists:
         ax.plot(lists, [by_n[x]["lists"]["bytes"] for x in lists], "D-", color="C4",
-                label="inverted lists (ids, directory) on disk")
+                label="inverted lists (ids, buckets) on disk")
         tables = [(x, _sql_table_bytes(by_n[x])) for x in lists]
         tables = [(x, b) for x, b in tables if b]
         if tables:
@@ -214,8 +214,11 @@ def fig_storage(indexes, out, figures) -> bool:
 
 
 def _sql_table_bytes(index: dict) -> int:
-    """Bytes of the tables an index keeps for the SQL console: measured when it was written
-    (format 3), else from its folder (format 2's Parquet copies; 0 when the folder is gone)."""
+    """Bytes of the tables an index keeps for the SQL console beside its lists: none from format 4
+    on (its lists are Parquet tables), measured when it was written (format 3), else from its
+    folder (format 2's Parquet copies; 0 when the folder is gone)."""
+    if index.get("format", 0) >= 4:
+        return 0
     if "parts" in index:
         return index["parts"]["SQL tables"]
     path = Path(index.get("path", ""))

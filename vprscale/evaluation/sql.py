@@ -1,6 +1,6 @@
 """``vprscale sql``: a read-only, sandboxed DuckDB console over an index directory.
 
-Views: ``lists(hash, ref_id)``, ``buckets(hash, size, best_id, offset)``,
+Views: ``lists(hash, ref_id, best)``, ``buckets(hash, size, offset)``,
 ``model(component, cluster, centre, refs, share, variance)``, and ``results`` /
 ``queries`` when ``vprscale eval`` output sits in the index's ``eval/`` folder.
 
@@ -199,6 +199,26 @@ def _serve(*args: Any) -> None:
     serve(*args)
 
 
+SOCKET_PATH_MAX = 107  # bytes of a Unix socket's path (sun_path, less its NUL)
+SOCKET_NAME = 40  # what multiprocessing adds under its folder: /pymp-XXXXXXXX/listener-XXXXXXXX
+
+
+@contextmanager
+def _socket_room() -> Iterator[None]:
+    """Room for the forkserver's Unix socket: multiprocessing makes it in a ``pymp-`` folder under
+    ``$TMPDIR``, and a long ``$TMPDIR`` overflows the path a socket may have (Python 3.11 has no
+    fallback), so every console would fail; there the folder goes under ``/tmp``."""
+    base = tempfile.gettempdir()
+    if len(os.fsencode(base)) + SOCKET_NAME <= SOCKET_PATH_MAX or not os.access("/tmp", os.W_OK):
+        yield
+        return
+    before, tempfile.tempdir = tempfile.tempdir, "/tmp"
+    try:
+        yield
+    finally:
+        tempfile.tempdir = before
+
+
 class Sandbox:
     """A child process holding one locked-down connection; each query runs there under OS caps.
 
@@ -222,7 +242,8 @@ class Sandbox:
         ctx.set_forkserver_preload(["duckdb", "pyarrow", "pyarrow.dataset", "vprscale.evaluation.sqlchild"])
         self.pipe, child = ctx.Pipe()
         self.proc = ctx.Process(target=_serve, args=(child, *self.args, self.spill, self.cap), daemon=True)
-        self.proc.start()
+        with _socket_room():
+            self.proc.start()
         child.close()
         kind, value = self._receive(60.0, "start-up")
         if kind != "ready":

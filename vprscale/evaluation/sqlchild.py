@@ -4,17 +4,13 @@ queries in the sandbox process (:class:`vprscale.evaluation.sql.Sandbox`).
 Kept apart, with nothing but DuckDB, Arrow and numpy to import, so that a sandbox process
 starts in a fraction of a second. The index was checked by the parent before the child starts.
 
-An index's lists are not stored twice: ``buckets.parquet`` holds one row per occupied
-address (its hash, list size and offset), and the ``lists`` view unnests each bucket's ids
-read from the engine's own bit-packed ``ids.npy`` (:class:`PackedIds`, through the
-``vprs_list`` and ``vprs_best`` functions). A filter on ``hash`` still prunes the buckets'
-row groups before any id is read.
+An index's views are its own Parquet tables, read as they are (``lists.parquet``,
+``buckets.parquet``, ``components.parquet``): what the console shows is what the DuckDB CLI,
+Polars or Spark read from the same files. A filter on ``hash`` prunes their row groups.
 """
 
 from __future__ import annotations
 
-import json
-import os
 import re
 import shutil
 import signal
@@ -25,7 +21,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import duckdb
-import numpy as np
 import pyarrow as pa
 import pyarrow.dataset as pads
 
@@ -38,86 +33,16 @@ GRACE_S = 5.0  # how long an interrupted query may take to stop before it is aba
 RUN_TABLES = ("results", "queries", "results_m")  # views of every evaluation given, one table, a ``run`` column each
 
 
-INDEX_VIEWS = ("lists", "buckets", "model")
-SPAN_READ = 1 << 23  # bytes of ids read in one call when a batch of buckets lies close together
-
-
-class PackedIds:
-    """The ids of an index's ``ids.npy`` (bit-packed, :mod:`vprscale.method.succinct`), read by
-    ``pread``: a memory map of a billion places' ids would count whole against the sandbox's
-    address-space cap."""
-
-    def __init__(self, path: Path, bits: int, n: int) -> None:
-        with open(path, "rb") as fh:
-            major, _ = np.lib.format.read_magic(fh)
-            reader = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
-            reader(fh)
-            self.data = fh.tell()
-        self.fd = os.open(path, os.O_RDONLY)
-        self.bits, self.n = bits, n
-
-    def _words(self, first: int, last: int) -> np.ndarray:
-        """Words ``first … last`` (inclusive) of the packed array."""
-        raw = os.pread(self.fd, 8 * (last - first + 1), self.data + 8 * first)
-        return np.frombuffer(raw, np.uint64)
-
-    def take(self, q: np.ndarray) -> np.ndarray:
-        """Ids at positions ``q`` (ascending within runs; any order works)."""
-        if len(q) == 0:
-            return np.zeros(0, np.uint64)
-        bit = q.astype(np.uint64) * np.uint64(self.bits)
-        word = (bit >> np.uint64(6)).astype(np.int64)
-        lo, hi = int(word.min()), int(word.max()) + 1
-        if 8 * (hi - lo) <= max(SPAN_READ, 64 * len(q)):
-            words = self._words(lo, hi)
-            at = word - lo
-        else:  # scattered buckets: each position's two words on their own
-            words = np.concatenate([self._words(w, w + 1) for w in word.tolist()])
-            at = np.arange(0, 2 * len(q), 2)
-        shift = bit & np.uint64(63)
-        value = words[at] >> shift
-        carry = shift + np.uint64(self.bits) > np.uint64(64)
-        value[carry] |= words[at[carry] + 1] << (np.uint64(64) - shift[carry])
-        if self.bits < 64:
-            value &= np.uint64((1 << self.bits) - 1)
-        return value
-
-    def lists(self, offset: pa.Array, size: pa.Array) -> pa.Array:
-        """The ids of buckets ``(offset, size)``, one list each (``vprs_list``)."""
-        off = np.asarray(offset.to_numpy(zero_copy_only=False), np.int64)
-        n = np.asarray(size.to_numpy(zero_copy_only=False), np.int64)
-        self._check(off, n)
-        ends = np.cumsum(n)
-        q = np.repeat(off - (ends - n), n) + np.arange(int(ends[-1]) if len(ends) else 0)
-        values = pa.array(self.take(q), pa.uint64() if self.bits > 32 else pa.uint32())
-        return pa.ListArray.from_arrays(pa.array(np.r_[0, ends], pa.int64()), values)
-
-    def best(self, offset: pa.Array) -> pa.Array:
-        """Each bucket's single best id, its list's first (``vprs_best``)."""
-        off = np.asarray(offset.to_numpy(zero_copy_only=False), np.int64)
-        self._check(off, np.ones_like(off))
-        return pa.array(self.take(off), pa.uint64() if self.bits > 32 else pa.uint32())
-
-    def _check(self, off: np.ndarray, n: np.ndarray) -> None:
-        if len(off) and (off.min() < 0 or n.min() < 0 or (off + n).max() > self.n):
-            raise ValueError(f"a bucket's offset and size lie outside the index's {self.n:,} ids")
+INDEX_VIEWS = {"lists": "lists.parquet", "buckets": "buckets.parquet", "model": "components.parquet"}
 
 
 def _index_views(con: duckdb.DuckDBPyConnection, root: Path) -> None:
-    """``buckets``, ``lists`` and ``model`` of one index: the buckets table (``_buckets``), the
-    functions that read its ids and the views over them."""
-    meta = json.loads((root / "index.json").read_text())
-    try:
-        con.register("_buckets", pads.dataset(root / "buckets.parquet", format="parquet"))
-        con.register("model", pads.dataset(root / "components.parquet", format="parquet"))
-        ids = PackedIds(root / "ids.npy", int(meta["layout"]["id_bits"]), int(meta["n_ref"]))
-    except (OSError, ValueError) as exc:  # pyarrow's and numpy's errors for missing or damaged files
-        raise InputError(f"{root}: an index file cannot be read ({str(exc).splitlines()[0]})") from None
-    id_type = "UINTEGER" if ids.bits <= 32 else "UBIGINT"
-    con.create_function("vprs_list", ids.lists, ["UBIGINT", "UINTEGER"], f"{id_type}[]", type="arrow")
-    con.create_function("vprs_best", ids.best, ["UBIGINT"], id_type, type="arrow")
-    con.execute('CREATE VIEW buckets AS SELECT hash, size, vprs_best("offset") AS best_id, "offset" FROM _buckets')
-    con.execute('CREATE VIEW lists AS SELECT hash, unnest(vprs_list("offset", size)) AS ref_id FROM _buckets')
+    """``lists``, ``buckets`` and ``model`` of one index: its tables as they are."""
+    for name, file in INDEX_VIEWS.items():
+        try:
+            con.register(name, pads.dataset(root / file, format="parquet"))
+        except (OSError, ValueError) as exc:  # pyarrow's errors for missing or damaged files
+            raise InputError(f"{root / file}: an index table cannot be read ({str(exc).splitlines()[0]})") from None
 
 
 def views(paths: list[Path]) -> dict[str, list[Path]]:

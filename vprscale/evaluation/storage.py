@@ -29,12 +29,12 @@ def file_bytes(*paths: Path) -> int:
     return sum(p.stat().st_size for p in paths if p.exists())
 
 
-# The parts of an index directory, by the files that hold them (format 3, docs/accounting.md).
+# The parts of an index directory, by the files that hold them (format 4, docs/accounting.md).
 INDEX_PARTS = {
-    "codes (P1)": ("codes.npy",),
-    "ids": ("ids.npy",),
-    "directory": ("occupied.npy", "starts.npy"),
-    "SQL tables": ("buckets.parquet", "components.parquet"),
+    "codes (P1)": ("codes.parquet",),
+    "lists": ("lists.parquet",),
+    "buckets": ("buckets.parquet",),
+    "components": ("components.parquet",),
     "model (P2-P4)": tuple(f"model/{n}.npy" for n in ("mean", "components", "centres", "explained_variance")),
     "metadata": ("index.json", "manifest.json"),
 }

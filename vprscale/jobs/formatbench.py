@@ -1,5 +1,11 @@
-"""``vprscale bench format``: the succinct index (format 3) against plain arrays (format 2's
-layout) on the same index, per query per core, in one process.
+"""``vprscale bench format``: the index's Parquet tables (format 4) against format 3's succinct
+files on disk, and the engine's succinct arrays against plain arrays (format 2's layout) in
+memory, on the same index, per query per core, in one process.
+
+On disk: each format's bytes per place against the floor, the time to decode the tables
+(in memory, and once into the engine cache) and to load them again from the cache, and the
+per-query cost of the index loaded from its tables against the same index opened from format
+3's files, interleaved (A, B, B, A) repeat by repeat, with their matches checked equal.
 
 Format 2 held the lists as plain words in memory: ids (uint32), sorted occupied addresses
 with a prefix table for the search, offsets and single bests. :class:`PlainLists` rebuilds
@@ -11,14 +17,20 @@ both (the codes were already d bits a place, built in memory, in format 2).
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numba
 import numpy as np
 
+from vprscale.evaluation.storage import floor_bits, index_parts
+from vprscale.method import engine
 from vprscale.method.index import Index, QueryFrames
+from vprscale.method.indexfile import fill_from_tables
 from vprscale.method.kernels import address_delta, bit_planes, match_batch
 
 PREFIX_BITS = (16, 24)  # format 2's prefix table: about one entry per occupied address, 2^16 to 2^24
@@ -187,3 +199,71 @@ def _line(what: str, times: dict[str, list[float]]) -> str:
     med = {k: float(np.median(v)) for k, v in times.items()}
     spans = ", ".join(f"{k} {med[k]:.2f} ({min(v):.2f}–{max(v):.2f}) µs" for k, v in times.items())
     return f"  {what}: {spans}; succinct / plain = {med['succinct'] / med['plain']:.2f}×"
+
+
+def bench_tables(store: str, index: str, L: int = 100, frames: int = 4096, repeats: int = 5) -> str:
+    """Format 4's tables against format 3's files of the same index: bytes per place, decode and
+    load times, and the per-query cost (µs, one thread, L = 1 and ``L`` in paper mode) of the
+    index loaded from each, A-B-B-A."""
+    import zarr
+
+    path = Path(index)
+    tables = Index.load(path)
+    n, d, k = tables.n_ref, tables.d, tables.k
+    floor = floor_bits(n, d, k) / 8
+    parts = index_parts(path)
+    shared = sum(parts[p] for p in ("buckets", "components", "model (P2-P4)", "metadata"))  # in format 3 too
+    with tempfile.TemporaryDirectory(prefix="vprscale-format3-", dir=path.parent) as tmp:
+        old = Path(tmp)
+        writer = engine.EngineWriter(old, n, d, k)
+        writer.codes(0, tables.ref_addresses())
+        starts = tables.lists.starts.decode()
+        writer.lists(tables.lists.occupied.decode(), np.diff(starts), tables.lists.ids_range(0, n))
+        layout = writer.close()
+        old_bytes = sum(f.stat().st_size for f in old.iterdir()) + shared
+        seconds = []
+        for in_memory in (True, False, False):  # in memory; into a fresh cache; from it
+            t0 = time.perf_counter()
+            engine.engine_arrays(path, n, d, k, fill_from_tables(path), in_memory=in_memory, root=old / "cache")
+            seconds.append(time.perf_counter() - t0)
+        in_memory, into_cache, cached = seconds
+        shutil.rmtree(old / "cache")
+        codes, lists = engine.open_engine(old, layout, n, d, k)
+        files = Index(tables.hasher, codes, lists, n, tables.meta).warm()
+        tables.warm()
+        new_bytes = sum(parts.values())
+        lines = [f"index on disk, {n:,} places, d = {d}, K = {k}: floor d + ⌈log2 N⌉ = {floor:.3f} B/place",
+                 f"  format 4 (Parquet tables) {new_bytes / n:.3f} B/place ({new_bytes / n / floor:.3f}× the floor); "
+                 f"format 3 (succinct .npy files) {old_bytes / n:.3f} ({old_bytes / n / floor:.3f}×); "
+                 f"tables / files = {new_bytes / old_bytes:.3f}×",
+                 "  " + ", ".join(f"{name} {b / n:.3f}" for name, b in parts.items()) + " B/place",
+                 f"  load: decode in memory {in_memory:.2f} s, decode into the engine cache {into_cache:.2f} s, "
+                 f"from the cache {cached:.3f} s"]
+        q = zarr.open_group(store, mode="r")["query_qm1"]
+        start = max(0, q.shape[0] // 2 - frames // 2)
+        h, _ = tables.hash_frames(q[start : start + frames])
+        qf = {"tables": tables.query_frames(h), "files": files.query_frames(h)}
+        sides = {"tables": tables, "files": files}
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            for length in (1, L):
+                pos = np.arange(length // 2, frames - length + length // 2 + 1, max(1, (frames - length) // 1024))
+                run = {name: (lambda idx=idx, name=name, length=length, pos=pos:
+                              idx.answer(qf[name], pos, length, "paper", 1)) for name, idx in sides.items()}
+                if not all(np.array_equal(a, b) for a, b in zip(run["tables"](), run["files"](), strict=True)):
+                    raise SystemExit(f"bench format: L = {length}: the two formats' answers differ")
+                per_query: dict[str, list[float]] = {name: [] for name in sides}
+                for r in range(repeats):
+                    for name in ("tables", "files") if r % 2 == 0 else ("files", "tables"):
+                        per_query[name].append(_cpu(run[name]) / len(pos) * 1e6)
+                med = {name: float(np.median(v)) for name, v in per_query.items()}
+                lines.append(f"  L = {length} paper, per query (look-up and match, one thread): "
+                             + ", ".join(f"{name} {med[name]:.2f} ({min(v):.2f}–{max(v):.2f}) µs"
+                                         for name, v in per_query.items())
+                             + f"; tables / files = {med['tables'] / med['files']:.3f}×")
+        finally:
+            numba.set_num_threads(threads)
+        del files, codes, lists
+    return "\n".join(lines)
+

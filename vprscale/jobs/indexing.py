@@ -35,7 +35,6 @@ from vprscale.dataset.store import ATTR, load_model, open_complete_group, ref_mo
 from vprscale.evaluation.storage import file_bytes, index_parts, storage_table
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
 from vprscale.method.indexfile import (
-    ENGINE_FILES,
     MODEL_FILES,
     load_index_meta,
     upgrade,
@@ -145,9 +144,9 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
                                 quiet=quiet)
             write_model(partial.path, hasher, lists["level_counts"], n_ref)
         peak = cluster_peak_rss(client)
-        disk = {"P1": file_bytes(partial.path / ENGINE_FILES["codes"]),
+        disk = {"P1": file_bytes(partial.path / "codes.parquet"),
                 **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
-        list_bytes = file_bytes(*(partial.path / ENGINE_FILES[n] for n in ("ids", "occupied", "starts")))
+        list_bytes = file_bytes(*(partial.path / n for n in ("lists.parquet", "buckets.parquet")))
         built = store / "build.json"
         extra = {
             "store": {"path": shown(store), "identity": identity, "layout": layout["kind"],
@@ -172,7 +171,7 @@ def build_index(store: str | Path, d: int | None = None, k: int = 2, out: str | 
 
 
 def upgrade_index(path: str | Path, quiet: bool = False) -> dict[str, Any]:
-    """Convert a format-2 index in place into the current format, without refitting (same lists,
+    """Convert a format-2 or format-3 index in place into the current format, without refitting (same lists,
     same matches); an index already current is left as it is.
 
     The new directory is written into a hidden work copy and published like a fresh index;
@@ -188,16 +187,16 @@ def upgrade_index(path: str | Path, quiet: bool = False) -> dict[str, Any]:
         if parked.is_dir() and not (final / "eval").exists():
             parked.rename(final / "eval")
         meta = load_index_meta(final, upgradable=True)
-        if meta["format"] != 2:
+        if meta["format"] not in (2, 3):
             return {**meta, "index": str(final), "converted": False}
         check_writable(final.parent)
         partial.open()
         t0 = time.perf_counter()
         meta = upgrade(final, partial.path, quiet=quiet)
-        disk = {"P1": file_bytes(partial.path / ENGINE_FILES["codes"]),
+        disk = {"P1": file_bytes(partial.path / "codes.parquet"),
                 **{p: file_bytes(*(partial.path / "model" / f for f in fs)) for p, fs in MODEL_FILES.items()}}
         meta["storage"] = storage_table(int(meta["n_ref"]), int(meta["d"]), int(meta["k"]), int(meta["dim"]), disk)
-        list_bytes = file_bytes(*(partial.path / ENGINE_FILES[n] for n in ("ids", "occupied", "starts")))
+        list_bytes = file_bytes(*(partial.path / n for n in ("lists.parquet", "buckets.parquet")))
         meta["lists"] = {**meta.get("lists", {}), "bytes": list_bytes, "bytes_per_place": list_bytes / meta["n_ref"]}
         meta["parts"] = index_parts(partial.path)
         meta["upgrade"] = {"wall_s": time.perf_counter() - t0,

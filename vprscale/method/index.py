@@ -1,4 +1,4 @@
-"""The index container of the query engine (docs/method.md): a loaded (memory-mapped) index,
+"""The index container of the query engine (docs/method.md): a loaded index,
 query hashing, the per-frame work on query frames, and matching through the kernels of
 :mod:`vprscale.method.kernels`. The frame-by-frame matcher is :mod:`vprscale.method.online`.
 """
@@ -15,7 +15,8 @@ import numpy as np
 
 from vprscale.core.publish import PartialOutput
 from vprscale.method.coarsehash import CoarseHasher, hash_descriptors
-from vprscale.method.indexfile import code_bits, read_arrays, write_arrays
+from vprscale.method.engine import code_bits
+from vprscale.method.indexfile import read_arrays, write_arrays
 from vprscale.method.invlists import InvertedLists, best_first, frame_top
 from vprscale.method.kernels import (
     DELTA_MAX_UNITS,
@@ -98,7 +99,9 @@ class Index:
     hasher=fitted)``), :meth:`match` localises a traverse, :meth:`save` / :meth:`load` (and
     the module's :func:`write_index` / :func:`read_index`) write and open the directory
     format of :mod:`vprscale.method.indexfile` that every command reads. A loaded index
-    memory-maps its codes and lists, so opening one costs nothing whatever its size.
+    holds its codes and lists as the engine's arrays, decoded from the directory's Parquet
+    tables in memory or, for a large index, once into a local cache that later loads
+    memory-map (:mod:`vprscale.method.engine`).
 
     Everything is held succinctly (docs/method.md, "Storage"): ``codes`` is P1, each
     place's address in ⌈d·log2 K⌉ bits (for K = 2 the bit planes the windows are scored
@@ -316,7 +319,7 @@ class Index:
 
 def read_index(path: str | Path) -> Index:
     """Open an index directory (:mod:`vprscale.method.indexfile`); the codes and the lists are
-    memory-mapped, not read."""
+    the engine's arrays (:func:`~vprscale.method.indexfile.read_lists`)."""
     hasher, codes, lists, meta = read_arrays(path)
     return Index(hasher, codes, lists, int(meta["n_ref"]), meta)
 

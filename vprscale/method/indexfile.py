@@ -1,38 +1,42 @@
 """The index directory format: the one module that writes and reads it.
 
-An index directory (format 3, docs/method.md "Storage") holds:
+An index directory (format 4, docs/outputs.md) holds plain Parquet tables that any reader
+opens (the DuckDB CLI, Polars, pandas, Spark), beside the fitted model:
 
 - ``index.json``: kind, format, parameters (``d``, ``k``, ``bins``, ``n_ref``, ``dim``,
-  ``occupied``), the layout of the succinct files (``lists``) and whatever the writer adds
-  (the store it came from, storage, timings);
+  ``occupied``), the tables' layout (``layout``) and whatever the writer adds (the store it
+  came from, storage, timings);
 - ``model/{mean,components,centres,explained_variance}.npy``: the fitted CoarseHasher;
-- ``components.parquet``: per component and cluster: centre, reference count and share;
-- the engine's files, memory-mapped by the query side (:mod:`vprscale.method.succinct`):
-  ``codes.npy`` (P1, every place's address in ⌈d·log2 K⌉ bits: for K = 2 the bit planes
-  the windows are scored on, else bit-packed), ``ids.npy`` (the ids grouped by address,
-  bit-packed at ⌈log2 N⌉ bits, each list's single best first and the rest ascending),
-  ``occupied.npy`` and ``starts.npy`` (the sorted occupied addresses and the lists'
-  starts, Elias–Fano);
-- ``buckets.parquet`` (``hash``, ``size``, ``offset``): one row per occupied address for
-  the SQL console, its sorted integers delta-coded and compressed; the console's ``lists``
-  view reads ``ids.npy`` itself (:mod:`vprscale.evaluation.sqlchild`), so the ids are never
-  stored twice.
+- ``codes.parquet`` (``ref_id``, ``hash``): every place's address, in place order (P1);
+- ``lists.parquet`` (``hash``, ``ref_id``, ``best``): the inverted lists, one row per place,
+  sorted by address and then id; ``best`` marks each list's single best (least quantisation
+  error, ties to the smaller id);
+- ``buckets.parquet`` (``hash``, ``size``, ``offset``): one row per occupied address, its
+  list's length and first row in ``lists.parquet``;
+- ``components.parquet``: per component and cluster: centre, reference count and share.
 
-Three writers produce the same files through :class:`_Writer`: :func:`write_lists` streams a
+Sorted integers are delta-coded (``DELTA_BINARY_PACKED``: an address repeated down a list
+costs nothing, ids ascending in a long list a few bits), the codes zstd-compressed, all in
+fixed row groups, so the whole directory sits within a few per cent of the information floor
+(d + ⌈log2 N⌉ bits a place) and is the same bytes however the rows arrived.
+
+Three writers produce the same files through :class:`_Tables`: :func:`write_lists` streams a
 job's references through the partitioned sort of :mod:`vprscale.method.lists` (bounded
 memory at any scale), :func:`write_arrays` writes lists held in memory (``Index.save``) and
-:func:`upgrade` converts a format-2 directory without refitting. :func:`read_arrays` opens
-any of them. Publishing (hidden work copy, lock, atomic rename) is the caller's. ``index.json``
-is read by :mod:`vprscale.method.indexmeta`, which imports nothing heavy, so that tools that
-only check an index (``vprscale sql``, ``verify``) start fast.
+:func:`upgrade` converts a format-2 or format-3 directory without refitting. :func:`read_lists`
+gives the query engine its arrays, decoded from the tables by :mod:`vprscale.method.engine`
+(in memory, or once into a local cache that later loads memory-map). Publishing (hidden work
+copy, lock, atomic rename) is the caller's. ``index.json`` is read by
+:mod:`vprscale.method.indexmeta`, which imports nothing heavy, so that tools that only check
+an index (``vprscale sql``, ``verify``) start fast.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -41,10 +45,12 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from vprscale.core.errors import InputError
+from vprscale.core.mapped import allocated_memmap
 from vprscale.core.progress import ChunkProgress
+from vprscale.method.engine import EngineWriter, code_bits, engine_arrays, open_engine
 from vprscale.method.indexmeta import INDEX_FORMAT, KIND, load_index_meta
-from vprscale.method.invlists import InvertedLists, best_first
-from vprscale.method.kernels import plane_words, planes_into
+from vprscale.method.invlists import InvertedLists, ascending_with_best, best_first
+from vprscale.method.kernels import decode_codes
 from vprscale.method.lists import (
     PART_ROWS,
     PREFIX_BITS,
@@ -54,208 +60,144 @@ from vprscale.method.lists import (
     prefix_cuts,
     scatter,
 )
-from vprscale.method.succinct import (
-    EliasFano,
-    occupancy_structure,
-    pack_bits_into,
-    packed_words,
-    structure_from_words,
-    width,
-)
+from vprscale.method.succinct import width
 
 if TYPE_CHECKING:  # the estimator (and scikit-learn) is imported only to read a model: see read_arrays
     from vprscale.method.coarsehash import CoarseHasher
 
 MODEL = ("mean", "components", "centres", "explained_variance")
 MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_variance.npy"], "P4": ["mean.npy"]}
-ENGINE_FILES = {"codes": "codes.npy", "ids": "ids.npy", "occupied": "occupied.npy", "starts": "starts.npy"}
+TABLES = ("codes.parquet", "lists.parquet", "buckets.parquet")
 SQL_FILES = ("buckets.parquet", "components.parquet")
-ROW_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
+PLACE_GROUP = 1 << 20  # rows of a row group in the per-place tables (a billion places: about a thousand groups)
+BUCKET_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
+DECODE_ROWS = 1 << 22  # rows decoded together into the engine's arrays
 UPGRADE_LISTS = 1 << 22  # lists converted together by upgrade
+ZSTD = {"compression": "zstd", "compression_level": 9}
 
 
-def code_bits(d: int, k: int) -> int:
-    """Bits of one place's code: ⌈d·log2 K⌉ (d for K = 2)."""
-    return d if k == 2 else width(k**d - 1)
+class _TableWriter:
+    """One Parquet table written a run of rows at a time, in row groups of ``group`` rows.
 
-
-def code_words(n_ref: int, d: int, k: int) -> int:
-    return plane_words(n_ref, d) if k == 2 else packed_words(n_ref, code_bits(d, k))
-
-
-class _Buckets:
-    """``buckets.parquet``, written a run of occupied addresses at a time.
-
-    Sorted addresses and offsets are delta-coded (their deltas are small), sizes
-    dictionary-coded (a few distinct values), all zstd-compressed: about 0.6 bytes per
-    occupied address where plain words take 20.
+    Whole row groups are written as they fill, so the file is the same bytes however the
+    runs were cut (partitions, upgrade chunks, an index held in memory).
     """
 
-    def __init__(self, out: Path) -> None:
-        self.writer = pq.ParquetWriter(out / "buckets.parquet",
-                                       pa.schema([("hash", pa.uint64()), ("size", pa.uint32()),
-                                                  ("offset", pa.uint64())]),
-                                       compression="zstd", compression_level=9,
-                                       use_dictionary=["size"],
-                                       column_encoding={"hash": "DELTA_BINARY_PACKED",
-                                                        "offset": "DELTA_BINARY_PACKED"})
-        self.pending = [np.zeros(0, np.uint64), np.zeros(0, np.uint32), np.zeros(0, np.uint64)]
+    def __init__(self, path: Path, schema: pa.Schema, group: int, **options: Any) -> None:
+        self.writer = pq.ParquetWriter(path, schema, **ZSTD, **options)
+        self.schema, self.group = schema, group
+        self.pending: list[list[np.ndarray]] = [[] for _ in schema.names]
+        self.held = 0
 
-    def write(self, addresses: np.ndarray, sizes: np.ndarray, offsets: np.ndarray) -> None:
-        """Append a run of buckets; whole row groups are written as they fill, so the file is the
-        same bytes however the runs were cut (partitions, upgrade chunks)."""
-        new = [np.asarray(x, t) for x, t in zip((addresses, sizes, offsets), (np.uint64, np.uint32, np.uint64),
-                                                strict=True)]
-        self.pending = new if not len(self.pending[0]) else [np.concatenate([p, x]) for p, x in
-                                                              zip(self.pending, new, strict=True)]
-        full = len(self.pending[0]) // ROW_GROUP * ROW_GROUP
-        if full:
-            self._flush(full)
+    def write(self, *columns: np.ndarray) -> None:
+        for held, x in zip(self.pending, columns, strict=True):
+            held.append(x)
+        self.held += len(columns[0])
+        if self.held >= self.group:
+            self._flush(self.held // self.group * self.group)
 
     def _flush(self, n: int) -> None:
-        hashes, sizes, offsets = (p[:n] for p in self.pending)
-        self.writer.write_table(pa.table({"hash": pa.array(hashes), "size": pa.array(sizes),
-                                          "offset": pa.array(offsets)}), row_group_size=ROW_GROUP)
-        self.pending = [p[n:] for p in self.pending]
+        joined = [np.concatenate(held) if len(held) > 1 else held[0] for held in self.pending]
+        self.writer.write_table(pa.table([pa.array(x[:n], f.type) for x, f in zip(joined, self.schema, strict=True)],
+                                         schema=self.schema), row_group_size=self.group)
+        self.pending = [[x[n:]] for x in joined]
+        self.held -= n
 
     def close(self) -> None:
-        if len(self.pending[0]):
-            self._flush(len(self.pending[0]))
+        if self.held:
+            self._flush(self.held)
         self.writer.close()
 
 
-class _Appender:
-    """A 1-D ``.npy`` file written by appending; its header (numpy's own) gets the final length at close.
+class _Tables:
+    """``codes.parquet``, ``lists.parquet`` and ``buckets.parquet`` of one directory, written in order.
 
-    The header is given a fixed 128 bytes up front, which numpy's 1.0 header of any 1-D
-    shape below 10^40 elements fills exactly.
-    """
-
-    HEADER = 128
-
-    def __init__(self, path: Path, dtype: np.dtype) -> None:
-        self.path, self.dtype, self.n = path, np.dtype(dtype), 0
-        self.f = path.open("wb")
-        self.f.write(b"\0" * self.HEADER)
-
-    def append(self, x: np.ndarray) -> None:
-        np.ascontiguousarray(x, self.dtype).tofile(self.f)
-        self.n += len(x)
-
-    def close(self) -> None:
-        head = io.BytesIO()
-        np.lib.format.write_array_header_1_0(head, {"descr": np.lib.format.dtype_to_descr(self.dtype),
-                                                    "fortran_order": False, "shape": (self.n,)})
-        assert len(head.getvalue()) == self.HEADER, "numpy's .npy header changed length"
-        self.f.seek(0)
-        self.f.write(head.getvalue())
-        self.f.close()
-
-
-class _WordsFile:
-    """A uint64 ``.npy`` file of ``n_words`` words, written front to back from runs that may
-    share their boundary word (bit-packed values) or row (bit planes) with the next run.
-
-    Only the words a later run may still change are held in memory; every word before them
-    is final and written out, so writing a billion places' codes or ids holds a few words,
-    not a gigabyte-sized mapped file (whose written pages count as resident memory).
-    """
-
-    def __init__(self, path: Path, n_words: int, unit: int) -> None:
-        self.path, self.n_words, self.unit = path, n_words, unit  # unit: words that are final together
-        self.f = path.open("wb")
-        np.lib.format.write_array_header_1_0(self.f, {"descr": "<u8", "fortran_order": False, "shape": (n_words,)})
-        self.written = 0  # words in the file
-        self.tail = np.zeros(0, np.uint64)  # words from ``written`` on that a later run may still change
-
-    def run(self, last: int) -> np.ndarray:
-        """The words from the first unwritten one to ``last − 1``, to fill: the held tail, then zeros."""
-        out = np.zeros(last - self.written, np.uint64)
-        out[: len(self.tail)] = self.tail
-        return out
-
-    def done(self, words: np.ndarray, final: int) -> None:
-        """``words`` (from :meth:`run`) are filled; those before word ``final`` will not change."""
-        cut = (final - self.written) // self.unit * self.unit
-        self.f.write(words[:cut].tobytes())
-        self.written += cut
-        self.tail = words[cut:].copy()
-
-    def close(self) -> None:
-        rest = np.zeros(self.n_words - self.written, np.uint64)
-        rest[: len(self.tail)] = self.tail
-        self.f.write(rest.tobytes())
-        self.f.close()
-
-
-class _Writer:
-    """The engine's files and the SQL buckets of one directory, written in order.
-
-    :meth:`codes` takes places' addresses chunk by chunk (any order of chunks), :meth:`lists`
-    runs of lists in address order, each list's ids with its single best first;
-    :meth:`close` builds the Elias–Fano directory from the appended addresses and offsets
-    (read back once, memory-mapped) and returns the layout that ``index.json`` records.
+    :meth:`codes` takes places' addresses run by run (from place 0 on), :meth:`lists` runs of
+    lists in address order, each list's ids with its single best first (the engine's order,
+    which every writer holds); :meth:`close` returns the layout that ``index.json`` records.
     """
 
     def __init__(self, out: Path, n_ref: int, d: int, k: int) -> None:
-        self.out, self.n_ref, self.d, self.k = out, n_ref, d, k
-        self.code_bits, self.id_bits = code_bits(d, k), width(max(0, n_ref - 1))
-        self.codes_file = _WordsFile(out / ENGINE_FILES["codes"], code_words(n_ref, d, k), d if k == 2 else 1)
-        self.ids_file = _WordsFile(out / ENGINE_FILES["ids"], packed_words(n_ref, self.id_bits), 1)
-        self.n_codes = 0
-        self.addresses = _Appender(out / ".addresses.tmp", np.uint64)
-        self.offsets = _Appender(out / ".offsets.tmp", np.int64)
-        self.buckets = _Buckets(out)
-        self.n_ids = self.longest = 0
+        self.n_ref, self.d, self.k = n_ref, d, k
+        self.id_type = pa.uint32() if n_ref <= 1 << 32 else pa.uint64()
+        delta = "DELTA_BINARY_PACKED"
+        self.codes_table = _TableWriter(out / "codes.parquet",
+                                        pa.schema([("ref_id", self.id_type), ("hash", pa.uint64())]), PLACE_GROUP,
+                                        use_dictionary=False, column_encoding={"ref_id": delta, "hash": "PLAIN"},
+                                        write_page_index=True)
+        self.lists_table = _TableWriter(out / "lists.parquet",
+                                        pa.schema([("hash", pa.uint64()), ("ref_id", self.id_type),
+                                                   ("best", pa.bool_())]), PLACE_GROUP,
+                                        use_dictionary=False,
+                                        column_encoding={"hash": delta, "ref_id": delta, "best": "PLAIN"},
+                                        write_page_index=True)
+        self.buckets_table = _TableWriter(out / "buckets.parquet",
+                                          pa.schema([("hash", pa.uint64()), ("size", pa.uint32()),
+                                                     ("offset", pa.uint64())]), BUCKET_GROUP,
+                                          use_dictionary=["size"], column_encoding={"hash": delta, "offset": delta},
+                                          write_page_index=True)
+        self.n_codes = self.n_ids = self.n_lists = self.longest = 0
 
     def codes(self, a: int, h: np.ndarray) -> None:
-        """The addresses of the next places, ``a … a + len(h) − 1`` (runs in order, from 0)."""
+        """The addresses of the next places, ``a … a + len(h) − 1``."""
         if a != self.n_codes:
             raise ValueError(f"codes of places from {a:,}: the next place is {self.n_codes:,}")
-        h = np.asarray(h, np.uint64)
-        f, b = self.codes_file, a + len(h)
-        if self.k == 2:  # rows of d words per 64 places: the rows before place b's are final
-            words = f.run(((b + 63) // 64) * self.d)
-            planes_into(words, h, np.int64(a - 64 * (f.written // self.d)), self.d)
-            f.done(words, (b // 64) * self.d)
-        else:
-            words = f.run(-(-b * self.code_bits // 64))
-            pack_bits_into(words, self.code_bits, np.int64(a * self.code_bits - 64 * f.written), h)
-            f.done(words, b * self.code_bits // 64)
-        self.n_codes = b
+        self.codes_table.write(np.arange(a, a + len(h), dtype=np.uint64), np.asarray(h, np.uint64))
+        self.n_codes += len(h)
 
     def lists(self, addresses: np.ndarray, sizes: np.ndarray, ids: np.ndarray) -> None:
-        """The next run of occupied addresses (ascending), their lists' sizes and ids."""
-        offsets = self.n_ids + np.r_[0, np.cumsum(sizes[:-1])].astype(np.int64) if len(sizes) else np.zeros(0, np.int64)
-        f, b = self.ids_file, self.n_ids + len(ids)
-        words = f.run(-(-b * self.id_bits // 64))
-        pack_bits_into(words, self.id_bits, np.int64(self.n_ids * self.id_bits - 64 * f.written),
-                       np.asarray(ids, np.uint64))
-        f.done(words, b * self.id_bits // 64)
-        self.addresses.append(addresses)
-        self.offsets.append(offsets)
-        self.buckets.write(addresses, sizes, offsets)
-        self.n_ids += len(ids)
+        """The next run of occupied addresses (ascending), their lists' sizes and ids (best first)."""
+        sizes = np.asarray(sizes, np.int64)
+        starts = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+        order = np.array(ids, np.int64)
+        best = ascending_with_best(order, starts)
+        addresses = np.asarray(addresses, np.uint64)
+        self.lists_table.write(np.repeat(addresses, sizes), order.astype(np.uint64), best)
+        self.buckets_table.write(addresses, sizes.astype(np.uint32), (self.n_ids + starts[:-1]).astype(np.uint64))
+        self.n_ids += len(order)
+        self.n_lists += len(addresses)
         self.longest = max(self.longest, int(np.max(sizes, initial=0)))
 
     def close(self) -> dict[str, Any]:
-        self.offsets.append(np.array([self.n_ids]))
-        for f in (self.addresses, self.offsets):
-            f.close()
-        self.buckets.close()
-        self.codes_file.close()
-        self.ids_file.close()
-        layout: dict[str, Any] = {"code_bits": self.code_bits, "codes": "planes" if self.k == 2 else "packed",
-                                  "id_bits": self.id_bits, "longest": self.longest}
-        for name, tmp in (("occupied", self.addresses), ("starts", self.offsets)):
-            values = np.load(tmp.path, mmap_mode="r")
-            structure = occupancy_structure(values, self.k**self.d) if name == "occupied" else EliasFano.build(values)
-            np.save(self.out / ENGINE_FILES[name], structure.words())
-            layout[name] = structure.layout()
-            del structure, values
-            tmp.path.unlink()
-        layout["occupied"]["count"] = self.addresses.n
-        return layout
+        for table in (self.codes_table, self.lists_table, self.buckets_table):
+            table.close()
+        return {"tables": list(TABLES), "code_bits": code_bits(self.d, self.k),
+                "id_bits": width(max(0, self.n_ref - 1)), "longest": self.longest,
+                "occupied": {"count": self.n_lists}, "rows_per_group": {"places": PLACE_GROUP,
+                                                                        "buckets": BUCKET_GROUP}}
+
+
+def fill_from_tables(path: Path) -> Callable[[EngineWriter], None]:
+    """What decodes the tables of the index ``path`` into an :class:`EngineWriter`: its codes,
+    then its lists (each list's best moved to its front, the engine's order), streamed."""
+
+    def fill(writer: EngineWriter) -> None:
+        a = 0
+        for batch in pq.ParquetFile(path / "codes.parquet").iter_batches(DECODE_ROWS, columns=["hash"]):
+            h = batch.column(0).to_numpy()
+            writer.codes(a, h)
+            a += len(h)
+        ids = pq.ParquetFile(path / "lists.parquet").iter_batches(DECODE_ROWS, columns=["ref_id", "best"])
+        held_ids, held_best = np.zeros(0, np.int64), np.zeros(0, bool)
+        for batch in pq.ParquetFile(path / "buckets.parquet").iter_batches(DECODE_ROWS, columns=["hash", "size"]):
+            addresses, sizes = (batch.column(i).to_numpy() for i in (0, 1))
+            need = int(sizes.sum(dtype=np.int64))
+            while len(held_ids) < need:
+                more = next(ids, None)
+                if more is None:
+                    raise ValueError("lists.parquet holds fewer rows than buckets.parquet's sizes")
+                held_ids = np.concatenate([held_ids, more.column(0).to_numpy().astype(np.int64)])
+                held_best = np.concatenate([held_best, more.column(1).to_numpy(zero_copy_only=False)])
+            starts = np.r_[0, np.cumsum(sizes, dtype=np.int64)]
+            order, best = held_ids[:need], held_best[:need]
+            if len(sizes) and not (np.add.reduceat(best.astype(np.int64), starts[:-1]) == 1).all():
+                raise ValueError("lists.parquet's best column does not mark one single best a list")
+            best_first(order, starts, order[best])
+            writer.lists(addresses, sizes, order)
+            held_ids, held_best = held_ids[need:], held_best[need:]
+
+    return fill
+
 
 
 def _best_first_run(order: np.ndarray, sizes: np.ndarray, best: np.ndarray) -> np.ndarray:
@@ -301,9 +243,9 @@ def write_lists(out: Path, addresses: Reader, errors: Reader, bounds: list[tuple
     bits = max(1, math.ceil(d * math.log2(k)))
     addr_t, id_t = address_dtype(d, k), np.dtype(np.uint32 if n_ref < 2**32 else np.uint64)
     shift = np.uint64(max(0, bits - PREFIX_BITS))
-    writer = _Writer(out, n_ref, d, k)
+    writer = _Tables(out, n_ref, d, k)
     # every place's address once more, for the partitioned sort to read back; removed at the end
-    ref_hash = np.lib.format.open_memmap(out / ".ref_hash.tmp", mode="w+", dtype=addr_t, shape=(n_ref,))
+    ref_hash = allocated_memmap(out / ".ref_hash.tmp", addr_t, (n_ref,))
     prefix_counts = np.zeros(1 << min(bits, PREFIX_BITS), np.int64)
     counts = np.zeros((d, k), np.int64)
     progress = None if quiet else ChunkProgress("scan addresses", len(bounds))
@@ -369,7 +311,7 @@ def write_arrays(path: Path, hasher: CoarseHasher, ref_hash: np.ndarray, lists: 
     The files are those :func:`write_lists` writes for the same references.
     """
     d, k, n_ref = hasher.d_, hasher.k, len(ref_hash)
-    writer = _Writer(path, n_ref, d, k)
+    writer = _Tables(path, n_ref, d, k)
     writer.codes(0, ref_hash)
     offsets = lists.starts.decode()
     writer.lists(lists.occupied.decode(), np.diff(offsets), lists.ids_range(0, lists.n_ids))
@@ -378,34 +320,30 @@ def write_arrays(path: Path, hasher: CoarseHasher, ref_hash: np.ndarray, lists: 
 
 
 def upgrade(old: Path, out: Path, quiet: bool = False) -> dict[str, Any]:
-    """Convert a format-2 index directory ``old`` into format 3 in ``out`` (existing, empty),
-    without refitting: the same addresses, lists and single bests, streamed in bounded memory.
+    """Convert a format-2 or format-3 index directory ``old`` into the current format in ``out``
+    (existing, empty), without refitting: the same addresses, lists and single bests, streamed
+    in bounded memory.
 
     Returns the new ``index.json``; its storage accounting is the caller's to refresh.
     """
     meta = json.loads((old / "index.json").read_text())
-    d, k, n_ref = int(meta["d"]), int(meta["k"]), int(meta["n_ref"])
+    d, k, n_ref, fmt = int(meta["d"]), int(meta["k"]), int(meta["n_ref"]), int(meta["format"])
     try:
-        arrays = {name: np.load(old / f"{name}.npy", mmap_mode="r")
-                  for name in ("ref_hash", "ids", "addresses", "offsets", "best")}
-    except (OSError, ValueError, EOFError) as exc:
-        raise InputError(f"{old}: a format-2 index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
-                         "re-run vprscale index") from None
-    writer = _Writer(out, n_ref, d, k)
+        source = _format_2(old) if fmt == 2 else _format_3(old, meta["layout"], n_ref, d, k)
+    except (OSError, ValueError, EOFError, KeyError) as exc:
+        raise InputError(f"{old}: a format-{fmt} index file is missing or damaged "
+                         f"({str(exc).splitlines()[0][:200]}); re-run vprscale index") from None
+    codes, occupied, lists = source
+    writer = _Tables(out, n_ref, d, k)
     chunk = 1 << 24
     progress = None if quiet else ChunkProgress("upgrade: codes", -(-n_ref // chunk))
     for a in range(0, n_ref, chunk):
-        writer.codes(a, arrays["ref_hash"][a : a + chunk])
+        writer.codes(a, codes(a, min(n_ref, a + chunk)))
         if progress:
             progress.update(1)
-    occupied = len(arrays["addresses"])
     progress = None if quiet else ChunkProgress("upgrade: lists", -(-occupied // UPGRADE_LISTS))
     for a in range(0, occupied, UPGRADE_LISTS):
-        b = min(occupied, a + UPGRADE_LISTS)
-        offsets = np.asarray(arrays["offsets"][a : b + 1], np.int64)
-        sizes = np.diff(offsets)
-        writer.lists(arrays["addresses"][a:b], sizes,
-                     _best_first_run(arrays["ids"][offsets[0] : offsets[-1]], sizes, arrays["best"][a:b]))
+        writer.lists(*lists(a, min(occupied, a + UPGRADE_LISTS)))
         if progress:
             progress.update(1)
     layout = writer.close()
@@ -414,31 +352,53 @@ def upgrade(old: Path, out: Path, quiet: bool = False) -> dict[str, Any]:
         shutil.copy2(old / "model" / f"{name}.npy", out / "model" / f"{name}.npy")
     shutil.copy2(old / "components.parquet", out / "components.parquet")
     meta.update({"format": INDEX_FORMAT, "layout": layout, "occupied": int(layout["occupied"]["count"]),
-                 "upgraded_from": 2})
+                 "upgraded_from": fmt})
     (out / "index.json").write_text(json.dumps(meta, indent=1, default=str))
     return meta
 
 
+Lists = Callable[[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def _format_2(old: Path) -> tuple[Reader, int, Lists]:
+    """Format 2's places' addresses, its number of lists and its lists ``a … b − 1`` as
+    ``(addresses, sizes, ids best first)``: plain arrays, bests apart."""
+    arrays = {name: np.load(old / f"{name}.npy", mmap_mode="r")
+              for name in ("ref_hash", "ids", "addresses", "offsets", "best")}
+
+    def lists(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        offsets = np.asarray(arrays["offsets"][a : b + 1], np.int64)
+        sizes = np.diff(offsets)
+        return (arrays["addresses"][a:b], sizes,
+                _best_first_run(arrays["ids"][offsets[0] : offsets[-1]], sizes, arrays["best"][a:b]))
+
+    return lambda a, b: arrays["ref_hash"][a:b], len(arrays["addresses"]), lists
+
+
+def _format_3(old: Path, layout: dict[str, Any], n_ref: int, d: int, k: int) -> tuple[Reader, int, Lists]:
+    """Format 3's, from its succinct files (the engine's own form, :mod:`vprscale.method.engine`)."""
+    codes, inverted = open_engine(old, layout, n_ref, d, k)
+    bits = code_bits(d, k)
+
+    def lists(a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        offsets = inverted.starts.decode(a, b + 1)
+        return inverted.occupied.decode(a, b), np.diff(offsets), inverted.ids_range(offsets[0], offsets[-1])
+
+    return (lambda a, b: decode_codes(codes, bits, d, k, np.int64(a), np.int64(b)), inverted.n_lists, lists)
+
+
 def read_lists(path: str | Path) -> tuple[np.ndarray, InvertedLists, dict[str, Any]]:
-    """``(codes, lists, meta)`` of an index directory, memory-mapped (a query touches only the pages
-    it reads): what a tool that reads no model needs (``vprscale occupancy``), without importing the
-    estimator."""
+    """``(codes, lists, meta)`` of an index directory, as the query engine holds them (decoded
+    from the tables, :mod:`vprscale.method.engine`): what a tool that reads no model needs
+    (``vprscale occupancy``), without importing the estimator."""
     path = Path(path)
     meta = load_index_meta(path)
-    layout = meta["layout"]
     try:
-        files = {name: np.load(path / file, mmap_mode="r") for name, file in ENGINE_FILES.items()}
-        lists = InvertedLists(structure_from_words(files["occupied"], layout["occupied"]),
-                              EliasFano.from_words(files["starts"], layout["starts"]), files["ids"],
-                              int(layout["id_bits"]), int(layout["longest"]))
-    except (OSError, ValueError, EOFError, KeyError) as exc:  # a missing or truncated file (no manifest)
-        raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
+        codes, lists = engine_arrays(path, int(meta["n_ref"]), int(meta["d"]), int(meta["k"]), fill_from_tables(path))
+    except (OSError, ValueError, EOFError, KeyError, pa.ArrowException) as exc:  # a damaged table
+        raise InputError(f"{path}: an index table cannot be read ({str(exc).splitlines()[0][:200]}); "
                          "re-run vprscale index") from None
-    n_ref = int(meta["n_ref"])
-    if len(files["codes"]) != code_words(n_ref, int(meta["d"]), int(meta["k"])) or \
-            len(files["ids"]) != packed_words(n_ref, lists.id_bits):
-        raise InputError(f"{path}: codes.npy or ids.npy does not hold {n_ref:,} places; re-run vprscale index")
-    return files["codes"], lists, meta
+    return codes, lists, meta
 
 
 def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLists, dict[str, Any]]:

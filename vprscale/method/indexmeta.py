@@ -13,14 +13,14 @@ from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest, remake
 
 KIND = "coarsehash-index"
-INDEX_FORMAT = 3  # 3: succinct codes, ids and directory; 2: lists as plain .npy files beside Parquet copies
+INDEX_FORMAT = 4  # 4: Parquet tables; 3: succinct codes, ids and directory as .npy; 2: plain .npy lists
 
 
 def load_index_meta(index: str | Path, upgradable: bool = False, full: bool = False) -> dict[str, Any]:
     """``index.json`` of a complete index, or an error naming the directory.
 
-    An index of an older format is refused with what to run; with ``upgradable`` a format-2
-    index (which ``vprscale index --upgrade`` converts) is returned as it is. ``full`` checks every
+    An index of an older format is refused with what to run; with ``upgradable`` a format-2 or
+    format-3 index (which ``vprscale index --upgrade`` converts) is returned as it is. ``full`` checks every
     checksum of the manifest (``vprscale verify``), not only the cheap ones.
     """
     p = Path(index)
@@ -28,8 +28,9 @@ def load_index_meta(index: str | Path, upgradable: bool = False, full: bool = Fa
     fmt = meta.get("format", 1)
     if fmt < 2:
         raise InputError(f"{p}: an index of an older vprscale (no memory-mapped lists); re-run vprscale index")
-    if fmt == 2 and not upgradable:
-        raise InputError(f"{p}: an index of format 2 (plain lists, 2-3x larger); convert it without refitting: "
+    if fmt in (2, 3) and not upgradable:
+        held = "plain lists, 2-3x larger" if fmt == 2 else "lists in vprscale's own files, not Parquet tables"
+        raise InputError(f"{p}: an index of format {fmt} ({held}); convert it without refitting: "
                          f"vprscale index --upgrade {p}")
     if fmt > INDEX_FORMAT:
         raise InputError(f"{p}: index format {fmt} is newer than this vprscale reads ({INDEX_FORMAT}); "

@@ -59,6 +59,25 @@ def best_first(order: np.ndarray, starts: np.ndarray, best: np.ndarray) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
+def ascending_with_best(order: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Undo :func:`best_first` in place: each list's front (its single best) moved to its place
+    among the others, ascending; returns which ids are their list's best."""
+    best = np.zeros(order.shape[0], np.bool_)
+    for a in range(starts.shape[0] - 1):
+        s, e = starts[a], starts[a + 1]
+        if e == s:
+            continue
+        x = order[s]
+        j = s
+        while j + 1 < e and order[j + 1] < x:
+            order[j] = order[j + 1]
+            j += 1
+        order[j] = x
+        best[j] = True
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
 def nearest_slots(occ: tuple, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(slots, taken)``: the slot of each address ``h`` among the occupied ones, else of the
     numerically nearest (ties: smaller), and the occupied address it took.
