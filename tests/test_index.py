@@ -307,6 +307,7 @@ def test_bench_format_times_both_layouts_on_the_same_matches(tiny_store, tiny_in
     out = capsys.readouterr().out
     for L in (1, 20):  # the tables against format 3's files of the same index, answers checked equal
         assert re.search(rf"L = {L} paper, per query.*tables [\d.]+ .*files [\d.]+ .*tables / files = [\d.]+×", out)
+    assert re.search(r"per-frame work \(look-up.*tables [\d.]+ .*files [\d.]+ .*tables / files = [\d.]+×", out)
     new, old = (float(x) for x in re.search(r"format 4 \(Parquet tables\) ([\d.]+) B/place .*"
                                             r"format 3 \(succinct .npy files\) ([\d.]+)", out).groups())
     assert new < old and re.search(r"decode in memory [\d.]+ s, decode into the engine cache [\d.]+ s, "

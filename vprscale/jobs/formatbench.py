@@ -201,7 +201,7 @@ def _line(what: str, times: dict[str, list[float]]) -> str:
     return f"  {what}: {spans}; succinct / plain = {med['succinct'] / med['plain']:.2f}×"
 
 
-def bench_tables(store: str, index: str, L: int = 100, frames: int = 4096, repeats: int = 5) -> str:
+def bench_tables(store: str, index: str, L: int = 100, frames: int = 4096, repeats: int = 9) -> str:
     """Format 4's tables against format 3's files of the same index: bytes per place, decode and
     load times, and the per-query cost (µs, one thread, L = 1 and ``L`` in paper mode) of the
     index loaded from each, A-B-B-A."""
@@ -247,6 +247,11 @@ def bench_tables(store: str, index: str, L: int = 100, frames: int = 4096, repea
         threads = numba.get_num_threads()
         numba.set_num_threads(1)
         try:
+            per_frame: dict[str, list[float]] = {name: [] for name in sides}
+            for r in range(repeats):  # the look-ups: each frame's slot, its list and its planes
+                for name in ("tables", "files") if r % 2 == 0 else ("files", "tables"):
+                    per_frame[name].append(_cpu(lambda idx=sides[name]: idx.query_frames(h)) / frames * 1e6)
+            lines.append(_ab_line("per-frame work (look-up, list, planes)", per_frame))
             for length in (1, L):
                 pos = np.arange(length // 2, frames - length + length // 2 + 1, max(1, (frames - length) // 1024))
                 run = {name: (lambda idx=idx, name=name, length=length, pos=pos:
@@ -256,14 +261,16 @@ def bench_tables(store: str, index: str, L: int = 100, frames: int = 4096, repea
                 per_query: dict[str, list[float]] = {name: [] for name in sides}
                 for r in range(repeats):
                     for name in ("tables", "files") if r % 2 == 0 else ("files", "tables"):
-                        per_query[name].append(_cpu(run[name]) / len(pos) * 1e6)
-                med = {name: float(np.median(v)) for name, v in per_query.items()}
-                lines.append(f"  L = {length} paper, per query (look-up and match, one thread): "
-                             + ", ".join(f"{name} {med[name]:.2f} ({min(v):.2f}–{max(v):.2f}) µs"
-                                         for name, v in per_query.items())
-                             + f"; tables / files = {med['tables'] / med['files']:.3f}×")
+                        per_query[name].append(_cpu(run[name]) / len(pos) * 1e6 + per_frame[name][r])
+                lines.append(_ab_line(f"L = {length} paper, per query, per-frame work included", per_query))
         finally:
             numba.set_num_threads(threads)
         del files, codes, lists
     return "\n".join(lines)
+
+
+def _ab_line(what: str, times: dict[str, list[float]]) -> str:
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    spans = ", ".join(f"{k} {med[k]:.2f} ({min(v):.2f}–{max(v):.2f}) µs" for k, v in times.items())
+    return f"  {what}: {spans}; tables / files = {med['tables'] / med['files']:.3f}×"
 
