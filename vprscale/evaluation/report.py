@@ -485,8 +485,9 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
                      _num(whole and whole / floor, ".2f"), i["store"].get("layout", "full")])
     md += ["## Storage (MB)", "",
            "P1–P4 counted the paper's way (8 bytes a number), packed (⌈d·log2 K⌉ bits an address, float32 "
-           "model) and as the index directory holds them; the inverted lists (ids and their directory) are "
-           "counted apart, in bytes per place, and so are the tables the SQL console reads; the whole index "
+           "model) and as the index directory holds them; the inverted lists (`lists.parquet` and "
+           "`buckets.parquet`) are counted apart, in bytes per place (indexes of formats 2 and 3 kept separate "
+           "copies for the SQL console, counted in their own column); the whole index "
            "(every file, measured) is set against the floor of d + ⌈log2 N⌉ bits a place (docs/method.md, "
            "\"Storage\"; indexes of format 2 have no whole-index figure). A compact store "
            "keeps 12 bytes per place (address, quantisation error, baseline value) and the evaluated query "
