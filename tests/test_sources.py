@@ -11,7 +11,8 @@ import pytest
 from vprscale.core.blocks import BLOCK
 from vprscale.core.errors import InputError
 from vprscale.dataset.sources.base import check_finite
-from vprscale.dataset.sources.deep1b import FbinSource, FvecsSource, open_deep1b
+from vprscale.dataset.sources.binfile import BinSource
+from vprscale.dataset.sources.deep1b import FvecsSource, open_deep1b
 from vprscale.dataset.sources.fas import open_fas
 from vprscale.dataset.sources.synthetic import SUB_ROWS, Deep1BParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.sources.writers import write_fas_npz
@@ -39,7 +40,7 @@ def test_fvecs_directory_is_read_in_name_order(sources):
 
 
 def test_dask_view_keeps_data_out_of_the_graph(sources):
-    x = FbinSource(sources["fbin"]).to_dask(16384)
+    x = BinSource(sources["fbin"]).to_dask(16384)
     graph_bytes = sum(len(repr(v)) for v in dict(x.__dask_graph__()).values())
     assert graph_bytes < 100_000
     np.testing.assert_array_equal(x[100:200].compute(), _expected()[100:200])
@@ -70,7 +71,7 @@ def test_nan_row_is_named(tmp_path):
     path = tmp_path / "bad.fbin"
     path.write_bytes(np.array([10, 96], "<u4").tobytes() + rows.tobytes())
     with pytest.raises(InputError, match="row 7 holds NaN or Inf"):
-        FbinSource(path).read(0, 10)
+        BinSource(path).read(0, 10)
 
 
 def test_inf_row_is_named_in_fvecs(tmp_path):
@@ -105,8 +106,8 @@ def test_fbin_size_must_match_header(tmp_path, extra):
     path.write_bytes(np.array([4, 96], "<u4").tobytes() + body + b"\0" * max(0, extra))
     if extra < 0:
         path.write_bytes(path.read_bytes()[:extra])
-    with pytest.raises(InputError, match=r"bad.fbin: header says n = 4, d = 96 .* 1544 bytes"):
-        FbinSource(path)
+    with pytest.raises(InputError, match=r"bad.fbin: header says n = 4, d = 96 .* 1,544 bytes"):
+        BinSource(path)
 
 
 def test_fbin_reads_rows_past_2_31_bytes(tmp_path):
@@ -120,7 +121,7 @@ def test_fbin_reads_rows_past_2_31_bytes(tmp_path):
         for r, v in rows.items():
             f.seek(8 + 4 * r * d)
             f.write(np.full(d, v, "<f4").tobytes())
-    src = FbinSource(path)
+    src = BinSource(path)
     assert src.n_rows == n and 8 + 4 * 5_600_000 * d > 2**31
     for r, v in rows.items():
         np.testing.assert_array_equal(src.read(r, r + 1), np.full((1, d), v, np.float32))
@@ -131,14 +132,14 @@ def test_fingerprint_changes_when_a_file_changes(tmp_path):
     rows = np.ones((50_000, 96), "<f4")
     path = tmp_path / "x.fbin"
     path.write_bytes(np.array([50_000, 96], "<u4").tobytes() + rows.tobytes())
-    before = FbinSource(path).fingerprint()
-    assert FbinSource(path).fingerprint() == before
+    before = BinSource(path).fingerprint()
+    assert BinSource(path).fingerprint() == before
     with path.open("r+b") as f:  # one value in the middle, far from the sampled head and tail
         f.seek(8 + 4 * 96 * 25_000)
         f.write(np.float32(7.0).tobytes())
     later = before["files"][0]["mtime_ns"] + 1_000_000_000  # a write within the clock tick keeps mtime
     os.utime(path, ns=(later, later))
-    assert FbinSource(path).fingerprint() != before
+    assert BinSource(path).fingerprint() != before
 
 
 def test_fas_npz_round_trip(sources):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from vprscale.core.errors import InputError
-from vprscale.dataset.sources.deep1b import FbinSource, FvecsSource
+from vprscale.dataset.sources.binfile import BinSource
+from vprscale.dataset.sources.deep1b import FvecsSource
 from vprscale.dataset.sources.fas import open_fas
 from vprscale.dataset.sources.synthetic import SyntheticDeep1B, SyntheticFAS
 
@@ -19,7 +20,7 @@ def source(request, sources):
     if kind == "fvecs-dir":
         return FvecsSource(sources["fvecs"])
     if kind == "fbin":
-        return FbinSource(sources["fbin"])
+        return BinSource(sources["fbin"])
     if kind == "npz-member":
         return open_fas(sources["fas"]).query
     if kind == "synthetic-deep1b":

@@ -19,10 +19,13 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--scale", help="20K, 1M, 10M, 100M, 1B or a recipe .toml (no default: give a scale, or --ref, "
                                    "--query and --gt for your own descriptors)")
     own = p.add_argument_group("your own descriptors (docs/bring-your-own.md), instead of --scale")
-    own.add_argument("--ref", help="reference rows: .npy, .fbin or fvecs")
+    own.add_argument("--ref", help="reference rows: .npy (or a folder of .npy shards), .fbin, .f16bin, .u8bin, "
+                                   ".i8bin, fvecs, bvecs, FILE.hdf5:DATASET or FILE.parquet:COLUMN (or a folder of "
+                                   "Parquet files); the bin and vecs forms also by URL")
     own.add_argument("--query", action="append", default=[], metavar="NAME=PATH",
                      help="a query set (rows aligned with the other sets'), evaluated as --noise NAME; repeatable")
-    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth (with "
+    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth (or the "
+                                  "first neighbour of an .ibin or .ivecs ground truth; with "
                                   "--ref-pos and --query-pos: optional, the nearest reference by position)")
     own.add_argument("--gt-radius-m", type=positive_float, default=25.0, metavar="R",
                      help="without --gt: a query row's truth is its nearest reference within R metres, else none "

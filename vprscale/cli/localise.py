@@ -15,7 +15,8 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p = sub.add_parser("localise", parents=[summary],
                        help="match a traverse frame by frame (online) and write one row per frame")
     p.add_argument("index", help="an index directory")
-    p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, an .npy, fvecs or .fbin file")
+    p.add_argument("queries", help="query frames in order: STORE.zarr/<array>, or any descriptor form build --ref "
+                                   "reads (.npy, .fbin, .u8bin, fvecs, FILE.hdf5:DATASET, FILE.parquet:COLUMN, …)")
     p.add_argument("--L", type=positive_int, default=100, help="sequence length (default 100)")
     p.add_argument("--mode", choices=["paper", "aligned"], default="paper", help="candidate mode (default paper)")
     p.add_argument("--top", type=bounded_int(MAX_BEST, "a window's best-first list"), default=None, metavar="N",

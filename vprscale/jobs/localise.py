@@ -64,9 +64,9 @@ def _blocks(path: Path) -> tuple[int, int, Iterator[np.ndarray]]:
         if arr.ndim != 2 or arr.dtype.kind != "f":
             raise InputError(f"{path}: holds {arr.dtype} of shape {arr.shape}, not rows of float descriptors")
         return arr.shape[0], arr.shape[1], (np.asarray(arr[a : a + READ_ROWS]) for a in range(0, len(arr), READ_ROWS))
-    from vprscale.dataset.sources.deep1b import open_deep1b
+    from vprscale.dataset.sources.rows import open_rows
 
-    src = open_deep1b(path)
+    src = open_rows(path)
     return src.n_rows, src.dim, (src.read(a, min(src.n_rows, a + READ_ROWS)) for a in range(0, src.n_rows, READ_ROWS))
 
 

@@ -7,6 +7,7 @@ their memory maps inside each task; no array data ever sits in a task graph.
 from __future__ import annotations
 
 import abc
+from collections.abc import Iterator
 from typing import Any
 
 import dask.array as da
@@ -32,6 +33,18 @@ def check_finite(rows: np.ndarray, start: int, name: str) -> None:
         bad = suspects[~np.isfinite(rows[suspects]).all(axis=1)]
         if len(bad):
             raise InputError(f"{name}: row {start + int(bad[0])} holds NaN or Inf")
+
+
+def part_spans(starts: np.ndarray, start: int, stop: int) -> Iterator[tuple[int, int, int]]:
+    """``(part, a, b)`` for each part that rows ``[start, stop)`` reach, of parts laid end to end
+    (``starts``: each part's first row, then the total): rows ``a … b − 1`` of that part."""
+    first = max(0, int(np.searchsorted(starts, start, side="right")) - 1)
+    for i in range(first, len(starts) - 1):
+        lo, hi = int(starts[i]), int(starts[i + 1])
+        if lo >= stop:
+            return
+        if min(stop, hi) > max(start, lo):
+            yield i, max(start, lo) - lo, min(stop, hi) - lo
 
 
 class RowSource(abc.ABC):

@@ -1,9 +1,10 @@
 """Readers of the two real Deep1B layouts (docs/dataset.md), memory-mapped inside each read.
 
-fvecs: records of a little-endian int32 ``d`` then ``d`` float32; a directory of chunk
-files (``base_00``, ``base_01`` …) is one array in name order.
-fbin: uint32 ``n``, uint32 ``d``, then ``n·d`` float32 row-major.
-Byte offsets are Python ints throughout (an int32 offset overflows past ~5.6 M rows × 96).
+fvecs: records of a little-endian int32 ``d`` then ``d`` float32 (bvecs: uint8, ivecs: int32,
+the other TEXMEX forms, read the same way); a directory of chunk files (``base_00``,
+``base_01`` …) is one array in name order. fbin (and the other ``bin`` forms):
+:mod:`~vprscale.dataset.sources.binfile`. Byte offsets are Python ints throughout (an int32
+offset overflows past ~5.6 M rows × 96).
 """
 
 from __future__ import annotations
@@ -17,12 +18,13 @@ import numpy as np
 from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
+from vprscale.dataset.sources.binfile import BinSource, bin_type
 from vprscale.dataset.sources.fingerprint import file_fingerprint
-from vprscale.dataset.sources.fvecs import read_fvecs
+from vprscale.dataset.sources.fvecs import read_vecs, record_bytes, vecs_type
 
 
 class FvecsSource(RowSource):
-    """One fvecs file, or a directory of fvecs chunk files read as one array in name order."""
+    """One fvecs (or bvecs, ivecs) file, or a directory of such chunk files read as one array in name order."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
@@ -36,8 +38,9 @@ class FvecsSource(RowSource):
         else:
             raise InputError(f"{self.path}: no such file or directory")
         self.files = files
+        self.form, self.values = vecs_type(files[0].name)
         self.dim = self._first_dim(files[0])
-        record = 4 * (self.dim + 1)
+        record = record_bytes(self.dim, self.values)
         counts = []
         for f in files:
             size = f.stat().st_size
@@ -64,61 +67,25 @@ class FvecsSource(RowSource):
         return d
 
     def _read(self, start: int, stop: int) -> np.ndarray:
+        record = record_bytes(self.dim, self.values)
+
         def records(i: int, lo: int, hi: int) -> np.ndarray:
             rows = int(self.starts[i + 1] - self.starts[i])
-            return np.memmap(self.files[i], dtype="<i4", mode="r", shape=(rows, self.dim + 1))[lo:hi]
+            return np.memmap(self.files[i], dtype="u1", mode="r", shape=(rows, record))[lo:hi]
 
-        return read_fvecs(self.starts, self.dim, start, stop, records, lambda i: str(self.files[i]))
+        return read_vecs(self.starts, self.dim, self.values, start, stop, records, lambda i: str(self.files[i]))
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"format": "fvecs", "rows": self.n_rows, "dim": self.dim,
+        return {"format": self.form, "rows": self.n_rows, "dim": self.dim,
                 "files": [file_fingerprint(f) for f in self.files]}
 
-
-class FbinSource(RowSource):
-    """A big-ann-benchmarks ``.fbin`` file."""
-
-    def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
-        self.name = str(self.path)
-        if not self.path.is_file():
-            raise InputError(f"{self.path}: no such file")
-        size = self.path.stat().st_size
-        if size < 8:
-            raise InputError(f"{self.path}: {size} bytes is too short for the 8-byte fbin header")
-        with open(self.path, "rb") as fh:
-            n, d = (int(v) for v in np.frombuffer(fh.read(8), dtype="<u4"))
-        expected = 8 + 4 * n * d  # Python ints: no overflow
-        if d == 0 or size != expected:
-            raise InputError(
-                f"{self.path}: header says n = {n}, d = {d} (file of {expected} bytes) "
-                f"but the file has {size} bytes"
-            )
-        self.n_rows, self.dim = n, d
-
-    def _read(self, start: int, stop: int) -> np.ndarray:
-        mm = np.memmap(self.path, dtype="<f4", mode="r", offset=8 + 4 * start * self.dim,
-                       shape=(stop - start, self.dim))
-        out = np.array(mm, dtype=np.float32)
-        del mm
-        return out
-
-    def fingerprint(self) -> dict[str, Any]:
-        return {"format": "fbin", "rows": self.n_rows, "dim": self.dim,
-                "files": [file_fingerprint(self.path)]}
-
-
 def open_deep1b(path: str | os.PathLike) -> RowSource:
-    """An fvecs file, a directory of fvecs chunks, or an ``.fbin`` file, local or by URL (http(s),
-    or object storage, where a prefix of fvecs chunk objects is a directory): read by byte ranges
-    where it lives."""
-    from vprscale.dataset.sources.remote import RemoteFbinSource, RemoteFvecsSource
+    """A vecs file (fvecs, bvecs, ivecs), a directory of such chunks, or a ``bin`` file (``.fbin``,
+    ``.f16bin``, ``.u8bin``, ``.i8bin``), local or by URL (http(s), or object storage, where a
+    prefix of chunk objects is a directory): read by byte ranges where it lives."""
+    from vprscale.dataset.sources.remote import RemoteBinSource, RemoteFvecsSource
 
     if is_url(path):
-        if str(path).split("?", 1)[0].endswith(".fbin"):
-            return RemoteFbinSource(str(path))
-        return RemoteFvecsSource(str(path))
+        return RemoteBinSource(str(path)) if bin_type(str(path)) is not None else RemoteFvecsSource(str(path))
     p = Path(path)
-    if p.is_file() and p.suffix in {".fbin", ".u8bin"} or p.name.endswith(".fbin"):
-        return FbinSource(p)
-    return FvecsSource(p)
+    return BinSource(p) if bin_type(p.name) is not None else FvecsSource(p)

@@ -1,5 +1,6 @@
-"""Deep1B read where it lives: an ``.fbin``, an fvecs file or (on object storage) a prefix of
-fvecs chunk objects, their rows fetched by byte ranges as the build reads them, with no local
+"""Descriptor files read where they live: a ``bin`` file (``.fbin``, ``.f16bin``, ``.u8bin``,
+``.i8bin``), a vecs file (fvecs, bvecs) or (on object storage) a prefix of chunk objects, their
+rows fetched by byte ranges as the build reads them, with no local
 copy. Over http(s) through :mod:`vprscale.core.ranged` (each read checked to be exactly the
 range asked, a dropped answer retried from where it stopped); over any other scheme (``s3://``,
 ``gs://`` …) through the storage's fsspec filesystem, each read checked the same way."""
@@ -21,7 +22,8 @@ from vprscale.core.objects import Remote, cache_root, public, storage_errors
 from vprscale.core.progress import ChunkProgress
 from vprscale.core.ranged import probe, read_range
 from vprscale.dataset.sources.base import RowSource
-from vprscale.dataset.sources.fvecs import read_fvecs
+from vprscale.dataset.sources.binfile import HEADER, bin_type, check_header
+from vprscale.dataset.sources.fvecs import read_vecs, record_bytes, vecs_type
 
 HTTP = re.compile(r"^https?://", re.IGNORECASE)
 PART = 64 << 20  # bytes a request of a whole-file fetch asks for
@@ -60,43 +62,46 @@ class Ranges:
         return int(info["size"]), None if version is None else str(version)
 
 
-class RemoteFbinSource(RowSource):
-    """An ``.fbin`` at a URL: its header and size checked once, its rows read by range.
+class RemoteBinSource(RowSource):
+    """A ``bin`` file at a URL: its header and size checked once, its rows read by range.
 
     Shown, and fingerprinted, without credentials or query string."""
 
     def __init__(self, url: str) -> None:
         self.ranges = Ranges(url)
         self.name = self.ranges.name
+        self.values = bin_type(self.name)
+        if self.values is None:
+            raise InputError(f"{self.name}: not a bin file (.fbin, .f16bin, .u8bin, .i8bin or .ibin)")
         size, self.version = self.ranges.probe()
-        n, d = struct.unpack("<II", self.ranges.read(0, 8))
-        if d == 0 or size != 8 + 4 * n * d:
-            raise InputError(f"{self.name}: header says n = {n}, d = {d} (a file of {8 + 4 * n * d:,} bytes) but the "
-                             f"server has {size:,} bytes")
+        n, d = struct.unpack("<II", self.ranges.read(0, HEADER))
+        check_header(self.name, n, d, self.values, size)
         self.n_rows, self.dim, self.bytes = n, d, size
 
     def _read(self, start: int, stop: int) -> np.ndarray:
         if stop == start:
             return np.empty((0, self.dim), np.float32)
-        data = self.ranges.read(8 + 4 * self.dim * start, 8 + 4 * self.dim * stop)
-        return np.frombuffer(data, "<f4").reshape(stop - start, self.dim)
+        width = self.values.itemsize * self.dim
+        data = self.ranges.read(HEADER + width * start, HEADER + width * stop)
+        return np.frombuffer(data, self.values).reshape(stop - start, self.dim).astype(np.float32)
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"format": "fbin", "rows": self.n_rows, "dim": self.dim, "url": self.name, "bytes": self.bytes,
-                "version": self.version}
+        return {"format": self.name.rpartition(".")[2], "rows": self.n_rows, "dim": self.dim, "url": self.name,
+                "bytes": self.bytes, "version": self.version}
 
 
 class RemoteFvecsSource(RowSource):
-    """An fvecs file at a URL, or on object storage a prefix of fvecs chunk objects (``base/base_00``
-    …) read as one array in name order: every object's size and first record checked once, rows
-    read by range and every record's dimension checked as it arrives."""
+    """An fvecs (or bvecs) file at a URL, or on object storage a prefix of such chunk objects
+    (``base/base_00`` …) read as one array in name order: every object's size and first record
+    checked once, rows read by range and every record's dimension checked as it arrives."""
 
     def __init__(self, url: str) -> None:
         self.name = public(url)
         self.parts = [Ranges(u) for u in _objects(url)]
         sizes, versions = zip(*(p.probe() for p in self.parts), strict=True)
+        self.form, self.values = vecs_type(self.parts[0].name.split("?", 1)[0])
         self.dim = _first_dim(self.parts[0])
-        record = 4 * (self.dim + 1)
+        record = record_bytes(self.dim, self.values)
         for part, size in zip(self.parts, sizes, strict=True):
             if size % record:
                 raise InputError(f"{part.name}: size {size:,} is not a multiple of the record size {record} "
@@ -108,15 +113,15 @@ class RemoteFvecsSource(RowSource):
         self.n_rows = int(self.starts[-1])
 
     def _read(self, start: int, stop: int) -> np.ndarray:
-        record = 4 * (self.dim + 1)
+        record = record_bytes(self.dim, self.values)
 
         def records(i: int, lo: int, hi: int) -> np.ndarray:
-            return np.frombuffer(self.parts[i].read(lo * record, hi * record), "<i4").reshape(hi - lo, self.dim + 1)
+            return np.frombuffer(self.parts[i].read(lo * record, hi * record), "u1").reshape(hi - lo, record)
 
-        return read_fvecs(self.starts, self.dim, start, stop, records, lambda i: self.parts[i].name)
+        return read_vecs(self.starts, self.dim, self.values, start, stop, records, lambda i: self.parts[i].name)
 
     def fingerprint(self) -> dict[str, Any]:
-        return {"format": "fvecs", "rows": self.n_rows, "dim": self.dim,
+        return {"format": self.form, "rows": self.n_rows, "dim": self.dim,
                 "urls": [p.name for p in self.parts], "bytes": self.sizes, "versions": self.versions}
 
 

@@ -1,5 +1,9 @@
-"""Row files of your own (docs/bring-your-own.md): ``.npy`` arrays beside the fvecs and
-``.fbin`` readers of :mod:`.deep1b`, behind one opener."""
+"""Row files of your own (docs/bring-your-own.md), in any of the forms the field's data lives in,
+behind one opener (:func:`open_rows`): ``.npy`` (a file, or a directory of shards), the ``bin``
+forms (``.fbin``, ``.f16bin``, ``.u8bin``, ``.i8bin``), fvecs and bvecs (a file or a directory of
+chunks), an HDF5 dataset (``file.hdf5:train``) and a Parquet list column (``file.parquet:emb``,
+or a directory of Parquet files), local or (the ``bin`` and vecs forms) by URL; and labels,
+ground truth and positions beside them."""
 
 from __future__ import annotations
 
@@ -11,31 +15,24 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
-from vprscale.dataset.sources.deep1b import open_deep1b
+from vprscale.dataset.sources.deep1b import FvecsSource, open_deep1b
 from vprscale.dataset.sources.fingerprint import file_fingerprint
-
-
-def _open_npy(path: Path) -> np.ndarray:
-    """A memory map of an ``.npy`` file, or a one-line error naming what is wrong with it."""
-    if not path.is_file():
-        raise InputError(f"{path}: no such file")
-    try:
-        return np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"{path}: not a readable .npy array ({str(exc).splitlines()[0][:160]})") from None
+from vprscale.dataset.sources.hdf5 import SUFFIXES as HDF5_SUFFIXES
+from vprscale.dataset.sources.hdf5 import Hdf5Source
+from vprscale.dataset.sources.parquetrows import ParquetRowsSource
+from vprscale.dataset.sources.shards import NpyShardsSource, check_rows, open_npy
 
 
 class NpySource(RowSource):
-    """A 2-D float ``.npy`` file (any float width; read as float32)."""
+    """A 2-D ``.npy`` file of floats or integers (any width; read as float32)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
         self.name = str(self.path)
-        a = _open_npy(self.path)
-        if a.ndim != 2 or not np.issubdtype(a.dtype, np.floating) or a.shape[1] == 0:
-            raise InputError(f"{self.path}: a 2-D float array of descriptor rows expected, not {a.ndim}-D {a.dtype} "
-                             f"{a.shape}")
+        a = open_npy(self.path)
+        check_rows(self.path, a)
         self.n_rows, self.dim = int(a.shape[0]), int(a.shape[1])
 
     def _read(self, start: int, stop: int) -> np.ndarray:
@@ -46,18 +43,61 @@ class NpySource(RowSource):
         return {"format": "npy", "rows": self.n_rows, "dim": self.dim, "files": [file_fingerprint(self.path)]}
 
 
-def open_rows(path: str | os.PathLike) -> RowSource:
-    """Descriptor rows from an ``.npy``, ``.fbin`` or fvecs file (or a directory of fvecs chunks)."""
-    p = Path(path)
-    return NpySource(p) if p.suffix == ".npy" else open_deep1b(p)
+def open_rows(spec: str | os.PathLike) -> RowSource:
+    """Descriptor rows from any of the forms of the module's docstring, chosen by name: a
+    ``PATH:NAME`` whose path is an HDF5 file names its dataset, one whose path is a Parquet
+    file (or a directory of them) its list column; a directory of ``.npy`` files is shards,
+    any other directory vecs chunks."""
+    text = str(spec)
+    if is_url(text):
+        return open_deep1b(text)
+    head, _, key = text.rpartition(":")
+    if head and Path(head).suffix in HDF5_SUFFIXES:
+        return Hdf5Source(head, key)
+    if Path(text).suffix in HDF5_SUFFIXES:
+        raise InputError(f"{text}: name the dataset of descriptors ({text}:train, for example)")
+    for path, column in ((Path(head), key), (Path(text), None)) if head else ((Path(text), None),):
+        if path.suffix == ".parquet" or path.is_dir() and any(path.glob("*.parquet")):
+            return ParquetRowsSource(path, column or None)
+    p = Path(text)
+    if p.suffix == ".npy":
+        return NpySource(p)
+    if p.is_dir() and any(p.glob("*.npy")):
+        return NpyShardsSource(p)
+    return open_deep1b(p)
+
+
+def neighbour_ids(path: Path) -> np.ndarray:
+    """The neighbour ids of a ground-truth file of the field, ``(n, k)`` int32: big-ann-benchmarks'
+    ``.ibin`` (a uint32 ``n`` and ``k``, the ids, then optionally as many float32 distances) or
+    TEXMEX's ``.ivecs`` (records of an int32 ``k`` then ``k`` ids)."""
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    size = path.stat().st_size
+    if path.suffix == ".ibin":
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+        n, k = (int(v) for v in np.frombuffer(head.ljust(8, b"\0"), "<u4"))
+        if len(head) < 8 or k == 0 or size not in (8 + 4 * n * k, 8 + 8 * n * k):
+            raise InputError(f"{path}: header says n = {n}, k = {k}: a file of {8 + 4 * n * k:,} bytes (ids) or "
+                             f"{8 + 8 * n * k:,} (ids and distances), but it has {size:,}")
+        return np.memmap(path, "<i4", mode="r", offset=8, shape=(n, k))
+    source = FvecsSource(path)  # an ivecs file's records checked as any vecs file's
+    rec = np.memmap(path, "<i4", mode="r", shape=(source.n_rows, source.dim + 1))
+    return rec[:, 1:]
 
 
 def read_labels(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
-    """A 1-D integer ``.npy`` array of ``n`` labels (one per query row), read whole."""
+    """``n`` labels (one per query row), read whole: a 1-D integer ``.npy`` array, or the nearest
+    neighbour (first column) of a ground-truth ``.ibin`` or ``.ivecs`` file."""
     p = Path(path)
-    if p.suffix != ".npy":
-        raise InputError(f"{p}: {what} must be an .npy array of integers, one per query row")
-    a = _open_npy(p)
+    if p.suffix in (".ibin", ".ivecs"):
+        a = np.asarray(neighbour_ids(p)[:, 0])
+    elif p.suffix != ".npy":
+        raise InputError(f"{p}: {what} must be an .npy array of integers (or an .ibin, .ivecs ground truth), "
+                         "one per query row")
+    else:
+        a = open_npy(p)
     if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
         raise InputError(f"{p}: {what} must be a 1-D integer array, not {a.ndim}-D {a.dtype}")
     if len(a) != n:
@@ -78,7 +118,7 @@ def read_positions(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
     the ``…@UTM_east@UTM_north@…`` form of VPR-methods-evaluation's exports (pitts30k, msls, …)."""
     p = Path(path)
     if p.suffix == ".npy":
-        a = _open_npy(p)
+        a = open_npy(p)
         if a.ndim != 2 or a.shape[1] not in (2, 3) or not (np.issubdtype(a.dtype, np.floating)
                                                           or np.issubdtype(a.dtype, np.integer)):
             raise InputError(f"{p}: {what} must be numbers in 2 or 3 columns (UTM east, north; or x, y, z), not "

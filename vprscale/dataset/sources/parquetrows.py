@@ -1,0 +1,104 @@
+"""Descriptors held as a list column of Parquet files (``file.parquet:emb``, or a directory of
+Parquet files read as one table in name order): how VectorDBBench and many embedding stores
+keep vectors, and the metadata LAION-style pipelines write beside their shards. A column of
+``list``, ``large_list`` or ``fixed_size_list`` of floats or integers, every row of one length;
+read a row group at a time inside each read."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from vprscale.core.errors import InputError
+from vprscale.dataset.sources.base import RowSource, part_spans
+from vprscale.dataset.sources.fingerprint import file_fingerprint
+from vprscale.dataset.sources.shards import natural_order
+
+
+def _list_columns(schema: pa.Schema) -> list[str]:
+    return [f.name for f in schema if pa.types.is_list(f.type) or pa.types.is_large_list(f.type)
+            or pa.types.is_fixed_size_list(f.type)]
+
+
+class ParquetRowsSource(RowSource):
+    """The list column ``column`` of a Parquet file, or of every ``.parquet`` file of a directory
+    in name order (numbers as numbers); ``column`` None: the files' one list column."""
+
+    def __init__(self, path: str | os.PathLike, column: str | None) -> None:
+        self.path = Path(path)
+        if self.path.is_dir():
+            self.files = sorted((p for p in self.path.iterdir() if p.suffix == ".parquet"
+                                 and not p.name.startswith(".")), key=natural_order)
+            if not self.files:
+                raise InputError(f"{self.path}: the directory holds no .parquet files")
+        elif self.path.is_file():
+            self.files = [self.path]
+        else:
+            raise InputError(f"{self.path}: no such file or directory")
+        groups, schema = [], None
+        for i, f in enumerate(self.files):
+            try:
+                meta = pq.ParquetFile(f).metadata
+            except (OSError, pa.ArrowException) as exc:
+                raise InputError(f"{f}: not a readable Parquet file ({str(exc).splitlines()[0][:160]})") from None
+            if schema is None:
+                schema = meta.schema.to_arrow_schema()
+                names = _list_columns(schema)
+                if column is None and len(names) != 1:
+                    raise InputError(f"{self.path}: name the column of descriptors ({self.path}:COLUMN); list "
+                                     f"columns: {', '.join(names) or 'none'}")
+                column = column or names[0]
+                if column not in names:
+                    raise InputError(f"{self.path}: no list column {column!r} (list columns: "
+                                     f"{', '.join(names) or 'none'})")
+                value = schema.field(column).type.value_type
+                if not (pa.types.is_floating(value) or pa.types.is_integer(value)):
+                    raise InputError(f"{self.path}:{column}: lists of {value}, not of numbers")
+            elif meta.schema.to_arrow_schema().field(column).type != schema.field(column).type:
+                raise InputError(f"{f}: column {column!r} is {meta.schema.to_arrow_schema().field(column).type}, "
+                                 f"the files before it {schema.field(column).type}")
+            groups += [(i, g, meta.row_group(g).num_rows) for g in range(meta.num_row_groups)]
+        self.column = column
+        self.name = f"{self.path}:{column}"
+        self.groups = [(i, g) for i, g, _ in groups]
+        self.starts = np.concatenate([[0], np.cumsum([n for _, _, n in groups], dtype=np.int64)])
+        self.n_rows = int(self.starts[-1])
+        kind = schema.field(column).type
+        if pa.types.is_fixed_size_list(kind):
+            self.dim = int(kind.list_size)
+        else:
+            first = next((k for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:], strict=True)) if b > a),
+                         None)
+            self.dim = 0 if first is None else len(self._group(first)[0])
+        if self.n_rows and self.dim == 0:
+            raise InputError(f"{self.name}: row 0 holds no values")
+
+    def _group(self, k: int) -> pa.ListArray:
+        i, g = self.groups[k]
+        return pq.ParquetFile(self.files[i]).read_row_group(g, columns=[self.column]).column(0).combine_chunks()
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        out = np.empty((stop - start, self.dim), np.float32)
+        for k, lo, hi in part_spans(self.starts, start, stop):
+            a, b = int(self.starts[k]) + lo, int(self.starts[k]) + hi  # absolute rows
+            lists = self._group(k).slice(lo, hi - lo)
+            if lists.null_count:
+                raise InputError(f"{self.name}: row {a + int(np.flatnonzero(lists.is_null())[0])} is null")
+            if not pa.types.is_fixed_size_list(lists.type):
+                lengths = np.diff(lists.offsets.to_numpy())
+                bad = np.flatnonzero(lengths != self.dim)
+                if len(bad):
+                    raise InputError(f"{self.name}: row {a + int(bad[0])} holds {int(lengths[bad[0]])} values, the "
+                                     f"rows before it {self.dim}")
+            values = lists.flatten().to_numpy(zero_copy_only=False)
+            out[a - start : b - start] = values.reshape(b - a, self.dim)
+        return out
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"format": "parquet", "column": self.column, "rows": self.n_rows, "dim": self.dim,
+                "files": [file_fingerprint(f) for f in self.files]}
