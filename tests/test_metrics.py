@@ -69,3 +69,23 @@ def test_run_metrics_gives_each_radius_its_own_figures():
     assert got["recall"][0] == 1 / 3 and got["recall"][5] == 2 / 3
     assert got["recall_at_5"][0] == 2 / 3  # the second query's truth is its second candidate
     assert got["recall_at_p100"][0] == 1 / 3 and got["recall_at_p100"][5] == 2 / 3
+
+
+@given(st.lists(st.tuples(st.integers(0, 6), st.booleans()), min_size=1, max_size=60))
+def test_average_precision_is_scikit_learn_s_and_precision_at_full_recall_delta_descriptors(rows):
+    """``ap`` equals scikit-learn's ``average_precision_score`` (confidence: the negated score; ties
+    taken together) and ``precision_at_r100`` the precision of accepting every match scored at or
+    below the worst-scored correct one, as Delta Descriptors computes it, on the same rows."""
+    from sklearn.metrics import average_precision_score
+
+    score = np.array([s for s, _ in rows], np.float64)
+    correct = np.array([c for _, c in rows])
+    error = np.where(correct, 0, 5)
+    out = run_metrics(error, np.zeros((len(rows), 0), np.int64), np.zeros(len(rows), np.int64), score)
+    if not correct.any():
+        assert np.isnan(out["ap"][0]) and np.isnan(out["precision_at_r100"][0])
+        return
+    assert np.isclose(out["ap"][0], average_precision_score(correct, -score))
+    worst = score[correct].max()
+    assert np.isclose(out["precision_at_r100"][0], correct[score <= worst].mean())
+    assert np.isclose(out["ap"][5], 1.0) and out["precision_at_r100"][5] == 1.0  # within 5 frames every match is right

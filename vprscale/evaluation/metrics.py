@@ -14,6 +14,10 @@ counts once):
   θ, and recall at 100 % precision the largest recall before the first accepted mistake;
   ``auc_pr_correct`` is the same area with recall over the correct matches (VPR-Bench's
   form: the loosest threshold reaches recall 1 whatever the share of correct matches);
+  ``ap``, average precision, the step sum Σ (Rₙ − Rₙ₋₁)·Pₙ over those thresholds with that
+  recall (scikit-learn's ``average_precision_score``, which CaseVPR and VPR-Bench report);
+  ``precision_at_r100``, the precision once every correct match is accepted (Delta
+  Descriptors' precision at 100 % recall);
 - 95 % Wilson intervals for every recall (recall, Recall@N, recall at 100 % precision).
 """
 
@@ -97,6 +101,20 @@ def auc_pr(precision: np.ndarray, recall: np.ndarray) -> float:
     return float(np.sum(np.diff(r) * (p[1:] + p[:-1]) / 2))
 
 
+def average_precision(precision: np.ndarray, recall: np.ndarray) -> float:
+    """Σ (Rₙ − Rₙ₋₁)·Pₙ over a curve's thresholds (recall over the correct matches), from R₀ = 0."""
+    if len(recall) == 0:
+        return float("nan")
+    return float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+
+
+def precision_at_full_recall(precision: np.ndarray, recall: np.ndarray) -> float:
+    """The precision at the first threshold that accepts every correct match (recall over the
+    correct matches reaching 1)."""
+    full = np.flatnonzero(recall >= 1 - 1e-12)
+    return float(precision[full[0]]) if len(full) else float("nan")
+
+
 def recall_at_full_precision(precision: np.ndarray, recall: np.ndarray) -> float:
     """The largest recall reached while every accepted match is correct (0 if the first is not)."""
     perfect = np.flatnonzero(precision < 1)
@@ -111,7 +129,8 @@ def run_metrics(error: np.ndarray, top: np.ndarray, truth: np.ndarray, score: np
                 weights: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Every metric of one run's queries, per radius in frames: ``recall``, ``recall_at_N`` (N of
     ``TOP_N`` above 1; ``top`` is the ranking's best, best first), ``auc_pr``,
-    ``auc_pr_correct`` and ``recall_at_p100`` (arrays over ``RADII``), and the 95 % Wilson
+    ``auc_pr_correct``, ``ap``, ``precision_at_r100`` and ``recall_at_p100`` (arrays over
+    ``RADII``), and the 95 % Wilson
     interval of every one of ``RECALLS`` (``…_lo``, ``…_hi``: a weighted run's from its
     number of queries)."""
     return metrics_at(error, {n: top_error(top, truth, n) for n in TOP_N[1:]}, score, weights, RADII)
@@ -124,15 +143,18 @@ def metrics_at(error: np.ndarray, nearest: dict[int, np.ndarray], score: np.ndar
     out = {"recall": recall_curve(error, weights, radii)}
     for n in TOP_N[1:]:
         out[f"recall_at_{n}"] = recall_curve(nearest[n], weights, radii)
-    auc, auc_correct, full = (np.full(len(radii), np.nan) for _ in range(3))
+    auc, auc_correct, full, ap, p_full = (np.full(len(radii), np.nan) for _ in range(5))
     if len(error):
         for i, r in enumerate(radii):
             correct = np.asarray(error) <= r
             precision, recall = pr_curve(score, correct, weights)
             auc[i], full[i] = auc_pr(precision, recall), recall_at_full_precision(precision, recall)
             if correct.any():
-                auc_correct[i] = auc_pr(*pr_curve(score, correct, weights, over_correct=True))
+                curve = pr_curve(score, correct, weights, over_correct=True)
+                auc_correct[i], ap[i], p_full[i] = auc_pr(*curve), average_precision(*curve), \
+                    precision_at_full_recall(*curve)
     out["auc_pr"], out["auc_pr_correct"], out["recall_at_p100"] = auc, auc_correct, full
+    out["ap"], out["precision_at_r100"] = ap, p_full
     for name in RECALLS:
         out[f"{name}_lo"], out[f"{name}_hi"] = wilson(out[name], len(error))
     return out

@@ -100,6 +100,9 @@ def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> s
     return name
 
 
+PR_SCORES = ("auc_pr_correct", "ap", "precision_at_r100")  # columns an older evaluation may lack
+
+
 def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path, save, table) -> list[str]:
     """The report's section: the figure, and the table of every method and operating point."""
     if "auc_pr" not in res.columns:
@@ -118,7 +121,8 @@ def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path,
         rows.append([p.scale, p.noise.upper(), p.L, name + (f" {params}" if isinstance(params, str) and params else ""),
                      *(f"{100 * v:.1f}" if v == v else "–" for v in
                        (p.recall, p.recall_at_5, p.recall_at_10, p.recall_at_20, p.recall_at_p100)),
-                     *(f"{v:.3f}" if v == v else "–" for v in (p.auc_pr, getattr(p, "auc_pr_correct", float("nan"))))])
+                     *(f"{v:.3f}" if v == v else "–" for v in
+                       (p.auc_pr, *(getattr(p, c, float("nan")) for c in PR_SCORES)))])
     return ["## Scores: precision–recall, AUC-PR and Recall@N", "",
             f"Every answer carries its match's score (lower is more confident) and its 20 best candidates. "
             f"A match is correct within {RADIUS} frames of the truth (100 m on FAS); Recall@N counts a centre "
@@ -126,9 +130,11 @@ def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path,
             "score, AUC-PR is its trapezoid area and R@100%P the recall reached before the first accepted "
             "mistake. Recall@N ranks at least N candidates whatever the operating point's own budget "
             "(docs/protocol.md, \"Recall@N\"). AUC-PR's recall is over all queries (SeqSLAM's); "
-            "AUC-PR (VPR-Bench) is over the correct matches. All queries of every noise level (a stratified "
+            "AUC-PR (VPR-Bench) is over the correct matches, and so are AP (average precision) and P@100%R "
+            "(the precision once every correct match is accepted, as Delta Descriptors reports it). All "
+            "queries of every noise level (a stratified "
             "run weights each part by its share of the query rows in the table; the curves count each "
             "localised centre once).", "",
             *(line for name in drawn if name for line in (f"![{name}]({name}.png)", "")),
             table(["scale", "noise", "L", "method (mode)", "R@1 %", "R@5 %", "R@10 %", "R@20 %", "R@100%P %",
-                   "AUC-PR", "AUC-PR (VPR-Bench)"], rows), ""]
+                   "AUC-PR", "AUC-PR (VPR-Bench)", "AP", "P@100%R"], rows), ""]
