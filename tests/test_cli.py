@@ -157,7 +157,8 @@ def test_the_sql_shell_on_a_terminal(evaluated, tmp_path):
     assert "cancelled" in text and "42" in text
     assert 'Referenced column "nope" not found' in text and "Candidate bindings" in text  # the context line
     assert "LINE 2:   nope FROM buckets;" in text and "          ^^^^" in text  # the line, a caret under it
-    assert re.search(r"hash \w+, size \w+, best_id \w+", text)  # .tables: each view's columns and types
+    assert re.search(r"hash \w+, size \w+, offset \w+", text)  # .tables: each view's columns and types
+    assert re.search(r"hash \w+, ref_id \w+, best \w+", text)
     kept = history.read_text().splitlines()
     assert "SELECT size, nope FROM buckets;" in kept and ";" not in kept and "SELECT 6 * 7 AS answer;" in kept
 
