@@ -479,3 +479,32 @@ def test_a_fetch_that_filled_the_disk_resumes_with_what_it_holds(small_filesyste
         assert (out / "base.500.fbin").read_bytes() == data
     finally:
         server.close()
+
+
+@pytest.mark.parametrize("damage", ["truncated", "overwritten"])
+def test_a_fetched_file_changed_since_is_refused_where_it_is_read(sources, tmp_path, capsys, damage):
+    """A file ``fetch`` wrote is read against the manifest beside it: cut short or overwritten in
+    place afterwards, a build refuses it in one line naming it, and writes nothing."""
+    from .conftest import write_recipe
+
+    data = sources["fbin"].read_bytes()
+    server = Server(lambda a, b: data[a:b], len(data))
+    try:
+        assert main(["fetch", "deep1b", "--rows", "60K", "--url", server.url, "--out", str(tmp_path), "-q"]) == 0
+    finally:
+        server.close()
+    (fetched,) = (p for p in tmp_path.glob("*.fbin"))
+    build = ["build", "--scale", str(write_recipe(tmp_path / "tiny.toml")), "--deep1b", str(fetched),
+             "--fas", str(sources["fas"]), "--out", str(tmp_path / "data"), "-q"]
+    body = bytearray(fetched.read_bytes())
+    if damage == "truncated":  # a whole row less, the header rewritten: a valid fbin, not the one fetched
+        body[0:4] = np.array([59_999], "<u4").tobytes()
+        body = body[: -4 * 96]
+    else:  # the same size, one value changed
+        body[-1] ^= 0x01
+    fetched.write_bytes(bytes(body))
+    capsys.readouterr()
+    assert main(build) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(fetched) in err and "fetch it again" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "data" / "tiny.zarr").exists()

@@ -87,5 +87,9 @@ def open_deep1b(path: str | os.PathLike) -> RowSource:
 
     if is_url(path):
         return RemoteBinSource(str(path)) if bin_type(str(path)) is not None else RemoteFvecsSource(str(path))
+    from vprscale.dataset.fetch import check_fetched
+
     p = Path(path)
+    if p.is_file():
+        check_fetched(p)  # before its header is believed
     return BinSource(p) if bin_type(p.name) is not None else FvecsSource(p)

@@ -11,8 +11,12 @@ _SAMPLE = 1 << 20
 
 
 def file_fingerprint(path: str | os.PathLike) -> dict[str, Any]:
-    """Identify a file without reading all of it (a full hash of 360 GB would take hours)."""
+    """Identify a file without reading all of it (a full hash of 360 GB would take hours); a file
+    ``vprscale fetch`` wrote is first checked against the manifest it was fetched with."""
+    from vprscale.dataset.fetch import check_fetched
+
     p = Path(path)
+    check_fetched(p)
     size = p.stat().st_size
     h = hashlib.sha256()
     with open(p, "rb") as fh:
