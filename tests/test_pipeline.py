@@ -447,3 +447,25 @@ def test_a_plan_of_unmeasured_stages_gives_no_figure_rather_than_zero(tmp_path, 
     assert main(["run", str(path), "--dry-run"]) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert last.startswith("estimated: nothing") and "0 s" not in last and "0.00 GB" not in last
+
+
+def test_an_output_changed_in_place_with_its_times_put_back_reruns_its_stage(tmp_path, monkeypatch):
+    """An output is judged by more than its sizes and modification times: rewritten in place with
+    both put back (``os.utime`` sets any mtime), the stage runs again."""
+    import vprscale.jobs.pipeline as pl
+
+    path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") +
+                  '[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n')
+    store = tmp_path / "store"
+    store.mkdir()
+    (store / "data.bin").write_bytes(b"\x01" * 4096)
+    monkeypatch.setattr(pl, "_run_stage", lambda pipe, stage, outputs, scheduler, console: {"store": str(store)})
+    assert run_pipeline(path)["stages"][0]["status"] == "ran"
+    assert run_pipeline(path)["stages"][0]["status"] == "skipped"
+    kept = (store / "data.bin").stat()
+    with (store / "data.bin").open("r+b") as f:
+        f.seek(2048)
+        f.write(b"\x02")
+    os.utime(store / "data.bin", ns=(kept.st_atime_ns, kept.st_mtime_ns))
+    decided = run_pipeline(path, dry_run=True)["stages"][0]
+    assert decided["run"] and decided["reasons"] == [f"output {store} changed"]

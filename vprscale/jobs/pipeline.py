@@ -46,7 +46,7 @@ from vprscale.jobs.child import vprscale_argv
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
-DIGESTS = ".input-digests.json"  # under out: the content digests of the pipeline's input files (core/digests)
+DIGESTS = ".input-digests.json"  # under out: the content digests of the pipeline's input and output files
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
 SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
@@ -206,7 +206,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         for stage in pipe.stages:
             parts = _parts(stage, {d["name"]: d["fingerprint"] for d in decisions}, graph, digests)
             reasons = _reasons(stage, parts, state.get(stage.name, {}), {d["name"] for d in decisions if d["run"]},
-                               force)
+                               force, digests)
             cost = estimates.estimate(stage.name, stage.kind, stage.params,
                                       estimates.places(stage.params, stage.kind, kinds), measured)
             decisions.append({"name": stage.name, "kind": stage.kind, "fingerprint": _digest(parts),
@@ -236,7 +236,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 digests.save()
                 fp = fingerprints[stage.name] = _digest(parts)
                 prev = state.get(stage.name, {})
-                reasons = _reasons(stage, parts, prev, ran, force)
+                reasons = _reasons(stage, parts, prev, ran, force, digests)
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp,
                                          "params": redact(stage.params),
                                          "places": estimates.places(stage.params, stage.kind, kinds)}
@@ -255,7 +255,9 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                     entry |= {"status": "ran", "reasons": reasons, "outputs": out,
                               "seconds": time.perf_counter() - t0}
                     state[stage.name] = {"fingerprint": fp, "parts": parts, "outputs": out,
-                                         "signatures": _signatures(out), "finished": datetime.now(UTC).isoformat()}
+                                         "signatures": _signatures(out, digests),
+                                         "finished": datetime.now(UTC).isoformat()}
+                    digests.save()
                     _write_json(state_file, state)
                 summary["stages"].append(entry)
             summary["status"] = "ok"
@@ -409,7 +411,8 @@ def _digest(parts: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _reasons(stage: Stage, parts: dict[str, Any], prev: dict[str, Any], ran: set[str], force: bool) -> list[str]:
+def _reasons(stage: Stage, parts: dict[str, Any], prev: dict[str, Any], ran: set[str], force: bool,
+             digests: DigestCache) -> list[str]:
     """Why a stage must run (empty: it is up to date), in words a user can act on."""
     if force:
         return ["--force"]
@@ -434,7 +437,7 @@ def _reasons(stage: Stage, parts: dict[str, Any], prev: dict[str, Any], ran: set
     changed = sorted(m for m in set(code) | set(old_code) if code.get(m) != old_code.get(m))
     if changed:
         reasons.append(f"code changed ({', '.join(changed[:4])}{', …' if len(changed) > 4 else ''})")
-    now = _signatures(prev.get("outputs", {}))
+    now = _signatures(prev.get("outputs", {}), digests)
     for out, sig in sorted(prev.get("signatures", {}).items()):
         if out not in now:
             reasons.append(f"output {out} missing")
@@ -451,8 +454,12 @@ def _reasons(stage: Stage, parts: dict[str, Any], prev: dict[str, Any], ran: set
     return reasons
 
 
-def _signatures(outputs: dict[str, Any]) -> dict[str, str]:
-    """A cheap signature (names, sizes, modification times) of every output file or directory that exists."""
+def _signatures(outputs: dict[str, Any], digests: DigestCache) -> dict[str, str]:
+    """A signature of every output file or directory that exists: its files' names, sizes and
+    content digests. Sizes and modification times alone miss a file rewritten in place with both
+    put back (``os.utime`` sets any mtime); a digest is read again only where a file's identity
+    (its kernel change time included) moved, so an output moved away and back is still the same
+    and costs one more read (:mod:`vprscale.core.digests`)."""
     paths = [v for k, v in outputs.items() if k not in ("peak_rss_bytes", "bytes_on_disk") and isinstance(v, str)]
     paths += [f for f in outputs.get("figures", []) if isinstance(f, str)]
     found = {}
@@ -460,7 +467,7 @@ def _signatures(outputs: dict[str, Any]) -> dict[str, str]:
         if not p.exists():
             continue
         files = _own_files(p) if p.is_dir() else [p]
-        body = [(str(f.relative_to(p)) if p.is_dir() else "", f.stat().st_size, f.stat().st_mtime_ns) for f in files]
+        body = [(str(f.relative_to(p)) if p.is_dir() else "", f.stat().st_size, digests.digest(f)) for f in files]
         found[str(p)] = hashlib.sha256(json.dumps(body).encode()).hexdigest()[:16]
     return found
 
