@@ -165,3 +165,16 @@ def test_the_bin_and_vecs_forms_read_by_url_as_from_a_file(rows, tmp_path, form)
         assert src.fingerprint()["format"] == form
     finally:
         server.close()
+
+
+@pytest.mark.parametrize("form", ["npy", "npy shards", "u8bin", "fvecs", "hdf5", "parquet list"])
+def test_a_relative_path_is_read_from_any_working_directory(rows, tmp_path, monkeypatch, form):
+    """A source named by a relative path reads the same rows where its tasks run in another
+    directory, as a cluster's workers do (never a missing file, never another file)."""
+    spec = _write(form, rows, tmp_path / "f")
+    monkeypatch.chdir(tmp_path)
+    path, sep, key = spec.rpartition(":") if form in ("hdf5", "parquet list") else (spec, "", "")
+    src = open_rows(f"{Path(path).relative_to(tmp_path)}{sep}{key}")
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    np.testing.assert_array_equal(src.read(0, N), rows)

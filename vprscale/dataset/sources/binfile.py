@@ -39,7 +39,7 @@ class BinSource(RowSource):
     """A local ``bin`` file of any of the types (read as float32)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
+        self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         self.name = str(self.path)
         self.values = bin_type(self.path.name)
         if self.values is None:

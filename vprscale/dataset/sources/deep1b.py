@@ -27,7 +27,7 @@ class FvecsSource(RowSource):
     """One fvecs (or bvecs, ivecs) file, or a directory of such chunk files read as one array in name order."""
 
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
+        self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         self.name = str(self.path)
         if self.path.is_dir():
             files = sorted(p for p in self.path.iterdir() if p.is_file() and not p.name.startswith("."))

@@ -112,7 +112,7 @@ def open_fas(path: str | os.PathLike, quiet: bool = False) -> Traverse:
 
         local, fp = fetched_copy(str(path), quiet)
         return _open_npz(local, fp, public(str(path)), str(path))
-    p = Path(path)
+    p = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
     if not p.is_file():
         raise InputError(f"{p}: no such file")
     return _open_npz(p, file_fingerprint(p), str(p))

@@ -29,7 +29,7 @@ class Hdf5Source(RowSource):
     """The 2-D dataset ``key`` of the HDF5 file at ``path``."""
 
     def __init__(self, path: str | os.PathLike, key: str) -> None:
-        self.path, self.key = Path(path), key
+        self.path, self.key = Path(path).absolute(), key  # tasks may run in another directory
         self.name = f"{self.path}:{key}"
         if not self.path.is_file():
             raise InputError(f"{self.path}: no such file")

@@ -30,7 +30,7 @@ class ParquetRowsSource(RowSource):
     in name order (numbers as numbers); ``column`` None: the files' one list column."""
 
     def __init__(self, path: str | os.PathLike, column: str | None) -> None:
-        self.path = Path(path)
+        self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         if self.path.is_dir():
             self.files = sorted((p for p in self.path.iterdir() if p.suffix == ".parquet"
                                  and not p.name.startswith(".")), key=natural_order)

@@ -29,7 +29,7 @@ class NpySource(RowSource):
     """A 2-D ``.npy`` file of floats or integers (any width; read as float32)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
+        self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         self.name = str(self.path)
         a = open_npy(self.path)
         check_rows(self.path, a)

@@ -41,7 +41,7 @@ class NpyShardsSource(RowSource):
     """Every ``.npy`` file of a directory, in name order (numbers as numbers), as one array."""
 
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
+        self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         self.name = str(self.path)
         self.files = sorted((p for p in self.path.iterdir() if p.suffix == ".npy" and not p.name.startswith(".")),
                             key=natural_order)
