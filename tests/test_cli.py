@@ -217,7 +217,7 @@ def test_localise_writes_the_format_its_out_names(evaluated, tiny_store, tmp_pat
 def test_results_show_method_parameters_and_recall(evaluated):
     done = _vprscale("results", str(evaluated), "--where", "radius = 20 AND part = 'all'")
     header = done.stdout.splitlines()[0].split()
-    assert header[:8] == ["scale", "noise", "method", "params", "mode", "L", "part", "radius"]
+    assert header[:9] == ["scale", "noise", "method", "family", "params", "mode", "L", "part", "radius"]
     assert "recall" in header and "recall_at_20" in header and "/" not in done.stdout.splitlines()[2]
 
 

@@ -284,13 +284,13 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
 def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
     """Against scale, CoarseHash (a different d at each scale) is one series per mode, joined
     across the scales, as each compared method is."""
-    from vprscale.evaluation.comparison import family_label, fig_compare_trends
+    from vprscale.evaluation.comparison import series_label, fig_compare_trends
 
     rows = [(scale, method, d, recall) for scale, d in (("1M", 20), ("10M", 24))
             for method, recall in (("coarsehash", 0.9 if d == 20 else 0.8), ("faiss:PQ3", 0.95))]
     points = pd.DataFrame([{"scale": s, "noise": "qm1", "method": m, "mode": "aligned", "L": 100, "d": d,
                             "recall": r, "recall_lo": r - 0.01, "recall_hi": r + 0.01, "bytes_per_place": 3.0,
-                            "us_per_query": 10.0, "family": family_label(m, "aligned", d)} for s, m, d, r in rows])
+                            "us_per_query": 10.0, "series": series_label(m, "aligned", d)} for s, m, d, r in rows])
     drawn = {}
     fig_compare_trends(points, ["1M", "10M"], "qm1", tmp_path, lambda fig, out, name: drawn.setdefault(name, fig))
     by_scale = drawn["fig_compare_trends_qm1"].axes[2]  # a 2 × 2 grid: the first panel of the second row
@@ -302,31 +302,31 @@ def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
 def test_a_method_keeps_its_colour_and_its_modes_their_line_styles():
     """Colours go to methods (CoarseHash one at every width), line styles to modes, so a
     report's thirty-odd families need no more colours than it has methods."""
-    from vprscale.evaluation.comparison import family_colours, family_label, family_line, family_marker
+    from vprscale.evaluation.comparison import series_colours, series_label, series_line, series_marker
 
-    families = [family_label(m, mode, d) for m, d in (("coarsehash", 20), ("coarsehash", 24), ("faiss:PQ3", None),
+    families = [series_label(m, mode, d) for m, d in (("coarsehash", 20), ("coarsehash", 24), ("faiss:PQ3", None),
                                                       ("faiss:IVF4096,PQ3", None))
                 for mode in ("aligned", "paper", "single")]
-    colours = family_colours(families)
+    colours = series_colours(families)
     assert len({colours[f] for f in families}) == 3
     ours = {colours[f"CoarseHash d={d} ({mode})"] for d in (20, 24) for mode in ("aligned", "paper", "single")}
     assert len(ours) == 1
     assert colours["PQ3 (aligned)"] != colours["IVF4096,PQ3 (aligned)"] != colours["CoarseHash d=20 (aligned)"]
-    assert len({family_line(family_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
-    assert len({family_marker(family_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
+    assert len({series_line(series_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
+    assert len({series_marker(series_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
 
 
 def test_the_legend_names_methods_and_modes_apart_and_panels_share_axes(tmp_path):
     """Nine families (three methods in three modes) take a legend of six entries outside the
     panels: each method in its colour, each mode by its marker and line; panels share axes."""
-    from vprscale.evaluation.comparison import family_label, fig_compare
+    from vprscale.evaluation.comparison import series_label, fig_compare
 
     rows = [{"scale": s, "noise": "qm2", "method": m, "mode": mode, "L": L, "d": 20 if m == "coarsehash" else None,
              "recall": 0.5, "recall_lo": 0.4, "recall_hi": 0.6, "bytes_per_place": 3.0, "us_per_query": u}
             for s in ("1M", "10M") for m in ("coarsehash", "faiss:PQ3", "faiss:HNSW32") for L in (1, 50)
             for mode in (("single",) if L == 1 else ("paper", "aligned")) for u in (5.0, 50.0)]
     points = pd.DataFrame(rows)
-    points["family"] = [family_label(m, mode, d) for m, mode, d in zip(points.method, points["mode"], points.d,
+    points["series"] = [series_label(m, mode, d) for m, mode, d in zip(points.method, points["mode"], points.d,
                                                                           strict=True)]
     points["qps"] = 1e6 / points.us_per_query
     drawn = {}
@@ -452,8 +452,9 @@ def test_best_operating_points_are_each_familys_best_within_the_budget(compared,
     assert sorted(got.recall.round(12)) == sorted(expected.round(12))
     assert main(["results", str(compared["out"]), *flags]) == 0  # the table for the eye names each method
     shown = capsys.readouterr().out.splitlines()
-    assert "family" in shown[0] and "qps_per_core" in shown[0]
-    assert {f for f in got.family} <= {f for f in got.family if any(f in line for line in shown[1:])}
+    assert "series" in shown[0] and "family" in shown[0] and "qps_per_core" in shown[0]
+    assert {f for f in got.series} <= {f for f in got.series if any(f in line for line in shown[1:])}
+    assert not got.family.isna().any()
 
 
 def test_best_needs_the_recall_table_and_a_held_radius(compared, capsys):
@@ -462,3 +463,25 @@ def test_best_needs_the_recall_table_and_a_held_radius(compared, capsys):
         assert main(["results", str(compared["out"]), *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1
+
+
+def test_every_method_names_its_family_wherever_it_is_shown(compared, capsys):
+    """The ``family`` column (VIBE's tags) on every row: hashing, PQ, binary, graph, the baseline;
+    ``vprscale results`` shows it beside the method; the baseline at L > 1 is a sequence series."""
+    from vprscale.compared.faisscodes import code_family
+    from vprscale.evaluation.comparison import with_series
+
+    res = compared["results"]
+    families = res.groupby("method").family.agg(set).to_dict()
+    assert families == {"coarsehash": {"hashing"}, "baseline": {"baseline"}, "faiss:PQ4np": {"PQ"},
+                        "faiss:PQ4x6": {"PQ"}, "faiss:PQ6x4fs": {"PQ"}, "faiss:ITQ16,LSH": {"binary"},
+                        "faiss:IVF32,PQ4np": {"PQ"}, "faiss:RaBitQ": {"binary"}, "faiss:IVF32,RaBitQfs": {"binary"},
+                        "faiss:HNSW32": {"graph"}}
+    assert [code_family(f) for f in ("RQ4x8", "IVF256,LSQ4x8", "PRQ2x4x8", "IVF1024_HNSW32,PQ8", "Flat")] == [
+        "additive", "additive", "additive", "PQ", "exact"]
+    shown = with_series(res[res.method == "baseline"])
+    assert set(shown[shown.L > 1].series) == {"baseline (sequence)"} and set(shown[shown.L == 1].series) == {
+        "baseline (single)"}
+    assert main(["results", str(compared["out"]), "--where", "radius = 20 AND part = 'all'"]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert "family" in table[0] and any("hashing" in line for line in table) and any("graph" in line for line in table)

@@ -35,11 +35,11 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.set_defaults(func=run)
 
 
-# What a reader asks of a recall row first: which method, configured how, at which point, how well.
-# (--best-*: each operating point's method family, its parameters and queries per second per core)
-TABLE_COLUMNS = ("run", "scale", "noise", "method", "family", "params", "mode", "L", "part", "radius", "recall",
-                 "recall_lo", "recall_hi", "recall_at_20", "n_queries", "nr_mean", "bytes_per_place", "us_per_query",
-                 "qps_per_core")
+# What a reader asks of a recall row first: which method, of which family, configured how, at which point, how
+# well. (--best-*: each operating point's series, a method in one mode, its parameters, queries per second per core)
+TABLE_COLUMNS = ("run", "scale", "noise", "method", "series", "family", "params", "mode", "L", "part", "radius",
+                 "recall", "recall_lo", "recall_hi", "recall_at_20", "n_queries", "nr_mean", "bytes_per_place",
+                 "us_per_query", "qps_per_core")
 METRE_COLUMNS = tuple("radius_m" if c == "radius" else c for c in TABLE_COLUMNS)
 QUERY_COLUMNS = ("run", "noise", "method", "params", "mode", "L", "centre", "gt", "match", "score", "n_r")
 

@@ -233,6 +233,29 @@ def _faiss_reason(err: Exception) -> str:
     return re.sub(r"^Error in .*? at \S+:\d+: ", "", text)[:200]
 
 
+
+ADDITIVE = ("RQ", "LSQ", "PRQ", "PLSQ")  # FAISS's additive quantisers, by their factory names
+
+
+def code_family(factory: str) -> str:
+    """The family of a FAISS factory string, by the component that holds the codes (the last;
+    an ``IVF…_HNSW`` coarse quantiser does not make an IVF code a graph): ``graph`` (HNSW),
+    ``additive`` (RQ, LSQ and their product forms), ``binary`` (LSH, ITQ + LSH, RaBitQ),
+    ``PQ`` (PQ, with OPQ or PCA before it, flat or in IVF lists), ``exact`` (Flat), else ``other``."""
+    parts = factory.split(",")
+    code = parts[-1]
+    if parts[0].startswith("HNSW"):
+        return "graph"
+    if any(code.startswith(name) for name in ADDITIVE) or code.startswith("RQ"):
+        return "additive"
+    if code.startswith(("LSH", "RaBitQ")) or code.startswith("ITQ"):
+        return "binary"
+    if code.startswith("PQ") or code.startswith("OPQ"):
+        return "PQ"
+    if code == "Flat":
+        return "exact"
+    return "other"
+
 class FaissCodes:
     """One FAISS ``index_factory`` index over the references, with sequence matching on its codes.
 

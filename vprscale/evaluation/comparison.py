@@ -2,17 +2,17 @@
 it (FAISS codes with ``--compare``, your own with ``--method``), as ann-benchmarks and
 big-ann-benchmarks draw it.
 
-Each method family (a method in one mode) has one point per operating point (its
+Each series (a method in one mode) has one point per operating point (its
 ``params``: k, nprobe). The figures, one of each per noise level (``…_qm1.png``,
 ``…_qm2.png``: the levels where the methods part most must not hide behind the easiest):
 
 - ``fig_compare``: recall within 20 frames against queries per second per core (log axis),
-  per scale (columns) and L (rows), with each family's Pareto front drawn and labelled;
+  per scale (columns) and L (rows), with each series' Pareto front drawn and labelled;
 - ``fig_compare_bytes``: recall against bytes per place, per scale and L, on an axis that
   spans the data;
-- ``fig_compare_trends``: each family's best recall against L, and against scale.
+- ``fig_compare_trends``: each series' best recall against L, and against scale.
 
-A family's colour is its method's (CoarseHash's the same at every width), its marker and
+A series' colour is its method's (CoarseHash's the same at every width), its marker and
 line style its mode's (``MODE_MARKERS``, ``MODE_LINES``); the legend names the methods and
 the modes apart (ten methods in three modes are thirteen entries, not thirty); panels of a
 figure share their axes; every recall carries its 95 % Wilson interval. Everything here is
@@ -31,14 +31,15 @@ import pandas as pd
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator
 
+from vprscale.compared.faisscodes import code_family
 from vprscale.evaluation.accounting import time_cell
 from vprscale.evaluation.results import noise_order
 
 RADIUS = 20
 OURS = "coarsehash"
 NOT_COMPARED = {OURS, "baseline"}
-MODE_LINES = {"aligned": "-", "paper": "--", "single": ":"}  # a family's line style, by its mode
-MODE_MARKERS = {"aligned": "^", "paper": "o", "single": "s"}  # and its marker
+MODE_LINES = {"aligned": "-", "paper": "--", "single": ":", "sequence": "-."}  # a series' line style, by its mode
+MODE_MARKERS = {"aligned": "^", "paper": "o", "single": "s", "sequence": "D"}  # and its marker
 TITLE_SIZE = 10
 
 
@@ -65,7 +66,8 @@ def shared_legend(fig, axes) -> None:
             modes.setdefault(mode)
     handles = [Line2D([], [], color=c, lw=2.5, label=m) for m, c in colours.items()]
     handles += [Line2D([], [], color="black", marker=MODE_MARKERS[m], ls=MODE_LINES[m],
-                       label="single frame" if m == "single" else f"{m} mode") for m in modes if m in MODE_LINES]
+                       label={"single": "single frame", "sequence": "sequences (no mode)"}.get(m, f"{m} mode"))
+               for m in modes if m in MODE_LINES]
     fig.legend(handles=handles, loc="outside lower center", ncol=min(6, len(handles)), fontsize=8)
 
 
@@ -83,16 +85,33 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
     cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries",
             *(c for c in ("us_per_query_lo", "us_per_query_hi", "recall_lo", "recall_hi", "run", "params")
               if c in res.columns)]
-    out = with_family(sub[cols].reset_index(drop=True))
+    out = with_series(sub[cols].reset_index(drop=True))
     out["qps"] = 1e6 / out.us_per_query.clip(lower=1e-9)
     return out
 
 
-def with_family(rows: pd.DataFrame) -> pd.DataFrame:
-    """``rows`` with ``mode`` named for single frames (``single``, where it is null) and each
-    row's ``family`` (:func:`family_label`), as every figure and table groups them."""
-    rows = rows.assign(mode=rows["mode"].fillna("single"))
-    rows["family"] = [family_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
+def named_modes(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` with a null ``mode`` named: ``single`` at L = 1, ``sequence`` above (a method that
+    matches sequences without modes, as the baseline does at L = 50 and 100)."""
+    return rows.assign(mode=rows["mode"].where(rows["mode"].notna(), np.where(rows["L"] > 1, "sequence", "single")))
+
+
+def method_family(method: str) -> str:
+    """The ``family`` of a ``method`` column's value, for results written before the column was
+    (what the methods themselves say now, :attr:`~vprscale.evaluation.algorithms.base.Algorithm.family`)."""
+    if method.startswith("faiss:"):
+        return code_family(method.removeprefix("faiss:"))
+    return {OURS: "hashing", "baseline": "baseline"}.get(method, "own")
+
+
+def with_series(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` with ``mode`` named (:func:`named_modes`), each row's ``series``
+    (:func:`series_label`), as every figure and table groups them, and its ``family`` (derived
+    for results older than the column)."""
+    rows = named_modes(rows)
+    rows["series"] = [series_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
+    if "family" not in rows.columns:
+        rows["family"] = [method_family(m) for m in rows.method]
     return rows
 
 
@@ -101,7 +120,7 @@ def best_first(rows: pd.DataFrame) -> pd.DataFrame:
     return rows.sort_values(["recall", "bytes_per_place", "us_per_query"], ascending=[False, True, True])
 
 
-def family_label(method: str, mode: str, d: Any) -> str:
+def series_label(method: str, mode: str, d: Any) -> str:
     """``PQ3 (aligned)``; CoarseHash with its width, ``CoarseHash d=24 (aligned)``, unless ``d`` is None."""
     if method != OURS:
         return f"{method.removeprefix('faiss:')} ({mode})"
@@ -110,7 +129,7 @@ def family_label(method: str, mode: str, d: Any) -> str:
 
 def _label(method: str, mode: str, d: Any, params: Any = None) -> str:
     at = f" {params}" if isinstance(params, str) and params and method != OURS else ""
-    return family_label(method, mode, d).replace(" (", f"{at} (", 1)
+    return series_label(method, mode, d).replace(" (", f"{at} (", 1)
 
 
 def pareto_front(points: pd.DataFrame, x: str = "qps", y: str = "recall") -> pd.DataFrame:
@@ -133,17 +152,17 @@ def panels(rows: int, cols: int, width: float, height: float, sharey: bool | str
                         layout="constrained")
 
 
-def method_and_mode(family: str) -> tuple[str, str]:
+def method_and_mode(series: str) -> tuple[str, str]:
     """``("PQ3", "aligned")`` of ``PQ3 (aligned)``; CoarseHash without its width."""
-    method, _, mode = family.rpartition(" (")
+    method, _, mode = series.rpartition(" (")
     return re.sub(r" d=\d+$", "", method), mode.rstrip(")")
 
 
-def family_colours(families: list[str]) -> dict[str, Any]:
-    """Each family's colour: its method's, one distinct colour per method, CoarseHash's first,
+def series_colours(families: list[str]) -> dict[str, Any]:
+    """Each series' colour: its method's, one distinct colour per method, CoarseHash's first,
     the others by name (a method has the same colour in every figure of a report, whatever its
-    mode or CoarseHash's width; :func:`family_line` tells the modes apart); no greys (the grid's
-    colour). Sixteen colours before one repeats: a colour per family would repeat at a report's
+    mode or CoarseHash's width; :func:`series_line` tells the modes apart); no greys (the grid's
+    colour). Sixteen colours before one repeats: a colour per series would repeat at a report's
     thirty-odd families (ten methods in up to three modes)."""
     methods = sorted({method_and_mode(f)[0] for f in families}, key=lambda m: (m != "CoarseHash", m))
     tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
@@ -152,18 +171,18 @@ def family_colours(families: list[str]) -> dict[str, Any]:
     return {f: by_method[method_and_mode(f)[0]] for f in families}
 
 
-def family_line(family: str) -> str:
-    """A family's line style: its mode's (``MODE_LINES``)."""
-    return MODE_LINES.get(method_and_mode(family)[1], "-")
+def series_line(series: str) -> str:
+    """A series' line style: its mode's (``MODE_LINES``)."""
+    return MODE_LINES.get(method_and_mode(series)[1], "-")
 
 
-def family_marker(family: str) -> str:
-    """A family's marker: its mode's (``MODE_MARKERS``)."""
-    return MODE_MARKERS.get(method_and_mode(family)[1], "o")
+def series_marker(series: str) -> str:
+    """A series' marker: its mode's (``MODE_MARKERS``)."""
+    return MODE_MARKERS.get(method_and_mode(series)[1], "o")
 
 
 def _families(points: pd.DataFrame) -> list[str]:
-    first = points.sort_values(["method"], key=lambda c: c.ne(OURS)).family
+    first = points.sort_values(["method"], key=lambda c: c.ne(OURS)).series
     return list(dict.fromkeys(first))
 
 
@@ -190,21 +209,21 @@ def _grid(points: pd.DataFrame, scales: list[str], noise: str) -> tuple[list[str
 
 
 def fig_compare(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
-    """Recall against queries per second per core at one noise level, each family's Pareto front
+    """Recall against queries per second per core at one noise level, each series' Pareto front
     drawn and labelled; returns the figure's name."""
     scales, lengths = _grid(points, scales, noise)
     families = _families(points)
-    colours = family_colours(families)
+    colours = series_colours(families)
     fig, axes = panels(len(lengths), len(scales), 5.2, 3.8)
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
             ax = axes[r][c]
             sub = points[(points.noise == noise) & (points.scale == scale) & (points.L == L)]
-            for fam, g in sub.groupby("family", sort=False):
+            for fam, g in sub.groupby("series", sort=False):
                 front = pareto_front(g)
                 ax.scatter(g.qps, 100 * g.recall, s=14, color=colours[fam], alpha=0.35, lw=0,
-                           marker=family_marker(fam))
-                ax.plot(front.qps, 100 * front.recall, marker=family_marker(fam), ls=family_line(fam), ms=5, lw=1.3,
+                           marker=series_marker(fam))
+                ax.plot(front.qps, 100 * front.recall, marker=series_marker(fam), ls=series_line(fam), ms=5, lw=1.3,
                         color=colours[fam], label=fam)
                 _recall_bars(ax, front, "qps", colours[fam])
             ax.set_xscale("log")
@@ -219,7 +238,7 @@ def fig_compare(points: pd.DataFrame, scales: list[str], noise: str, out: Path, 
 
 
 def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
-    """Recall against bytes per place at one noise level (each family's best operating point),
+    """Recall against bytes per place at one noise level (each series' best operating point),
     per scale and L, on an axis spanning the data; returns the figure's name."""
     scales, lengths, colours, best = _setup(points, scales, noise)
     lo, hi = best.bytes_per_place.min(), best.bytes_per_place.max()
@@ -227,8 +246,8 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: 
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
             ax = axes[r][c]
-            for fam, g in best[(best.scale == scale) & (best.L == L)].groupby("family", sort=False):
-                ax.scatter(g.bytes_per_place, 100 * g.recall, marker=family_marker(fam), s=34, color=colours[fam],
+            for fam, g in best[(best.scale == scale) & (best.L == L)].groupby("series", sort=False):
+                ax.scatter(g.bytes_per_place, 100 * g.recall, marker=series_marker(fam), s=34, color=colours[fam],
                            label=fam)
                 _recall_bars(ax, g, "bytes_per_place", colours[fam])
             ax.set_xscale("log")
@@ -245,21 +264,21 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: 
 
 
 def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
-    """Each family's best recall against L (one panel per scale) and against scale (one per L),
+    """Each series' best recall against L (one panel per scale) and against scale (one per L),
     at one noise level; returns the figure's name."""
     scales, lengths, _, best = _setup(points, scales, noise)
     # CoarseHash is compared at each scale's own width (d = ⌈log2 N_ref⌉): against scale it is
     # one line per mode, in its one colour (the tables give d)
-    best = best.assign(family=[family_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)])
-    colours = family_colours(list(best.family))
+    best = best.assign(series=[series_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)])
+    colours = series_colours(list(best.series))
     order = {s: i for i, s in enumerate(scales)}
     fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
                              squeeze=False, sharey=True, layout="constrained")
     for c, scale in enumerate(scales):
         ax = axes[0][c]
-        for fam, g in best[best.scale == scale].groupby("family", sort=False):
+        for fam, g in best[best.scale == scale].groupby("series", sort=False):
             g = g.sort_values("L")
-            ax.plot(g.L, 100 * g.recall, marker=family_marker(fam), ls=family_line(fam), ms=5, color=colours[fam],
+            ax.plot(g.L, 100 * g.recall, marker=series_marker(fam), ls=series_line(fam), ms=5, color=colours[fam],
                     label=fam)
             _recall_bars(ax, g, "L", colours[fam])
         ax.set(xlabel="sequence length L (frames)", ylim=(0, 102))
@@ -268,9 +287,9 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out:
         ax.grid(alpha=0.3)
     for c, L in enumerate(lengths):
         ax = axes[1][c]
-        for fam, g in best[best.L == L].groupby("family", sort=False):
+        for fam, g in best[best.L == L].groupby("series", sort=False):
             g = g.assign(pos=g.scale.map(order)).sort_values("pos")
-            ax.plot(g.pos, 100 * g.recall, marker=family_marker(fam), ls=family_line(fam), ms=5, color=colours[fam],
+            ax.plot(g.pos, 100 * g.recall, marker=series_marker(fam), ls=series_line(fam), ms=5, color=colours[fam],
                     label=fam)
             _recall_bars(ax, g, "pos", colours[fam])
         ax.set_xticks(range(len(scales)), scales)
@@ -292,14 +311,14 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out:
 def _setup(points: pd.DataFrame, scales: list[str], noise: str
            ) -> tuple[list[str], list[int], dict[str, Any], pd.DataFrame]:
     """What a best-point figure of one noise level draws: the scales and lengths, the colours,
-    and each family's best operating point per scale and L."""
+    and each series' best operating point per scale and L."""
     scales, lengths = _grid(points, scales, noise)
-    return scales, lengths, family_colours(_families(points)), _best_points(points[points.noise == noise])
+    return scales, lengths, series_colours(_families(points)), _best_points(points[points.noise == noise])
 
 
 def _best_points(points: pd.DataFrame) -> pd.DataFrame:
-    """Per (scale, L, family): the operating point of highest recall (ties: fewer bytes, then faster)."""
-    return best_first(points).groupby(["scale", "L", "family"], sort=False).head(1)
+    """Per (scale, L, series): the operating point of highest recall (ties: fewer bytes, then faster)."""
+    return best_first(points).groupby(["scale", "L", "series"], sort=False).head(1)
 
 
 def _best(sub: pd.DataFrame) -> pd.Series:

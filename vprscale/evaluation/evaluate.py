@@ -422,7 +422,8 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
                     truth, parts = qs.gt_at(t), qs.part_at(t)
                     pos = window_positions(held, t, L)
                     key = {"noise": noise, "L": L, "index": str(Path(path).resolve()), "fas_stride": c.fas_stride,
-                           "method": alg.name, **alg.columns(), "bytes_per_place": alg.bytes_per_place}
+                           "method": alg.name, "family": alg.family, **alg.columns(),
+                           "bytes_per_place": alg.bytes_per_place}
                     run = runs.setdefault((n_i, p_i, l_i, a_i), ([], [], []))
                     for mode in alg.modes(L, req.modes):
                         bar.step(f"{noise} {alg.name} L = {L}" + (f", {mode} mode" if mode else ""))

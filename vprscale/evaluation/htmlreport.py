@@ -33,11 +33,11 @@ import pandas as pd
 from matplotlib.colors import to_hex
 
 from vprscale.core.plaintext import script_json
-from vprscale.evaluation.comparison import family_colours, method_and_mode, with_family
+from vprscale.evaluation.comparison import method_and_mode, series_colours, with_series
 
 PAGE, SCRIPT = "report_page.html", "report_page.js"  # the page's template and script (package data)
 # The columns the page holds per recall row (those an evaluation has)
-COLUMNS = ("scale", "noise", "method", "family", "mode", "L", "d", "params", "radius", "recall", "recall_lo",
+COLUMNS = ("scale", "noise", "method", "series", "family", "mode", "L", "d", "params", "radius", "recall", "recall_lo",
            "recall_hi", "recall_at_20", "bytes_per_place", "us_per_query", "qps_per_core", "n_queries", "run")
 SYMBOLS = {"aligned": "triangle-up", "paper": "circle", "single": "square"}  # the PNG figures' MODE_MARKERS
 # The page's figures: id, title, the column on x, its label (recall on y)
@@ -52,8 +52,8 @@ METRES_COLUMNS = (*COLUMNS[: COLUMNS.index("radius")], "part", "radius_m", *COLU
 def page_rows(res: pd.DataFrame, columns: tuple[str, ...] = COLUMNS) -> pd.DataFrame:
     """The rows the page draws: every method's recall over all queries at every radius (rows in
     metres: over each part with positions, ``columns`` ``METRES_COLUMNS``)."""
-    rows = with_family(res[res.part == "all"] if "radius" in columns else res)
-    rows["method"] = [method_and_mode(f)[0] for f in rows.family]  # CoarseHash one method at every width
+    rows = with_series(res[res.part == "all"] if "radius" in columns else res)
+    rows["method"] = [method_and_mode(f)[0] for f in rows.series]  # CoarseHash one method at every width
     for missing in {"bytes_per_place", "us_per_query"} - set(rows.columns):  # results of a vprscale before 0.3
         rows[missing] = np.nan
     rows["qps_per_core"] = 1e6 / rows.us_per_query.clip(lower=1e-9)
@@ -78,8 +78,8 @@ def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[s
     rows = page_rows(res)
     rows_m = page_rows(metres, METRES_COLUMNS) if len(metres) else rows.iloc[:0]
     figures = FIGURES + ((METRES_FIGURE,) if len(rows_m) else ())
-    families = list(dict.fromkeys([*rows.family, *rows_m.family]))
-    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in family_colours(families).items()}
+    families = list(dict.fromkeys([*rows.series, *rows_m.series]))
+    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in series_colours(families).items()}
     provenance = "".join(f"<li>{html.escape(line.removeprefix('- '))}</li>" for line in provenance_lines
                          if line.startswith("- "))
     script = (script.replace("@COLOURS@", script_json(colours)).replace("@SYMBOLS@", script_json(SYMBOLS))

@@ -8,7 +8,7 @@ from typing import Any
 
 import pandas as pd
 
-from vprscale.evaluation.comparison import family_label
+from vprscale.evaluation.comparison import named_modes, series_label
 
 
 def load_metres(runs: list[str]) -> pd.DataFrame:
@@ -25,11 +25,11 @@ def metres_section(res: pd.DataFrame, scales: list[str], table) -> list[str]:
     if res.empty:
         return []
     order = {s: i for i, s in enumerate(scales)}
-    res = res.assign(pos=res.scale.map(order).fillna(len(order)), mode=res["mode"].fillna("single"))
+    res = named_modes(res).assign(pos=res.scale.map(order).fillna(len(order)))
     rows: list[list[Any]] = []
     for p in res.sort_values(["pos", "noise", "part", "L", "method", "mode", "radius_m"]).itertuples():
         params = getattr(p, "params", None)
-        name = family_label(p.method, p.mode, p.d) + (f" {params}" if isinstance(params, str) and params else "")
+        name = series_label(p.method, p.mode, p.d) + (f" {params}" if isinstance(params, str) and params else "")
         rows.append([p.scale, p.noise.upper(), p.part, p.L, name, f"{p.radius_m:g}", p.n_queries,
                      *(f"{100 * v:.1f}" if v == v else "–" for v in
                        (p.recall, p.recall_lo, p.recall_hi, p.recall_at_5, p.recall_at_20))])

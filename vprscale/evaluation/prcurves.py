@@ -4,7 +4,7 @@ SeqNet report them, for every method at every L.
 
 A match is correct within ``RADIUS`` frames of the truth; the curves accept matches in
 order of their score (lower is more confident). The figures, one per noise level
-(``fig_pr_qm1.png``, …), are per method family at its first operating point; the table gives
+(``fig_pr_qm1.png``, …), are per series (a method in one mode) at its first operating point; the table gives
 every operating point of every noise level, read from the results.
 """
 
@@ -18,12 +18,13 @@ import pyarrow.parquet as pq
 
 from vprscale.evaluation.comparison import (
     TITLE_SIZE,
-    family_colours,
-    family_label,
-    family_line,
+    named_modes,
     panels,
+    series_colours,
+    series_label,
+    series_line,
     shared_legend,
-    with_family,
+    with_series,
 )
 from vprscale.evaluation.metrics import pr_curve
 from vprscale.evaluation.results import noise_order
@@ -48,14 +49,14 @@ def load_queries(runs: list[str]) -> pd.DataFrame:
     if not frames:
         return pd.DataFrame(columns=list(COLUMNS))
     q = pd.concat(frames, ignore_index=True)
-    return with_family(q)
+    return with_series(q)
 
 
 def _first_points(q: pd.DataFrame) -> pd.DataFrame:
-    """Each family's first operating point (its smallest params, as text) and its main index."""
-    keys = q[["scale", "family", "params", "index"]].drop_duplicates().astype(str)
-    first = keys.sort_values(["scale", "family", "params", "index"]).groupby(["scale", "family"]).head(1)
-    merged = q.astype({"params": str, "index": str}).merge(first, on=["scale", "family", "params", "index"])
+    """Each series' first operating point (its smallest params, as text) and its main index."""
+    keys = q[["scale", "series", "params", "index"]].drop_duplicates().astype(str)
+    first = keys.sort_values(["scale", "series", "params", "index"]).groupby(["scale", "series"]).head(1)
+    merged = q.astype({"params": str, "index": str}).merge(first, on=["scale", "series", "params", "index"])
     return merged
 
 
@@ -72,17 +73,17 @@ def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> s
     lengths = sorted(q.L.unique())
     if not scales or not lengths:
         return None
-    families = list(dict.fromkeys(q.sort_values("method", key=lambda c: c.ne("coarsehash")).family))
-    colours = family_colours(families)
+    families = list(dict.fromkeys(q.sort_values("method", key=lambda c: c.ne("coarsehash")).series))
+    colours = series_colours(families)
     fig, axes = panels(len(lengths), len(scales), 4.4, 3.5, sharey=True)
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
             ax = axes[r][c]
-            drawn = list(q[(q.scale == scale) & (q.L == L)].groupby("family", sort=False))
+            drawn = list(q[(q.scale == scale) & (q.L == L)].groupby("series", sort=False))
             for i, (fam, g) in enumerate(drawn):  # thick to thin: a curve drawn over another leaves it an outline
                 precision, recall = pr_curve(g.score.to_numpy(), g.error.to_numpy() <= RADIUS)
                 ax.plot(100 * recall, 100 * (1 - precision), lw=3.2 - 2.4 * i / max(1, len(drawn) - 1),
-                        ls=family_line(fam), color=colours[fam], label=fam)
+                        ls=series_line(fam), color=colours[fam], label=fam)
             ax.set(xlim=(0, 100))
             ax.set_yscale("symlog", linthresh=0.1, linscale=0.5)
             ax.set_ylim(100, 0)  # no false match at the top
@@ -109,14 +110,13 @@ def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path,
         return []
     q = load_queries(runs)
     drawn = [] if q.empty else [fig_pr(q, scales, noise, out, save) for noise in noise_order(q.noise)]
-    sub = res[(res.part == "all") & (res.radius == RADIUS)].copy()
-    sub["mode"] = sub["mode"].fillna("single")
+    sub = named_modes(res[(res.part == "all") & (res.radius == RADIUS)])
     rows: list[list[Any]] = []
     order = {s: i for i, s in enumerate(scales)}
     noises = {n: i for i, n in enumerate(noise_order(sub.noise))}
     sub = sub.assign(pos=sub.scale.map(order), level=sub.noise.map(noises))
     for p in sub.sort_values(["pos", "level", "L", "method", "mode", "d"]).itertuples():
-        name = family_label(p.method, p.mode, p.d)
+        name = series_label(p.method, p.mode, p.d)
         params = getattr(p, "params", None)
         rows.append([p.scale, p.noise.upper(), p.L, name + (f" {params}" if isinstance(params, str) and params else ""),
                      *(f"{100 * v:.1f}" if v == v else "–" for v in

@@ -5,9 +5,9 @@
   var FIGURES = @FIGURES@;
   var FILTERS = [["scale", "scale"], ["noise", "noise"], ["L", "L"], ["mode", "mode"], ["method", "method"],
                  ["radius", "radius (first two figures)"]];
-  var TABLE = ["scale", "noise", "L", "family", "params", "radius", "recall", "recall_lo", "recall_hi",
+  var TABLE = ["scale", "noise", "L", "series", "family", "params", "radius", "recall", "recall_lo", "recall_hi",
                "bytes_per_place", "us_per_query", "qps_per_core", "n_queries"];
-  var TABLE_M = TABLE.slice(0, 5).concat(["part", "radius_m"], TABLE.slice(6));
+  var TABLE_M = TABLE.slice(0, 6).concat(["part", "radius_m"], TABLE.slice(7));  // radius in metres for radius
   var LEGEND_MAX = 12;  // entries a legend holds and stays readable
 
   function values(key) {
@@ -60,7 +60,7 @@
   }
   function pct(v) { return v === null ? "–" : (100 * v).toFixed(1); }
   function hover(r) {
-    return esc(r.family) + (r.params ? " " + esc(r.params) : "") + "<br>" + esc(r.scale) + ", " +
+    return esc(r.series) + (r.params ? " " + esc(r.params) : "") + "<br>" + esc(r.scale) + ", " +
       esc(String(r.noise).toUpperCase()) + ", L = " + r.L +
       (r.radius_m === undefined ? ", radius " + r.radius : ", " + esc(r.part) + ", within " + r.radius_m + " m") +
       "<br>recall " + pct(r.recall) + " % (" + pct(r.recall_lo) + "–" +
@@ -97,7 +97,7 @@
     cols.forEach(function (c) { var th = document.createElement("th"); th.textContent = c; head.appendChild(th); });
     rows.forEach(function (r) {
       var tr = document.createElement("tr");
-      tr.dataset.noise = r.noise; tr.dataset.family = r.family;
+      tr.dataset.noise = r.noise; tr.dataset.series = r.series;
       cols.forEach(function (c) {
         var v = r[c], td = document.createElement("td");
         td.textContent = v === null ? "–" : typeof v === "number" && !Number.isInteger(v) ? v.toPrecision(4) : String(v);
@@ -109,7 +109,7 @@
   function traces(rows, x, lines) {
     var groups = {};
     rows.forEach(function (r) {
-      var key = r.family + (lines ? " " + (r.params || "") + " L=" + r.L + " " + r.scale + " " + r.noise +
+      var key = r.series + (lines ? " " + (r.params || "") + " L=" + r.L + " " + r.scale + " " + r.noise +
                             (r.part ? " " + r.part : "") : "");
       (groups[key] = groups[key] || []).push(r);
     });

@@ -64,7 +64,10 @@ class Answer:
 class Algorithm(ABC):
     """A localisation method under the protocol.
 
-    ``name`` is the ``method`` column of the results, :meth:`columns` its other identifying
+    ``name`` is the ``method`` column of the results, ``family`` the kind of method it is (the
+    ``family`` column: ``hashing``, ``PQ``, ``additive``, ``binary``, ``graph``, ``exact``,
+    ``sequence descriptor``, ``baseline``, or a plugged method's own, ``own`` by default, as
+    VIBE tags methods), :meth:`columns` its other identifying
     columns (``d``, ``K``, ``params``), ``bytes_per_place`` what it stores per place to
     answer a query. ``query_limit`` is the number of centres per run it localises (an
     evenly spaced sample; None: all), for methods whose every query scans the whole map;
@@ -77,6 +80,7 @@ class Algorithm(ABC):
     """
 
     name: str
+    family: str = "own"
     bytes_per_place: float
     query_limit: int | None = None
     noises: list[str] | None = None

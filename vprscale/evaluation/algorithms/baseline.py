@@ -60,6 +60,7 @@ class Baseline(Algorithm):
     """
 
     name = "baseline"
+    family = "baseline"
     timed_side_by_side = True
     bytes_per_place = float(FLOAT_BYTES)
 

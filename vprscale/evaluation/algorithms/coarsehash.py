@@ -18,6 +18,7 @@ class CoarseHash(Algorithm):
     :class:`~vprscale.method.index.QueryFrames`."""
 
     name = "coarsehash"
+    family = "hashing"
     timed_side_by_side = True
 
     def __init__(self, index: Index, dim: int) -> None:

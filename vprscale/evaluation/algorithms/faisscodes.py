@@ -13,7 +13,7 @@ import dask.array as da
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.compared.faisscodes import FaissCodes, code_family, training_rows
 from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
 from vprscale.evaluation.runner import spread
@@ -131,7 +131,7 @@ class FaissMethod(Algorithm):
                  k: int | None = None, nprobe: int | None = None, flat_noise: list[str] | None = None,
                  shared: SharedRanking | None = None) -> None:
         self.codes, self.shared = codes, shared
-        self.name = codes.name
+        self.name, self.family = codes.name, code_family(codes.factory)
         self.k, self.nprobe = k or codes.k, nprobe or codes.nprobe  # this operating point's query arguments
         self.bytes_per_place = codes.bytes_per_place
         self._apply()

@@ -12,7 +12,8 @@ A method is any class (or callable returning an object) with:
   row of ``frames`` to the one reference ``ref_ids[i]`` (same units as ``query``);
   without it the method is evaluated at L = 1 only;
 - optionally ``name`` (the ``method`` column; default: the ``module:Class`` it was loaded
-  as) and ``bytes_per_place`` (what it stores per place; NaN when absent).
+  as), ``family`` (the ``family`` column, e.g. ``graph``; default ``own``) and
+  ``bytes_per_place`` (what it stores per place; NaN when absent).
 
 The runner does the rest, as for the built-in methods: it times ``query`` as the
 per-frame work and the window scores as the per-query work (CPU time of one thread, BLAS
@@ -94,6 +95,7 @@ class Plugged(Algorithm):
 
     def __init__(self, label: str, method: Any, k: int, n_ref: int, query_limit: int | None = None) -> None:
         self.name, self.method, self.k, self.n_ref, self.query_limit = label, method, k, n_ref, query_limit
+        self.family = str(getattr(method, "family", "own"))
         self.bytes_per_place = float(getattr(method, "bytes_per_place", float("nan")))
         self.scores = callable(getattr(method, "pair_distances", None))
 
