@@ -68,7 +68,6 @@ if TYPE_CHECKING:  # the estimator (and scikit-learn) is imported only to read a
 MODEL = ("mean", "components", "centres", "explained_variance")
 MODEL_FILES = {"P2": ["centres.npy"], "P3": ["components.npy", "explained_variance.npy"], "P4": ["mean.npy"]}
 TABLES = ("codes.parquet", "lists.parquet", "buckets.parquet")
-SQL_FILES = ("buckets.parquet", "components.parquet")
 PLACE_GROUP = 1 << 17  # rows of a row group in the per-place tables: a look-up by hash decodes one (bench lookup)
 BUCKET_GROUP = 1 << 16  # look-ups prune to one row group; fewer groups keep DuckDB's planning cheap
 DECODE_ROWS = 1 << 22  # rows decoded together into the engine's arrays
