@@ -19,6 +19,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.binfile import BinSource, bin_type
+from vprscale.dataset.sources.fetched import check_fetched
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 from vprscale.dataset.sources.fvecs import read_vecs, record_bytes, vecs_type
 
@@ -87,8 +88,6 @@ def open_deep1b(path: str | os.PathLike) -> RowSource:
 
     if is_url(path):
         return RemoteBinSource(str(path)) if bin_type(str(path)) is not None else RemoteFvecsSource(str(path))
-    from vprscale.dataset.fetch import check_fetched
-
     p = Path(path)
     if p.is_file():
         check_fetched(p)  # before its header is believed
