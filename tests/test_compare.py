@@ -266,7 +266,7 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
               & (res.radius == 20)].iloc[0]
     time = f"{row.us_per_query:,.2f} ({row.us_per_query_lo:,.2f}–{row.us_per_query_hi:,.2f})"
     recall = f"{100 * row.recall:.1f} ({100 * row.recall_lo:.1f}–{100 * row.recall_hi:.1f})"
-    assert f"| PQ4np {row.params} (aligned) | 4.00 | {time} | {recall} | {row.n_queries} |" in section
+    assert f"| PQ4np {row.params} (aligned) | PQ | 4.00 | {time} | {recall} | {row.n_queries} |" in section
     # every ratio is of medians measured in the same run (one evaluation here)
     assert "different runs" not in section and "faster" in section or "slower" in section
     section, points = section.split("### Operating points")

@@ -64,7 +64,7 @@ def test_report_writes_every_figure_and_the_right_numbers(tmp_path):
             assert (tmp_path / "rep" / f"{name}.{ext}").stat().st_size > 1000
     text = (tmp_path / "rep" / "report.md").read_text()
     # R@5 of paper mode L = 50: 0.03·5 + 0.5 = 65 %; R@20: 100 %.
-    assert "| 20K | QM1 | 50 | CoarseHash paper | 100 | 50.0 | 65.0 | 80.0 | 100.0 |" in text
+    assert "| 20K | QM1 | 50 | CoarseHash paper | hashing | 100 | 50.0 | 65.0 | 80.0 | 100.0 |" in text
     assert "| 20K | 50 | 50,000 | 60,000,000 | 1,200× | 5.00 | 1.00 | 500.00 | 100× |" in text
     assert "| 20K | 15 | 12.0 | 1.00 | 3.0 | 0.50 | – | – |" in text
     assert "| 20K | 15 | 20,000 | 0.160 |" in text

@@ -83,7 +83,7 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
     shared = others.groupby("scale")["index"].first()
     sub = sub[sub.method.ne(OURS) | (sub["index"] == sub.scale.map(shared))]
     cols = ["scale", "noise", "method", "mode", "L", "d", "recall", "bytes_per_place", "us_per_query", "n_queries",
-            *(c for c in ("us_per_query_lo", "us_per_query_hi", "recall_lo", "recall_hi", "run", "params")
+            *(c for c in ("us_per_query_lo", "us_per_query_hi", "recall_lo", "recall_hi", "run", "params", "family")
               if c in res.columns)]
     out = with_series(sub[cols].reset_index(drop=True))
     out["qps"] = 1e6 / out.us_per_query.clip(lower=1e-9)
@@ -91,9 +91,13 @@ def _points(res: pd.DataFrame) -> pd.DataFrame:
 
 
 def named_modes(rows: pd.DataFrame) -> pd.DataFrame:
-    """``rows`` with a null ``mode`` named: ``single`` at L = 1, ``sequence`` above (a method that
-    matches sequences without modes, as the baseline does at L = 50 and 100)."""
-    return rows.assign(mode=rows["mode"].where(rows["mode"].notna(), np.where(rows["L"] > 1, "sequence", "single")))
+    """``rows`` with a null ``mode`` named (``single`` at L = 1, ``sequence`` above: a method that
+    matches sequences without modes, as the baseline does at L = 50 and 100) and each method's
+    ``family`` (:func:`method_family` for results older than the column)."""
+    rows = rows.assign(mode=rows["mode"].where(rows["mode"].notna(), np.where(rows["L"] > 1, "sequence", "single")))
+    if "family" not in rows.columns:
+        rows["family"] = [method_family(m) for m in rows.method]
+    return rows
 
 
 def method_family(method: str) -> str:
@@ -105,13 +109,10 @@ def method_family(method: str) -> str:
 
 
 def with_series(rows: pd.DataFrame) -> pd.DataFrame:
-    """``rows`` with ``mode`` named (:func:`named_modes`), each row's ``series``
-    (:func:`series_label`), as every figure and table groups them, and its ``family`` (derived
-    for results older than the column)."""
+    """``rows`` with ``mode`` and ``family`` named (:func:`named_modes`) and each row's ``series``
+    (:func:`series_label`), as every figure and table groups them."""
     rows = named_modes(rows)
     rows["series"] = [series_label(m, mode, d) for m, mode, d in zip(rows.method, rows["mode"], rows.d, strict=True)]
-    if "family" not in rows.columns:
-        rows["family"] = [method_family(m) for m in rows.method]
     return rows
 
 
@@ -377,7 +378,7 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
     rows: list[list[Any]] = []
     for p in points.sort_values(["scale", "noise", "L", "method", "mode"], key=_scale_key(scales)).itertuples():
         rows.append([p.scale, p.noise.upper(), p.L, _label(p.method, p.mode, p.d, getattr(p, "params", None)),
-                     f"{p.bytes_per_place:.2f}",
+                     p.family, f"{p.bytes_per_place:.2f}",
                      time_cell(p), _recall_cell(p), int(p.n_queries)])
     return ["## CoarseHash against the other methods", "",
             "The same centres, truths and window score (docs/protocol.md, \"Compact codes\"): another method's "
@@ -393,7 +394,7 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
             "each method's Pareto front: the "
             "operating points no other point of the method beats on both recall and throughput.", "",
             *(line for name in figures for line in (f"![{name}]({name}.png)", "")), *_words(points, scales), "",
-            table(["scale", "noise", "L", "method (mode)", "B/place", "µs/query", "R@20 % (95 % interval)",
+            table(["scale", "noise", "L", "method (mode)", "family", "B/place", "µs/query", "R@20 % (95 % interval)",
                    "queries"], rows), ""]
 
 

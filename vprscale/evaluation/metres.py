@@ -30,12 +30,12 @@ def metres_section(res: pd.DataFrame, scales: list[str], table) -> list[str]:
     for p in res.sort_values(["pos", "noise", "part", "L", "method", "mode", "radius_m"]).itertuples():
         params = getattr(p, "params", None)
         name = series_label(p.method, p.mode, p.d) + (f" {params}" if isinstance(params, str) and params else "")
-        rows.append([p.scale, p.noise.upper(), p.part, p.L, name, f"{p.radius_m:g}", p.n_queries,
+        rows.append([p.scale, p.noise.upper(), p.part, p.L, name, p.family, f"{p.radius_m:g}", p.n_queries,
                      *(f"{100 * v:.1f}" if v == v else "–" for v in
                        (p.recall, p.recall_lo, p.recall_hi, p.recall_at_5, p.recall_at_20))])
     return ["## Recall within metres", "",
             "A match is correct when its reference lies within the radius of the query's position (as "
             "VPR-methods-evaluation counts its positives; docs/protocol.md, \"Recall within metres\"), for the "
             "parts whose queries have positions (a recipe's store: the FAS part, from FAS100K's poses).", "",
-            table(["scale", "noise", "part", "L", "method (mode)", "radius m", "queries", "recall %", "low %",
+            table(["scale", "noise", "part", "L", "method (mode)", "family", "radius m", "queries", "recall %", "low %",
                    "high %", "R@5 %", "R@20 %"], rows), ""]

@@ -119,6 +119,7 @@ def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path,
         name = series_label(p.method, p.mode, p.d)
         params = getattr(p, "params", None)
         rows.append([p.scale, p.noise.upper(), p.L, name + (f" {params}" if isinstance(params, str) and params else ""),
+                     p.family,
                      *(f"{100 * v:.1f}" if v == v else "–" for v in
                        (p.recall, p.recall_at_5, p.recall_at_10, p.recall_at_20, p.recall_at_p100)),
                      *(f"{v:.3f}" if v == v else "–" for v in
@@ -136,5 +137,5 @@ def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path,
             "run weights each part by its share of the query rows in the table; the curves count each "
             "localised centre once).", "",
             *(line for name in drawn if name for line in (f"![{name}]({name}.png)", "")),
-            table(["scale", "noise", "L", "method (mode)", "R@1 %", "R@5 %", "R@10 %", "R@20 %", "R@100%P %",
+            table(["scale", "noise", "L", "method (mode)", "family", "R@1 %", "R@5 %", "R@10 %", "R@20 %", "R@100%P %",
                    "AUC-PR", "AUC-PR (VPR-Bench)", "AP", "P@100%R"], rows), ""]

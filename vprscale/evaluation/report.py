@@ -29,7 +29,7 @@ from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.core.publish import check_writable, exclusive, keep_beside, refuse_foreign  # noqa: E402
 from vprscale.dataset.recipe import known_scales  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
-from vprscale.evaluation.comparison import compare_section  # noqa: E402
+from vprscale.evaluation.comparison import compare_section, method_family  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
 from vprscale.evaluation.metres import load_metres, metres_section  # noqa: E402
 from vprscale.evaluation.operating import operating_section
@@ -247,6 +247,11 @@ def fig_balance(indexes, out, figures) -> bool:
     return True
 
 
+def _family(rows: pd.DataFrame, method: str) -> str:
+    """The family the rows of one method carry (derived from its name for results older than the column)."""
+    return str(rows.family.iloc[0]) if "family" in rows.columns else method_family(method)
+
+
 def _pct(x: float) -> str:
     return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.1f}"
 
@@ -431,10 +436,10 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
         for (noise, method, mode, L), g in sub.groupby(["noise", "method", "mode", "L"], dropna=False):
             r = g.set_index("radius")["recall"]
             mode = None if pd.isna(mode) else mode
-            rows.append([scale, noise.upper(), L, _label(method, mode), int(g.n_queries.iloc[0]),
+            rows.append([scale, noise.upper(), L, _label(method, mode), _family(g, method), int(g.n_queries.iloc[0]),
                          *(_pct(r.get(x)) for x in (0, 5, 10, 20))])
     md += ["## Recall (%) at radii 0 / 5 / 10 / 20 frames (all queries)", "",
-           _md_table(["scale", "noise", "L", "method", "queries", "R@0", "R@5", "R@10", "R@20"], rows), ""]
+           _md_table(["scale", "noise", "L", "method", "family", "queries", "R@0", "R@5", "R@10", "R@20"], rows), ""]
     md += _stratification_note(res, scales)
     rows = []
     for scale in scales:
