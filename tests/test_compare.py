@@ -284,7 +284,7 @@ def test_report_draws_and_tells_the_comparison(compared, tmp_path):
 def test_trends_draw_coarsehash_as_one_line_across_scales(tmp_path):
     """Against scale, CoarseHash (a different d at each scale) is one series per mode, joined
     across the scales, as each compared method is."""
-    from vprscale.evaluation.comparison import series_label, fig_compare_trends
+    from vprscale.evaluation.comparison import fig_compare_trends, series_label
 
     rows = [(scale, method, d, recall) for scale, d in (("1M", 20), ("10M", 24))
             for method, recall in (("coarsehash", 0.9 if d == 20 else 0.8), ("faiss:PQ3", 0.95))]
@@ -319,7 +319,7 @@ def test_a_method_keeps_its_colour_and_its_modes_their_line_styles():
 def test_the_legend_names_methods_and_modes_apart_and_panels_share_axes(tmp_path):
     """Nine families (three methods in three modes) take a legend of six entries outside the
     panels: each method in its colour, each mode by its marker and line; panels share axes."""
-    from vprscale.evaluation.comparison import series_label, fig_compare
+    from vprscale.evaluation.comparison import fig_compare, series_label
 
     rows = [{"scale": s, "noise": "qm2", "method": m, "mode": mode, "L": L, "d": 20 if m == "coarsehash" else None,
              "recall": 0.5, "recall_lo": 0.4, "recall_hi": 0.6, "bytes_per_place": 3.0, "us_per_query": u}

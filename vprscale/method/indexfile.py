@@ -403,14 +403,17 @@ def read_lists(path: str | Path) -> tuple[np.ndarray, InvertedLists, dict[str, A
 def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLists, dict[str, Any]]:
     """``(hasher, codes, lists, meta)`` of an index directory: the model read, the codes and the
     lists memory-mapped."""
+    codes, lists, meta = read_lists(path)
+    return read_model(Path(path), meta), codes, lists, meta
+
+
+def read_model(path: Path, meta: dict[str, Any]) -> CoarseHasher:
+    """The fitted CoarseHasher of the index directory ``path`` (whose ``index.json`` is ``meta``)."""
     from vprscale.method.coarsehash import CoarseHasher
 
-    codes, lists, meta = read_lists(path)
-    path = Path(path)
     try:
         model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
     except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file (no manifest)
         raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
                          "re-run vprscale index") from None
-    hasher = CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), int(meta["n_ref"]), **model)
-    return hasher, codes, lists, meta
+    return CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), int(meta["n_ref"]), **model)
