@@ -189,7 +189,8 @@ def test_positions_count_every_reference_within_a_radius_in_metres(own_files, tm
     text = (tmp_path / "report" / "report.md").read_text()
     best = res[(res.L == 20) & (res["mode"] == "aligned") & (res.radius_m == 25.0) & (res.part == "all")].iloc[0]
     assert "## Recall within metres" in text
-    row = f"| ref | NIGHT | all | 20 | CoarseHash d=13 (aligned) | hashing | 25 | {best.n_queries} | {100 * best.recall:.1f} |"
+    row = (f"| ref | NIGHT | all | 20 | CoarseHash d=13 (aligned) | hashing | 25 | {best.n_queries} | "
+           f"{100 * best.recall:.1f} |")
     assert row in text
     # a report of your own data: every figure it shows is there, no noise level it does not hold, no
     # comparison with the paper's datasets, which these are not
