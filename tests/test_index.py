@@ -377,3 +377,13 @@ def test_a_large_index_is_decoded_once_into_a_checked_cache_and_mapped(tiny_inde
     monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "a-file" / "cache"))  # cannot be made, even by root
     same(read_index(index))
     assert "cannot be written" in caplog.text
+
+
+def test_bench_format_builds_no_plain_arrays_past_its_bound(tiny_store, tiny_index, monkeypatch):
+    """Past ``PLAIN_PLACES`` (a billion places would take tens of GB and a sort per list, and were
+    killed for memory) the plain side is one line saying so, not an attempt."""
+    from vprscale.jobs import formatbench
+
+    monkeypatch.setattr(formatbench, "PLAIN_PLACES", 1000)
+    out = formatbench.bench_format(str(tiny_store), str(tiny_index))
+    assert out.startswith("plain arrays (format 2's layout): not built for 52,500 places, above 1,000")

@@ -32,6 +32,7 @@ from vprscale.method.index import Index, QueryFrames
 from vprscale.method.indexfile import fill_from_tables, load_index_meta, read_model
 from vprscale.method.kernels import address_delta, bit_planes, match_batch
 
+PLAIN_PLACES = 1 << 27  # the largest index whose plain arrays bench format builds beside the succinct ones
 PREFIX_BITS = (16, 24)  # format 2's prefix table: about one entry per occupied address, 2^16 to 2^24
 
 
@@ -141,9 +142,15 @@ def bench_format(store: str, index: str, Ls: tuple[int, ...] = (1, 100), frames:
                  repeats: int = 5) -> str:
     """Per-frame work and per-query cost of both layouts (µs, one thread, medians of ``repeats``
     with their range), the ratio succinct / plain, and the bytes per place of each. As in the
-    evaluation's runner, a query's cost includes one frame's work (hashing it too)."""
+    evaluation's runner, a query's cost includes one frame's work (hashing it too). Above
+    ``PLAIN_PLACES`` places format 2's arrays are not built (tens of GB, and a sort per list):
+    one line says so."""
     import zarr
 
+    n_ref = int(load_index_meta(Path(index))["n_ref"])
+    if n_ref > PLAIN_PLACES:
+        return (f"plain arrays (format 2's layout): not built for {n_ref:,} places, above {PLAIN_PLACES:,} "
+                f"(about {16 * n_ref / 2**30:,.0f} GiB in memory and a sort per list)")
     idx = Index.load(index).warm()
     q = zarr.open_group(store, mode="r")["query_qm1"]
     start = max(0, q.shape[0] // 2 - frames // 2)
