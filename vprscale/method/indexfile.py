@@ -151,7 +151,7 @@ class _Tables:
         order = np.array(ids, np.int64)
         best = ascending_with_best(order, starts)
         addresses = np.asarray(addresses, np.uint64)
-        self.lists_table.write(np.repeat(addresses, sizes), order.astype(np.uint64), best)
+        self.lists_table.write(np.repeat(addresses, sizes), order.view(np.uint64), best)  # ids ≥ 0: no copy
         self.buckets_table.write(addresses, sizes.astype(np.uint32), (self.n_ids + starts[:-1]).astype(np.uint64))
         self.n_ids += len(order)
         self.n_lists += len(addresses)

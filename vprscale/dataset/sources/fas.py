@@ -22,6 +22,7 @@ import numpy as np
 from vprscale.core.errors import InputError
 from vprscale.core.objects import cache_root, is_url, public
 from vprscale.dataset.sources.base import RowSource
+from vprscale.dataset.sources.fetched import check_fetched
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 
 
@@ -115,6 +116,7 @@ def open_fas(path: str | os.PathLike, quiet: bool = False) -> Traverse:
     p = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
     if not p.is_file():
         raise InputError(f"{p}: no such file")
+    check_fetched(p)  # a file fetch wrote, as it wrote it
     return _open_npz(p, file_fingerprint(p), str(p))
 
 

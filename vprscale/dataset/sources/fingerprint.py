@@ -7,16 +7,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-from vprscale.dataset.sources.fetched import check_fetched
-
 _SAMPLE = 1 << 20
 
 
 def file_fingerprint(path: str | os.PathLike) -> dict[str, Any]:
-    """Identify a file without reading all of it (a full hash of 360 GB would take hours); a file
-    ``vprscale fetch`` wrote is first checked against the manifest it was fetched with."""
+    """Identify a file without reading all of it (a full hash of 360 GB would take hours)."""
     p = Path(path)
-    check_fetched(p)
     size = p.stat().st_size
     h = hashlib.sha256()
     with open(p, "rb") as fh:
