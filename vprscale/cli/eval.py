@@ -30,7 +30,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--d", type=csv_of(int), default=None, help="index widths to sweep, e.g. 12,14,16,18,20")
     p.add_argument("--compare", metavar="FACTORY", action="append", default=[],
                    help="also evaluate a FAISS index_factory string as method faiss:FACTORY, e.g. PQ3, OPQ3,PQ3, "
-                        "ITQ24,LSH, IVF4096,PQ3 (repeat for several; docs/protocol.md)")
+                        "ITQ24,LSH, IVF4096,PQ3; or a pooled sequence descriptor held in one: seq:FACTORY (the "
+                        "mean of each window of L frames), seq-gem3:FACTORY (GeM), with +rerank for CoarseHash's "
+                        "window score over its 20 best (repeat for several; docs/protocol.md)")
     p.add_argument("--faiss-k", type=csv_of(int), default=None,
                    help="references each query frame retrieves from a FAISS index, e.g. 4,16,64: one operating "
                         "point each (default: CoarseHash's mean list size on INDEX, the same candidate budget)")

@@ -11,6 +11,10 @@ BUILT_IN = (
                                            "ITQ24,LSH, IVF4096,PQ3, PQ6x4fs, RaBitQ, IVF4096,RaBitQfs, "
                                            "RQ3x8_Nqint8, IVF4096,RQ4x4fsr_Nrq2x4, LSQ3x8, HNSW32 "
                                            "(docs/protocol.md)"),
+    ("seq:FACTORY", "--compare seq:FACTORY", "a pooled sequence descriptor: each window of L frames pooled into "
+                                             "one row (mean; seq-gem3: GeM) held in a FAISS code, e.g. --compare "
+                                             "seq:PQ3, seq:IVF4096,PQ3, seq-gem3:Flat; +rerank: CoarseHash's window "
+                                             "score ranks its 20 best (docs/protocol.md)"),
     ("CLASS", "--method package.module:Class", "your own class of the small contract (docs/bring-your-own.md)"),
 )
 

@@ -260,7 +260,9 @@ class FaissCodes:
     """One FAISS ``index_factory`` index over the references, with sequence matching on its codes.
 
     ``k`` is the number of references each query frame retrieves (its list), ``nprobe`` the
-    inverted lists an IVF index visits per frame.
+    inverted lists an IVF index visits per frame. ``windows``: whether sequences are scored
+    over its codes; without, only FAISS's search reads them (a pooled sequence descriptor's
+    code, :mod:`vprscale.compared.pooled`), and nothing but the FAISS index is kept.
 
     ``threads`` Python threads run FAISS's encoding and searches, each on blocks of
     ``BLOCK_ROWS`` rows with FAISS single-threaded. FAISS's own multi-threading would give
@@ -269,7 +271,8 @@ class FaissCodes:
     on one thread, give the same codes and lists whatever ``threads`` is.
     """
 
-    def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE, threads: int = 1) -> None:
+    def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE, threads: int = 1,
+                 windows: bool = True) -> None:
         try:
             index = faiss.index_factory(dim, factory)
             if not isinstance(_innermost(index), faiss.IndexHNSWFlat):  # a graph holds rows, not codes
@@ -288,6 +291,7 @@ class FaissCodes:
             raise InputError(f"--compare {factory}: an HNSW graph is compared over the rows themselves (HNSW32, "
                              "or a transform then HNSW32), not over codes")
         self.factory, self.dim, self.k, self.nprobe, self.threads = factory, dim, k, nprobe, threads
+        self.windows = windows  # whether windows are scored over the codes (else FAISS's search alone reads them)
         self.bind(index)
         self.codes = np.zeros((0, self.code_bytes), np.uint8)
         self._filled = 0
@@ -382,6 +386,8 @@ class FaissCodes:
             hnsw = self.inner.hnsw
             links = hnsw.neighbors.size() * 4 + hnsw.offsets.size() * 8 + hnsw.levels.size() * 4
             return float(FLOAT_BYTES * self.inner.d + links / max(1, self.n_ref))
+        if not self.windows:  # FAISS's own entry: a flat code, or an IVF list's code and id
+            return float(self.inner.sa_code_size() if self.ivf is None else self.ivf.code_size + ID_BYTES)
         if self.form == "factors":  # its record (signs, list number, factors), rounded up to whole float32s
             kept = rabitq.record_width(self.inner.d, self._list_bytes)
         else:
@@ -400,7 +406,7 @@ class FaissCodes:
     def frame_ops(self) -> float:
         """Unitary operations of a frame's search (transform, distance tables or coarse step, scan)."""
         transform = sum(2.0 * t.d_in * t.d_out for t in self.chain)
-        width = self.codes.shape[1]
+        width = self.codes.shape[1] if self.windows else self.code_bytes  # the bytes a scan reads of a place
         tables = 0.0  # decoded vectors (a graph's rows): none
         if self.form in ("tables", "residual"):
             tables = self.subs.table_ops(self.dim)  # a frame's tables
@@ -470,7 +476,9 @@ class FaissCodes:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
         width = self.subs.columns if self.form == "tables" and not self.nibbles else self.code_bytes
-        if self.form == "residual":  # a record: the table indices, the list number, the term's level
+        if not self.windows:  # nothing kept beside FAISS's index but a graph's rows, which it links at finish
+            width = self.code_bytes if self.graph else 0
+        elif self.form == "residual":  # a record: the table indices, the list number, the term's level
             width = record_width(self.subs.columns, self.ivf.coarse_code_size())
             self._residual_tables()
         elif self.form == "factors":
@@ -558,6 +566,8 @@ class FaissCodes:
         elif not self.graph:
             self.inner.add_sa_codes(codes)
         lo, self._filled = self._filled, self._filled + len(codes)
+        if not self.windows and not self.graph:
+            return
         if self.form in ("residual", "factors"):
             codes = self.window_records(codes)
         elif self.form == "tables" and not self.nibbles:
@@ -611,7 +621,7 @@ class FaissCodes:
         self.index.ntotal = self.inner.ntotal
         if self.graph:  # the rows themselves, as the graph holds them
             self.vectors = self.codes.view(np.float32)
-        elif self.form == "vectors":  # decoded once, block by block, in the space the inner index searches
+        elif self.form == "vectors" and self.windows:  # decoded once, block by block, as the inner index searches
             self.vectors = np.empty((len(self.codes), self.inner.d), np.float32)
             for i in range(0, len(self.codes), DECODE_ROWS):
                 self.vectors[i : i + DECODE_ROWS] = self.inner.sa_decode(self.codes[i : i + DECODE_ROWS])

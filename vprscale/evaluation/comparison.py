@@ -32,6 +32,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator
 
 from vprscale.compared.faisscodes import code_family
+from vprscale.compared.pooled import is_pooled
 from vprscale.evaluation.accounting import time_cell
 from vprscale.evaluation.results import noise_order
 
@@ -105,6 +106,8 @@ def method_family(method: str) -> str:
     (what the methods themselves say now, :attr:`~vprscale.evaluation.algorithms.base.Algorithm.family`)."""
     if method.startswith("faiss:"):
         return code_family(method.removeprefix("faiss:"))
+    if is_pooled(method):
+        return "sequence descriptor"
     return {OURS: "hashing", "baseline": "baseline"}.get(method, "own")
 
 

@@ -25,6 +25,7 @@ import zarr
 
 from vprscale.compared.encoding import load_encoding, stored_encoding
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
+from vprscale.compared.pooled import PooledCodes, fit_pooled, is_pooled, parse_pooled
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import cache_folder, upload
@@ -256,6 +257,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(_HOLDS.format(out=out))
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
+        pooled = _pooled(req, indexes, dim)
         stored = {m.factory: stored_encoding(req.store, m.factory, identity) for m in compared}  # vprscale encode's
         _check_methods(req, plugged, indexes[0][1])
         base = load_baseline_map(group, layout) if req.baseline else None
@@ -276,11 +278,12 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 list(pool.map(lambda m: load_encoding(stored[m.factory], m),
                               [m for m in compared if stored[m.factory] is not None]))
             to_fit = [m for m in compared if stored[m.factory] is None]
-            ref = reference_rows(req.store, group, req.deep1b, req.fas) if to_fit or plugged else None
+            ref = reference_rows(req.store, group, req.deep1b, req.fas) if to_fit or plugged or pooled else None
             fit_codes(to_fit, ref, req.quiet) if to_fit else None
+            fit_pooled(pooled, ref, not req.quiet) if pooled else None
             fit_s = time.perf_counter() - t_fit
             method_fit_s = _fit_methods(plugged, ref, req.quiet) if plugged else {}
-            rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, plugged)
+            rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, pooled, plugged)
             columns = {"scale": meta["recipe"]["scale"], "store": shown(req.store),
                        "store_identity": identity}
             record = provenance(inputs={"store_identity": identity, "indexes": [
@@ -300,7 +303,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
                                             "bytes_per_place": c.bytes_per_place,
                                             "encoding": str(stored[c.factory]) if stored[c.factory] else None}
-                                   for c in compared}, "compare_fit_s": fit_s if compared else None,
+                                   for c in compared},
+                       "pooled": {p.name: {"pooling": p.spec.pooling, "factory": p.spec.factory,
+                                           "rerank": p.spec.rerank, "lengths": sorted(p.codes),
+                                           "bytes_per_place": p.bytes_per_place} for p in pooled},
+                       "compare_fit_s": fit_s if compared or pooled else None,
                        "methods": {label: {"k": _method_k(req, indexes[0][1]), "fit_s": method_fit_s[label]}
                                    for label, _ in plugged}, **columns,
                        "provenance": record}
@@ -367,12 +374,20 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
             raise InputError(f"--faiss-k {k:,}: at most {min(idx.n_ref, MAX_FAISS_K):,} (the references, and "
                              f"{MAX_FAISS_K:,} per frame: each frame's list is held for every window)")
     k = (req.faiss_k or [_default_k(idx)])[0]
-    methods = [FaissCodes(factory, dim, k, req.faiss_nprobe[0], req.workers) for factory in req.compare]
+    methods = [FaissCodes(factory, dim, k, req.faiss_nprobe[0], req.workers)
+               for factory in req.compare if not is_pooled(factory)]
     for m in methods:
         if m.ivf is not None and m.ivf.nlist > idx.n_ref:
             raise InputError(f"--compare {m.factory}: {m.ivf.nlist:,} inverted lists for {idx.n_ref:,} references; "
                              "FAISS needs at least one reference per list to train")
     return methods
+
+
+def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[PooledCodes]:
+    """The pooled sequence descriptors asked for (``--compare seq:…``), one code per evaluated L > 1."""
+    specs = [parse_pooled(s) for s in req.compare if is_pooled(s)]
+    return [PooledCodes(spec, dim, req.lengths, indexes[0][1].n_ref, req.faiss_nprobe[0], req.workers)
+            for spec in specs]
 
 
 def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -384,7 +399,8 @@ def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
-          compared: list[FaissCodes], plugged: list[tuple[str, Any]]) -> tuple[list[dict], list[dict]]:
+          compared: list[FaissCodes], pooled: list[PooledCodes], plugged: list[tuple[str, Any]]
+          ) -> tuple[list[dict], list[dict]]:
     """Every method of every index on every noise, L and mode; the methods come from the registry."""
     rows: list[dict] = []
     queries: list[dict] = []
@@ -396,8 +412,8 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
     methods = [(path, registry.create(registry.Context(
         index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
-        compared=compared, compare_queries=req.compare_queries, flat_noise=req.flat_noise, faiss_k=req.faiss_k,
-        faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx))))
+        compared=compared, pooled=pooled, compare_queries=req.compare_queries, flat_noise=req.flat_noise,
+        faiss_k=req.faiss_k, faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx))))
         for path, idx in indexes]
     steps = sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths)
                 for noise in req.noises for _, algos in methods for a in algos if a.runs_on(noise))

@@ -46,6 +46,7 @@ from vprscale.compared.encoding import (
     write_trained,
 )
 from vprscale.compared.faisscodes import ENCODE_ROWS, FaissCodes, training_rows
+from vprscale.compared.pooled import is_pooled
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import cache_folder, upload
@@ -119,6 +120,10 @@ def encode_store(store: str | Path | Remote, factories: list[str], deep1b: str |
         raise InputError("encode: give at least one --compare FACTORY")
     if len(set(factories)) != len(factories):
         raise InputError(f"--compare: {next(f for f in factories if factories.count(f) > 1)} given twice")
+    for f in factories:
+        if is_pooled(f):
+            raise InputError(f"--compare {f}: a pooled sequence descriptor is encoded by vprscale eval, one "
+                             "encoding per L; vprscale encode stores frame codes only")
     store = store if isinstance(store, Remote) else location(store)
     group = open_complete_group(store)
     meta = group.attrs[ATTR]

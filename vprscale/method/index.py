@@ -27,6 +27,7 @@ from vprscale.method.kernels import (
     byte_tables,
     decode_codes,
     match_batch,
+    score_centres,
 )
 from vprscale.method.lists import inverted_lists
 from vprscale.method.succinct import pack
@@ -276,6 +277,14 @@ class Index:
         top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, n_best,
                                        numba.get_num_threads())
         return top, scores[:, 0] / float(args[-1]), n_r
+
+    def window_scores(self, qf: QueryFrames, pos: np.ndarray, cand: np.ndarray, L: int) -> np.ndarray:
+        """Fixed-point scores (δ_max = ``DELTA_MAX_UNITS``) of candidate centres ``cand[i, j]``
+        (−1: none, scored ``NO_CANDIDATE``) for the windows centred at positions ``pos`` of the
+        query frames: another method's proposals, scored as this index scores its own."""
+        w, tables, dmax = self.delta_tables()
+        return score_centres(np.ascontiguousarray(cand, np.int64), np.asarray(pos, np.int64), L, qf.hashes,
+                             self.codes, self.code_bits, self.n_ref, w, tables, self.d, self.k, dmax)
 
     def single_scores(self, h: np.ndarray, taken: np.ndarray, errors: np.ndarray | None) -> np.ndarray:
         """L = 1 scores, in δ_max units: the frame's quantisation error (over the centres' span;

@@ -145,6 +145,23 @@ def score_window(c: np.int64, t: np.int64, L: int, half: int, codes: np.ndarray,
     return s
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def score_centres(cand: np.ndarray, positions: np.ndarray, L: int, q_hash: np.ndarray, codes: np.ndarray,
+                  code_bits: int, n_ref: int, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+                  dmax: np.int64) -> np.ndarray:
+    """Window scores of given candidate centres: ``cand[i, j]`` for the window centred at query
+    frame ``positions[i]`` (``NO_CANDIDATE`` where ``cand`` is negative). What re-ranks another
+    method's proposals by CoarseHash's own score (a pooled sequence descriptor's, say)."""
+    out = np.full(cand.shape, NO_CANDIDATE, np.int64)
+    half = L // 2
+    for i in numba.prange(cand.shape[0]):
+        for j in range(cand.shape[1]):
+            if cand[i, j] >= 0:
+                out[i, j] = score_window(cand[i, j], positions[i], L, half, codes, code_bits, n_ref, q_hash, w,
+                                         tables, d, k, dmax, NO_CANDIDATE)
+    return out
+
+
 PREFETCH = 8  # pairs whose reference window is fetched ahead of the one being scored
 QUERY_BLOCK = 1 << 14  # queries matched together at most (a pair holds its query in 20 bits)
 PAIR_BUDGET = 1 << 22  # proposals matched together at most: 32 MB per pair array

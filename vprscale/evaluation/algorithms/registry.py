@@ -3,8 +3,8 @@
 Every entry is a factory ``create(context) -> list[Algorithm]``: given what one evaluation
 of one index has at hand (:class:`Context`), it returns the methods it contributes (none
 when the evaluation did not ask for it). The built-in methods are registered here by
-module path: CoarseHash, the baseline, FAISS codes (``--compare``) and the methods of the
-small contract (``--method``, :mod:`.plugged`).
+module path: CoarseHash, the baseline, FAISS codes and pooled sequence descriptors
+(``--compare``) and the methods of the small contract (``--method``, :mod:`.plugged`).
 
 Installed packages add theirs under the entry-point group ``vprscale.algorithms``: a
 factory (``name = "package.module:create"``) joins every evaluation, as the built-in ones
@@ -32,6 +32,7 @@ BUILTIN = {  # in this order: the grid reports methods in the order they are cre
     "coarsehash": "vprscale.evaluation.algorithms.coarsehash:create",
     "baseline": "vprscale.evaluation.algorithms.baseline:create",
     "faiss": "vprscale.evaluation.algorithms.faisscodes:create",
+    "pooled": "vprscale.evaluation.algorithms.pooled:create",
     "methods": "vprscale.evaluation.algorithms.plugged:create",
 }
 
@@ -52,6 +53,7 @@ class Context:
     baseline: Any = None  # the baseline's map (None: --no-baseline)
     baseline_queries: int | None = None
     compared: list[Any] = field(default_factory=list)  # fitted FAISS codes (--compare)
+    pooled: list[Any] = field(default_factory=list)  # fitted pooled sequence descriptors (--compare seq:…)
     compare_queries: int | None = None
     flat_noise: list[str] | None = None  # noise levels flat (exhaustive-scan) FAISS codes run on (None: all)
     faiss_k: list[int] | None = None  # FAISS operating points: every k (None: the codes' own) …

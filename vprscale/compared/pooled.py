@@ -1,0 +1,224 @@
+"""Pooled sequence descriptors as a compared method (docs/protocol.md, "Sequence descriptors").
+
+Since 2022 the sequence-VPR field pools the ``L`` frames of a window into one descriptor and
+retrieves it (SeqVLAD's and JIST's untrained baselines: the mean, and GeM). Here the window of
+every reference centre and of every query centre is pooled alike, the references' pooled rows
+are held in any FAISS code (``seq:PQ3``, ``seq:IVF4096,PQ3``, ``seq:Flat``), and a query
+window's pooled row is searched in it: its nearest pooled reference is the match. With
+``+rerank`` the code only proposes: CoarseHash's own window score ranks its ``N`` best, as
+CaseVPR refines a sequence descriptor's proposals by frame-to-frame matching.
+
+Reference windows depend on ``L``, so each ``L`` has its own encoding. A window's sum is made
+the same way whatever rows arrive together (:class:`WindowPooler`): the same bytes for any
+chunking of the references.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import dask.array as da
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from vprscale.compared.faisscodes import FaissCodes, training_rows
+from vprscale.core.errors import InputError
+from vprscale.core.progress import ChunkProgress
+
+POOLINGS = {"seq": "mean", "seq-gem3": "gem"}  # prefix of a --compare string → how its windows are pooled
+GEM_P = 3.0  # GeM's exponent (JIST's SeqGeM and GeM's usual starting value)
+DEFAULT_RERANK = 20  # candidates the pooled code proposes to CoarseHash's window score
+POOL_ROWS = 1 << 16  # reference rows pooled at a time (three float64 copies of them are held)
+_SPEC = re.compile(r"^(seq|seq-gem3):(.+?)(\+rerank(\d*))?$")
+
+
+def is_pooled(spec: str) -> bool:
+    """Whether a ``--compare`` string names a pooled sequence descriptor (``seq:…``, ``seq-gem3:…``)."""
+    return spec.split(":", 1)[0] in POOLINGS
+
+
+@dataclass(frozen=True)
+class PooledSpec:
+    """A ``--compare`` string of a pooled descriptor: its pooling, FAISS factory and re-ranking."""
+
+    prefix: str  # "seq" (mean) or "seq-gem3" (GeM, p = 3)
+    factory: str
+    rerank: int | None = None  # candidates CoarseHash's window score re-ranks (None: no re-ranking)
+
+    @property
+    def pooling(self) -> str:
+        return POOLINGS[self.prefix]
+
+    @property
+    def name(self) -> str:
+        """The ``method`` column: the string as given, with the re-ranking's N when not the default."""
+        tail = "" if self.rerank is None else "+rerank" + ("" if self.rerank == DEFAULT_RERANK else str(self.rerank))
+        return f"{self.prefix}:{self.factory}{tail}"
+
+
+def parse_pooled(spec: str) -> PooledSpec:
+    """``seq:FACTORY``, ``seq-gem3:FACTORY``, either with ``+rerank`` or ``+rerankN`` (N ≥ 1)."""
+    found = _SPEC.match(spec)
+    if found is None:
+        raise InputError(f"--compare {spec}: a pooled sequence descriptor is seq:FACTORY or seq-gem3:FACTORY, "
+                         "optionally followed by +rerank or +rerankN (for example seq:PQ3, seq-gem3:Flat+rerank)")
+    prefix, factory, rerank, n = found.groups()
+    if rerank is not None and n and int(n) < 1:
+        raise InputError(f"--compare {spec}: +rerank{n}: re-ranks at least one candidate")
+    return PooledSpec(prefix, factory, None if rerank is None else int(n or DEFAULT_RERANK))
+
+
+class Pooling:
+    """How a window's rows become one: the mean, or GeM (``(mean of x^p)^(1/p)``, p = 3) of rows
+    shifted by the references' per-column minimum and clamped at zero (GeM needs non-negative
+    values; a query value below every reference's counts as that minimum). Sums are float64."""
+
+    def __init__(self, how: str, shift: np.ndarray | None = None) -> None:
+        if how == "gem" and shift is None:
+            raise ValueError("GeM pooling needs the references' per-column minimum")
+        self.how, self.shift = how, shift
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """Rows as they are summed (float64)."""
+        x = np.asarray(x, np.float64)
+        return x if self.how == "mean" else np.maximum(x - self.shift, 0.0) ** GEM_P
+
+    def finish(self, sums: np.ndarray, L: int) -> np.ndarray:
+        """Pooled rows (float32) from window sums."""
+        mean = sums / L
+        return np.asarray(mean if self.how == "mean" else np.cbrt(mean), np.float32)
+
+
+class WindowPooler:
+    """Pooled rows of every complete window of ``L`` consecutive rows, fed rows in order in any
+    pieces (:meth:`push`). A window's sum is read from segments of ``L`` rows at fixed positions
+    (multiples of ``L``): the sum of the rows from its start to the end of its segment, plus the
+    rows of the next segment up to its last (van Herk and Gil-Werman's running sums, two adds a
+    value however long ``L`` is), each a running sum within its segment, so the bytes do not
+    depend on how the rows were cut."""
+
+    def __init__(self, L: int, pooling: Pooling) -> None:
+        self.L, self.pooling = L, pooling
+        self._held = np.zeros((0, 0))  # lifted rows from the segment of the next window's start on
+        self._first = 0  # row number of the first held row (a multiple of L)
+        self._next = 0  # start of the next window to pool
+
+    def push(self, x: np.ndarray) -> np.ndarray:
+        """The pooled rows of the windows the rows so far complete, that earlier pushes did not give."""
+        x = self.pooling.lift(x)
+        held = np.concatenate([self._held, x]) if len(self._held) else x
+        end = self._first + len(held)  # rows seen
+        stop = max(self._next, end - self.L + 1)  # window starts now complete
+        out = self._sums(held, stop - self._next) if stop > self._next else np.zeros((0, held.shape[1]))
+        self._next = stop
+        keep = stop // self.L * self.L  # the segment of the next window's start on
+        self._held, self._first = held[keep - self._first :], keep
+        return self.pooling.finish(out, self.L)
+
+    def _sums(self, held: np.ndarray, n: int) -> np.ndarray:
+        """Sums of the ``n`` windows from ``_next`` on over ``held`` (rows from ``_first``, a multiple of L)."""
+        L, d = self.L, held.shape[1]
+        segments = -(-len(held) // L)
+        padded = np.zeros((segments * L, d))
+        padded[: len(held)] = held
+        padded = padded.reshape(segments, L, d)
+        prefix = np.cumsum(padded, axis=1).reshape(-1, d)  # rows from its segment's start to each
+        suffix = np.cumsum(padded[:, ::-1], axis=1)[:, ::-1].reshape(-1, d)  # rows from each to its segment's end
+        start = np.arange(self._next, self._next + n) - self._first
+        sums = suffix[start]
+        inside = start % L != 0  # a window starting mid-segment ends in the next one
+        sums[inside] += prefix[start[inside] + L - 1]
+        return sums
+
+
+def pool_windows(rows: np.ndarray, pos: np.ndarray, L: int, pooling: Pooling) -> np.ndarray:
+    """Pooled rows of the query windows centred at positions ``pos`` of consecutive ``rows``
+    (each window's frames at consecutive positions), summed in order."""
+    start = np.asarray(pos, np.int64) - L // 2
+    out = np.zeros((len(start), rows.shape[1]))
+    for i in range(L):
+        out += pooling.lift(rows[start + i])
+    return pooling.finish(out, L)
+
+
+class PooledCodes:
+    """One pooled descriptor: for each ``L`` a FAISS code over the pooled rows of every complete
+    reference window, whose row ``r`` is the window centred on reference ``r + ⌊L/2⌋``."""
+
+    def __init__(self, spec: PooledSpec, dim: int, lengths: list[int], n_ref: int, nprobe: int,
+                 threads: int = 1) -> None:
+        self.spec, self.n_ref = spec, n_ref
+        k = max(spec.rerank or 1, 1)
+        try:
+            self.codes = {L: FaissCodes(spec.factory, dim, k, nprobe, threads, windows=False)
+                          for L in lengths if 1 < L <= n_ref}
+        except InputError as err:
+            raise InputError(str(err).replace(f"--compare {spec.factory}", f"--compare {spec.name}", 1)) from None
+        for L, codes in self.codes.items():
+            if codes.ivf is not None and codes.ivf.nlist > self.windows(L):
+                raise InputError(f"--compare {spec.name}: {codes.ivf.nlist:,} inverted lists for "
+                                 f"{self.windows(L):,} reference windows of {L} frames; FAISS needs at least one "
+                                 "window per list to train")
+        self.pooling = Pooling("mean") if spec.pooling == "mean" else None  # GeM's: once the minimum is known
+
+    def windows(self, L: int) -> int:
+        """Complete reference windows of ``L`` frames."""
+        return self.n_ref - L + 1
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def bytes_per_place(self) -> float:
+        """What one ``L``'s encoding stores per place of the map (a window per place, less ``L − 1``)."""
+        if not self.codes:
+            return 0.0
+        L = max(self.codes)
+        return self.codes[L].bytes_per_place * self.windows(L) / self.n_ref
+
+
+def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True) -> None:
+    """Train and encode every pooled descriptor, every ``L``, in two streamed passes over ``ref``
+    (a third before them for GeM's per-column minimum): the first pools the evenly spaced
+    windows each code is trained on, the second pools every window and encodes it. Each code
+    trains with FAISS and its BLAS on one thread, as the FAISS codes compared frame by frame
+    do: the same codes whatever ``--workers``."""
+    if any(m.spec.pooling == "gem" for m in methods):
+        shift = np.asarray(ref.min(axis=0).compute(), np.float64)
+        for m in methods:
+            m.pooling = m.pooling or Pooling("gem", shift)
+    jobs = [(m, L) for m in methods for L in m.codes]
+    sample_at = {(id(m), L): training_rows(m.windows(L)) for m, L in jobs}
+    samples: dict[tuple[int, int], list[np.ndarray]] = {key: [] for key in sample_at}
+
+    def stream(label: str, take: Callable[[PooledCodes, int, int, np.ndarray], None]) -> None:
+        poolers = {(id(m), L): WindowPooler(L, m.pooling) for m, L in jobs}
+        done = dict.fromkeys(poolers, 0)
+        bar = ChunkProgress(label, ref.numblocks[0]) if progress else None
+        for i in range(ref.numblocks[0]):
+            block = np.asarray(ref.blocks[i].compute(), np.float32)
+            for lo in range(0, len(block), POOL_ROWS):
+                for m, L in jobs:
+                    key = (id(m), L)
+                    pooled = poolers[key].push(block[lo : lo + POOL_ROWS])
+                    take(m, L, done[key], pooled)
+                    done[key] += len(pooled)
+            if bar:
+                bar.update(1)
+
+    def keep_sample(m: PooledCodes, L: int, first: int, pooled: np.ndarray) -> None:
+        at = sample_at[(id(m), L)]
+        chosen = at[(at >= first) & (at < first + len(pooled))]
+        samples[(id(m), L)].append(pooled[chosen - first])
+
+    stream("pool reference windows (training sample)", keep_sample)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for m, L in jobs:
+            m.codes[L].train(np.concatenate(samples.pop((id(m), L))))
+            m.codes[L].start(m.windows(L))
+    stream("pool and encode reference windows", lambda m, L, first, pooled: m.codes[L].encode(pooled))
+    for m, L in jobs:
+        m.codes[L].finish()
