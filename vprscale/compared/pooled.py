@@ -20,12 +20,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import dask.array as da
+import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.errors import InputError
-from vprscale.core.progress import ChunkProgress
+from vprscale.core.progress import ChunkProgress, Timings
 
 POOLINGS = {"seq": "mean", "seq-gem3": "gem"}  # prefix of a --compare string → how its windows are pooled
 GEM_P = 3.0  # GeM's exponent (JIST's SeqGeM and GeM's usual starting value)
@@ -119,18 +120,33 @@ class WindowPooler:
 
     def _sums(self, held: np.ndarray, n: int) -> np.ndarray:
         """Sums of the ``n`` windows from ``_next`` on over ``held`` (rows from ``_first``, a multiple of L)."""
-        L, d = self.L, held.shape[1]
-        segments = -(-len(held) // L)
-        padded = np.zeros((segments * L, d))
-        padded[: len(held)] = held
-        padded = padded.reshape(segments, L, d)
-        prefix = np.cumsum(padded, axis=1).reshape(-1, d)  # rows from its segment's start to each
-        suffix = np.cumsum(padded[:, ::-1], axis=1)[:, ::-1].reshape(-1, d)  # rows from each to its segment's end
-        start = np.arange(self._next, self._next + n) - self._first
-        sums = suffix[start]
-        inside = start % L != 0  # a window starting mid-segment ends in the next one
-        sums[inside] += prefix[start[inside] + L - 1]
-        return sums
+        return segment_sums(np.ascontiguousarray(held), self._next - self._first, n, self.L)
+
+
+@numba.njit(cache=True, nogil=True)
+def segment_sums(held: np.ndarray, first: int, n: int, L: int) -> np.ndarray:
+    """Sums of the ``n`` windows of ``L`` rows starting at rows ``first, first + 1, …`` of
+    ``held``, whose row 0 starts a segment: the running sum from a window's start to its
+    segment's end, plus the next segment's running sum from its start to the window's last row."""
+    rows, d = held.shape
+    prefix, suffix = np.empty_like(held), np.empty_like(held)
+    for s in range(0, rows, L):
+        e = min(rows, s + L)
+        for c in range(d):
+            prefix[s, c] = held[s, c]
+            suffix[e - 1, c] = held[e - 1, c]
+        for i in range(s + 1, e):
+            for c in range(d):
+                prefix[i, c] = prefix[i - 1, c] + held[i, c]
+        for i in range(e - 2, s - 1, -1):
+            for c in range(d):
+                suffix[i, c] = suffix[i + 1, c] + held[i, c]
+    out = np.empty((n, d))
+    for w in range(n):
+        j = first + w
+        for c in range(d):
+            out[w, c] = suffix[j, c] + prefix[j + L - 1, c] if j % L else suffix[j, c]
+    return out
 
 
 def pool_windows(rows: np.ndarray, pos: np.ndarray, L: int, pooling: Pooling) -> np.ndarray:
@@ -191,21 +207,24 @@ def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True)
         for m in methods:
             m.pooling = m.pooling or Pooling("gem", shift)
     jobs = [(m, L) for m in methods for L in m.codes]
+    kinds = {(m.spec.pooling, L): m.pooling for m, L in jobs}  # pooled once, for every code of that pooling
     sample_at = {(id(m), L): training_rows(m.windows(L)) for m, L in jobs}
     samples: dict[tuple[int, int], list[np.ndarray]] = {key: [] for key in sample_at}
+    timings = Timings(not progress)
 
     def stream(label: str, take: Callable[[PooledCodes, int, int, np.ndarray], None]) -> None:
-        poolers = {(id(m), L): WindowPooler(L, m.pooling) for m, L in jobs}
+        poolers = {kind: WindowPooler(kind[1], pooling) for kind, pooling in kinds.items()}
         done = dict.fromkeys(poolers, 0)
         bar = ChunkProgress(label, ref.numblocks[0]) if progress else None
         for i in range(ref.numblocks[0]):
             block = np.asarray(ref.blocks[i].compute(), np.float32)
             for lo in range(0, len(block), POOL_ROWS):
-                for m, L in jobs:
-                    key = (id(m), L)
-                    pooled = poolers[key].push(block[lo : lo + POOL_ROWS])
-                    take(m, L, done[key], pooled)
-                    done[key] += len(pooled)
+                for kind, pooler in poolers.items():
+                    pooled = pooler.push(block[lo : lo + POOL_ROWS])
+                    for m, L in jobs:
+                        if (m.spec.pooling, L) == kind:
+                            take(m, L, done[kind], pooled)
+                    done[kind] += len(pooled)
             if bar:
                 bar.update(1)
 
@@ -214,11 +233,14 @@ def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True)
         chosen = at[(at >= first) & (at < first + len(pooled))]
         samples[(id(m), L)].append(pooled[chosen - first])
 
-    stream("pool reference windows (training sample)", keep_sample)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with timings.stage(f"pool the training windows of {len(methods)} sequence descriptor(s)"):
+        stream("pool reference windows (training sample)", keep_sample)
+    with timings.stage(f"train {len(jobs)} pooled code(s), one per descriptor and L"), \
+            threadpool_limits(limits=1, user_api="blas"):
         for m, L in jobs:
             m.codes[L].train(np.concatenate(samples.pop((id(m), L))))
             m.codes[L].start(m.windows(L))
-    stream("pool and encode reference windows", lambda m, L, first, pooled: m.codes[L].encode(pooled))
-    for m, L in jobs:
-        m.codes[L].finish()
+    with timings.stage(f"pool and encode {ref.shape[0]:,} references' windows"):
+        stream("pool and encode reference windows", lambda m, L, first, pooled: m.codes[L].encode(pooled))
+        for m, L in jobs:
+            m.codes[L].finish()
