@@ -62,6 +62,11 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--radius-m", type=csv_of(float), default=None, metavar="R",
                    help="also count a match correct within these radii in metres of the query's position, e.g. "
                         "10,25,50 (a store with positions: build --ref-pos --query-pos); rows in results_m.parquet")
+    p.add_argument("--nn", action="store_true",
+                   help="also the nearest-neighbour axis: 1-NN recall at 1, 10 and 100 of CoarseHash and each FAISS "
+                        "code against exact neighbours found by brute force, on Deep1B query rows; nn.parquet")
+    p.add_argument("--nn-queries", type=positive_int, default=10_000, metavar="N",
+                   help="Deep1B query rows per noise level for --nn, evenly spaced (default 10,000)")
     p.add_argument("--repeats", type=positive_int, default=3,
                    help="timing repeats of every timed kernel, on one thread (default 3; docs/accounting.md)")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
@@ -84,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
                       flat_noise=args.flat_noise,
                       deep1b=args.deep1b, fas=args.fas, out=location(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
-                      force=args.force, radii_m=args.radius_m)
+                      force=args.force, radii_m=args.radius_m, nn=args.nn, nn_queries=args.nn_queries)
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
         if args.compare or args.methods:
             flag = "--compare" if args.compare else "--method"
@@ -98,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
     print(summary["table"])
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
           f"({summary['queries']:,} rows)" + (f", results_m.parquet (radii {','.join(f'{r:g}' for r in args.radius_m)}"
-                                            " m)" if args.radius_m else "") + f"; z = {summary['z']}")
+                                            " m)" if args.radius_m else "") + (", nn.parquet" if args.nn else "")
+          + f"; z = {summary['z']}")
     write_summary(args, summary)
     return 0

@@ -386,13 +386,21 @@ class FaissCodes:
             hnsw = self.inner.hnsw
             links = hnsw.neighbors.size() * 4 + hnsw.offsets.size() * 8 + hnsw.levels.size() * 4
             return float(FLOAT_BYTES * self.inner.d + links / max(1, self.n_ref))
-        if not self.windows:  # FAISS's own entry: a flat code, or an IVF list's code and id
-            return float(self.inner.sa_code_size() if self.ivf is None else self.ivf.code_size + ID_BYTES)
+        if not self.windows:
+            return self.entry_bytes
         if self.form == "factors":  # its record (signs, list number, factors), rounded up to whole float32s
             kept = rabitq.record_width(self.inner.d, self._list_bytes)
         else:
             kept = self.inner.sa_code_size() + (REF_LEVEL_BYTES if self.form == "residual" else 0)  # a term's level
         return float(kept if self.ivf is None else self.ivf.code_size + ID_BYTES + kept)
+
+    @property
+    def entry_bytes(self) -> float:
+        """What FAISS's own index stores per place to answer a frame's search (not the windows'
+        records): a flat code, an IVF list's code and 64-bit id, a graph's row and links."""
+        if self.graph:
+            return self.bytes_per_place
+        return float(self.inner.sa_code_size() if self.ivf is None else self.ivf.code_size + ID_BYTES)
 
     def scan_per_frame(self) -> float:
         """Places (codes) a frame's search visits: all of them, the probed lists' share, or

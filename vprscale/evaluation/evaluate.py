@@ -42,6 +42,7 @@ from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit,
 from vprscale.evaluation.algorithms.faisscodes import fit_codes
 from vprscale.evaluation.algorithms.plugged import load_method
 from vprscale.evaluation.metrics import RADII, TOP_N, metrics_at, recall_curve, run_metrics, top_distance
+from vprscale.evaluation.nearest import check_nn, exact_neighbours, nn_rows
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
 from vprscale.method.index import Index
 from vprscale.protocol import (
@@ -59,6 +60,7 @@ log = logging.getLogger(__name__)
 DEFAULT_NOISES = ("qm1", "qm2")  # the query sets of a recipe-built store (own stores list theirs in the layout)
 _HOLDS = ("{out}: already holds an evaluation; --force replaces it and keeps it beside, in {out.name}.previous/ "
           "(or give another --out)")
+NN_QUERIES = 10_000  # query rows of the nearest-neighbour axis (Deep1M's and Deep1B's query sets hold 10,000)
 MAX_FAISS_K = 1 << 14  # references a FAISS frame may retrieve (the lists of every held frame stay in memory)
 
 
@@ -85,6 +87,8 @@ class EvalRequest:
     deep1b: str | None = None  # a compact store's sources, to recompute its references (synthetic: not needed)
     fas: str | None = None
     radii_m: list[float] | None = None  # radii in metres (a store with positions): results_m.parquet
+    nn: bool = False  # the nearest-neighbour axis: nn.parquet
+    nn_queries: int = NN_QUERIES  # Deep1B query rows it is measured on (evenly spaced)
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
     out: Path | Remote | None = None  # a URL's evaluation is made in the cache, then uploaded
@@ -260,6 +264,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         pooled = _pooled(req, indexes, dim)
         stored = {m.factory: stored_encoding(req.store, m.factory, identity) for m in compared}  # vprscale encode's
         _check_methods(req, plugged, indexes[0][1])
+        if req.nn:
+            check_nn(indexes[0][1])
         base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
             for path in index_paths:  # re-indexing is refused during evaluations of the index, not they of each other
@@ -278,7 +284,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                 list(pool.map(lambda m: load_encoding(stored[m.factory], m),
                               [m for m in compared if stored[m.factory] is not None]))
             to_fit = [m for m in compared if stored[m.factory] is None]
-            ref = reference_rows(req.store, group, req.deep1b, req.fas) if to_fit or plugged or pooled else None
+            needs_ref = to_fit or plugged or pooled or req.nn
+            ref = reference_rows(req.store, group, req.deep1b, req.fas) if needs_ref else None
             fit_codes(to_fit, ref, req.quiet) if to_fit else None
             fit_pooled(pooled, ref, not req.quiet) if pooled else None
             fit_s = time.perf_counter() - t_fit
@@ -294,9 +301,13 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             _write_parquet(partial.path / "queries.parquet", queries, columns, record)
             if rows_m:
                 _write_parquet(partial.path / "results_m.parquet", rows_m, columns, record)
+            if req.nn:
+                _write_parquet(partial.path / "nn.parquet", _nn(req, qs, indexes[0][1], dim, compared, ref),
+                               columns, record)
             summary = {"wall_s": time.perf_counter() - t_start, "peak_rss_bytes": cluster_peak_rss(client), "z": z,
                        "noises": req.noises, "flat_noise": req.flat_noise,
-                       "radii_m": req.radii_m, "lengths": req.lengths, "modes": req.modes,
+                       "radii_m": req.radii_m, "nn_queries": req.nn_queries if req.nn else None,
+                       "lengths": req.lengths, "modes": req.modes,
                        "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": _index_sources(req),
@@ -381,6 +392,20 @@ def _compared(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> 
             raise InputError(f"--compare {m.factory}: {m.ivf.nlist:,} inverted lists for {idx.n_ref:,} references; "
                              "FAISS needs at least one reference per list to train")
     return methods
+
+
+def _nn(req: EvalRequest, qs: QuerySet, idx: Index, dim: int, compared: list[FaissCodes], ref: Any
+        ) -> list[dict]:
+    """``nn.parquet``'s rows: on ``nn_queries`` evenly spaced query rows of the Deep1B part of each
+    noise level, their exact neighbours found in one scan of the references for every level."""
+    held = np.arange(qs.n_deep) if qs.frames is None else qs.frames[qs.frames < qs.n_deep]
+    frames = held[spread(len(held), req.nn_queries)]
+    rows = {noise: qs.rows(noise, frames) for noise in req.noises}
+    truth = exact_neighbours(ref, np.concatenate(list(rows.values())), req.workers, not req.quiet)
+    found = []
+    for i, (noise, x) in enumerate(rows.items()):
+        found += nn_rows(noise, x, truth[i * len(frames) : (i + 1) * len(frames)], idx, dim, compared)
+    return found
 
 
 def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[PooledCodes]:

@@ -61,7 +61,8 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
              "baseline": ("bool", False), "z": ("int", False), "compare": ("list[str]", False),
              "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
              "flat_noise": ("list[str]", False), "radius_m": ("list[float]", False),
-             "methods": ("list[str]", False), "method_k": ("list[int]", False), "repeats": ("int", False)},
+             "methods": ("list[str]", False), "method_k": ("list[int]", False), "repeats": ("int", False),
+             "nn": ("bool", False), "nn_queries": ("int", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
 PRODUCERS = {"source": {"synth"}, "store": {"build"}, "index": {"index"}, "results": {"eval"},
@@ -519,7 +520,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
             cmd += ["--compare", factory]
         for method in p.get("methods", []):
             cmd += ["--method", method]
-        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats", "radius_m"):
+        cmd += ["--nn"] if p.get("nn") else []
+        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats", "radius_m", "nn_queries"):
             value = ",".join(map(str, p[key])) if isinstance(p.get(key), list) else str(p.get(key))
             cmd += ["--" + key.replace("_", "-"), value] if key in p else []
         # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)
