@@ -65,11 +65,11 @@ def nearest(tiny_store, tiny_index, tmp_path_factory):
         assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1,qm2", "--no-baseline",
                      "--repeats", "1", "--compare", "PQ4np", "--compare", "IVF32,PQ4np", "--nn", "--nn-queries",
                      "500", "--out", str(out)]) == 0
-    return pq.read_table(out / "nn.parquet").to_pandas(), json.loads((out / "eval.json").read_text())
+    return pq.read_table(out / "nn.parquet").to_pandas(), json.loads((out / "eval.json").read_text()), out
 
 
 def test_nn_parquet_holds_each_method_on_each_noise_level(nearest):
-    nn, meta = nearest
+    nn, meta, _ = nearest
     assert meta["nn_queries"] == 500
     assert sorted(zip(nn.noise, nn.method, strict=True)) == sorted(
         (n, m) for n in ("qm1", "qm2") for m in ("coarsehash", "faiss:PQ4np", "faiss:IVF32,PQ4np"))
@@ -83,7 +83,7 @@ def test_nn_parquet_holds_each_method_on_each_noise_level(nearest):
 def test_nn_recalls_are_faiss_own_search_against_brute_force(nearest, tiny_store):
     """The recalls of a FAISS code: its own top 100 of the same rows, against the exact neighbours
     by numpy's brute force."""
-    nn, _ = nearest
+    nn, _, _ = nearest
     group = zarr.open_group(tiny_store, mode="r")
     ref = group["ref"][:]
     from vprscale.compared.faisscodes import training_rows
@@ -119,3 +119,25 @@ def test_addresses_of_one_hamming_distance_come_cheapest_first():
     two = _masks(4, 2, gaps)
     cost = [sum(int(gaps[b]) for b in range(4) if m >> b & 1) for m in two.tolist()]
     assert cost == sorted(cost) and two.tolist()[:2] == [0b1010, 0b0110]
+
+
+def test_report_shows_the_nn_table_beside_the_published_figures(nearest, tmp_path):
+    nn, _, out = nearest
+    assert main(["report", str(out), "--out", str(tmp_path / "r")]) == 0
+    md = (tmp_path / "r" / "report.md").read_text()
+    section = md[md.index("## Nearest-neighbour recall"):]
+    section = section[: section.find("\n## ", 3) if "\n## " in section[3:] else None]
+    assert section.count("| tiny |") == len(nn) and "OPQ20_80,IMI2x14,PQ20" in section
+    assert f"| {nn.recall_at_100.iloc[0]:.3f} |" in section
+    assert (tmp_path / "r" / "fig_nn.png").is_file()
+
+
+def test_the_sql_console_has_the_nn_table(nearest, capsys):
+    nn, _, out = nearest
+    capsys.readouterr()
+    assert main(["sql", str(out), "SELECT method, recall_at_100 FROM nn WHERE noise = 'qm1' ORDER BY method",
+                 "--json"]) == 0
+    got = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    want = nn[nn.noise == "qm1"].sort_values("method")
+    assert [r["method"] for r in got] == want.method.tolist()
+    assert [r["recall_at_100"] for r in got] == pytest.approx(want.recall_at_100.tolist())

@@ -32,6 +32,7 @@ from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section, method_family  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
 from vprscale.evaluation.metres import load_metres, metres_section  # noqa: E402
+from vprscale.evaluation.nnreport import load_nn, nn_section  # noqa: E402
 from vprscale.evaluation.operating import operating_section
 from vprscale.evaluation.prcurves import pr_section  # noqa: E402
 from vprscale.evaluation.results import eval_folder, main_noise, noise_order  # noqa: E402
@@ -410,6 +411,7 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     compared += pr_section(res, list(dict.fromkeys(res.run)), scales, out, save, _md_table)
     metres = load_metres(list(dict.fromkeys(res.run)))
     compared += metres_section(metres, scales, _md_table)
+    compared += nn_section(load_nn(list(dict.fromkeys(res.run))), scales, out, save, _md_table)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared)
     (out / "report.md").write_text(text)
     write_html(res, metres, _provenance_block(evals), REPORT_TITLE.removeprefix("# "), out)
