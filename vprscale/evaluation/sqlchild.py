@@ -30,7 +30,8 @@ PR_SET_PDEATHSIG = 1
 GRACE_S = 5.0  # how long an interrupted query may take to stop before it is abandoned
 
 
-RUN_TABLES = ("results", "queries", "results_m", "nn")  # views of every evaluation given, one table, a ``run`` column each
+# views of every evaluation given, one table each, with a ``run`` column
+RUN_TABLES = ("results", "queries", "results_m", "nn")
 
 
 INDEX_VIEWS = {"lists": "lists.parquet", "buckets": "buckets.parquet", "model": "components.parquet"}
