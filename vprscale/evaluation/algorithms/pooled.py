@@ -61,8 +61,7 @@ class PooledMethod(Algorithm):
             params.append(f"nprobe={codes.nprobe}")
         if self.rerank:
             params.append(f"rerank={self.rerank}")
-        return {"d": self.index.d if self.rerank else None, "K": self.index.k if self.rerank else None,
-                "params": " ".join(params)}
+        return {"d": None, "K": None, "params": " ".join(params)}  # d and K: CoarseHash's own rows
 
     def modes(self, L: int, requested: list[str]) -> list[str | None]:
         return [None] if L in self.pooled.codes else []
