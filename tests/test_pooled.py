@@ -66,7 +66,7 @@ def pooled(tiny_store, tiny_index, tmp_path_factory):
     return {"results": pq.read_table(out / "results.parquet").to_pandas(),
             "queries": pq.read_table(out / "queries.parquet").to_pandas(),
             "meta": json.loads((out / "eval.json").read_text()),
-            "ref": group["ref"][:], "query": group["query_qm1"][:]}
+            "ref": group["ref"][:], "query": group["query_qm1"][:], "out": out}
 
 
 def _rows(pooled, method: str):
@@ -165,3 +165,14 @@ def test_bad_pooled_strings_are_one_line_and_exit_2(tiny_store, tiny_index, tmp_
 def test_encode_says_pooled_descriptors_are_encoded_by_eval(tiny_store, capsys):
     assert main(["encode", str(tiny_store), "--compare", "seq:PQ3"]) == 2
     assert "encoded by vprscale eval, one encoding per L" in capsys.readouterr().err
+
+
+def test_report_tables_pooled_descriptors_as_sequence_methods(pooled, tmp_path):
+    """The report draws the paper's figures from CoarseHash and the baseline alone, and files the
+    pooled descriptors with the compared methods, each as a sequence series of its family."""
+    assert main(["report", str(pooled["out"]), "--out", str(tmp_path / "r")]) == 0
+    md = (tmp_path / "r" / "report.md").read_text()
+    for name in ("seq:Flat", "seq-gem3:Flat+rerank", "seq:PQ4np"):
+        assert f"| {name} pooling=" in md and f"{name} (sequence)" in md
+    recall_table = md[md.index("## Recall (%) at radii"):].split("\n## ")[0]
+    assert "seq" not in recall_table and "sequence descriptor" in md
