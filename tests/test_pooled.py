@@ -15,7 +15,7 @@ import pytest
 import zarr
 
 from vprscale.cli import main
-from vprscale.compared.pooled import Pooling, WindowPooler, parse_pooled, pool_windows
+from vprscale.compared.pooled import Pooling, WindowPooler, parse_pooled, pool_windows, pooled_encodings
 from vprscale.method.index import Index
 
 L_SEQ = 9
@@ -61,7 +61,8 @@ def pooled(tiny_store, tiny_index, tmp_path_factory):
     out = tmp_path_factory.mktemp("pooled")
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", f"1,{L_SEQ}", "--z", "97", "--noise", "qm1",
                  "--modes", "paper", "--no-baseline", "--repeats", "1", "--out", str(out),
-                 "--compare", "seq:Flat", "--compare", "seq-gem3:Flat+rerank", "--compare", "seq:PQ4np"]) == 0
+                 "--compare", "seq:Flat", "--compare", "seq-gem3:Flat+rerank", "--compare", "seq:PQ4np",
+                 "--compare", "seq:Flat+rerank5"]) == 0
     group = zarr.open_group(tiny_store, mode="r")
     return {"results": pq.read_table(out / "results.parquet").to_pandas(),
             "queries": pq.read_table(out / "queries.parquet").to_pandas(),
@@ -77,7 +78,7 @@ def _rows(pooled, method: str):
 def test_pooled_methods_run_on_sequences_only_as_their_family(pooled):
     res = pooled["results"]
     seq = res[res.method.str.startswith("seq")]
-    assert set(seq.method) == {"seq:Flat", "seq-gem3:Flat+rerank", "seq:PQ4np"}
+    assert set(seq.method) == {"seq:Flat", "seq-gem3:Flat+rerank", "seq:PQ4np", "seq:Flat+rerank5"}
     assert set(seq.L) == {L_SEQ} and seq["mode"].isna().all()
     assert set(seq.family) == {"sequence descriptor"}
     dim, n_ref = pooled["ref"].shape[1], len(pooled["ref"])
@@ -150,6 +151,18 @@ def test_reranked_match_is_coarsehash_best_among_the_pooled_proposals(pooled, ti
         if set(ranked) == {int(c) for c in proposed}:
             assert scores[match] == min(scores.values())
     assert same >= 0.9 * len(rows)
+
+
+def test_a_code_and_its_reranking_share_one_encoding(pooled):
+    """seq:Flat+rerank5 re-ranks the five windows seq:Flat retrieves: the same encoding, searched once more."""
+    plain, reranked = _rows(pooled, "seq:Flat"), _rows(pooled, "seq:Flat+rerank5")
+    assert plain.t.tolist() == reranked.t.tolist()
+    for top, again in zip(plain.top, reranked.top, strict=True):
+        assert set(again[:5]) == set(top[:5]) and (again[5:] == -1).all()
+    shared = pooled_encodings([parse_pooled(s) for s in ("seq:PQ3", "seq-gem3:PQ3", "seq:PQ3+rerank")], 96, [1, 50],
+                              10_000, 16)
+    assert [[s.name for s in p.specs] for p in shared] == [["seq:PQ3", "seq:PQ3+rerank"], ["seq-gem3:PQ3"]]
+    assert [list(p.codes) for p in shared] == [[50], [50]]
 
 
 @pytest.mark.parametrize(("spec", "says"), [

@@ -160,32 +160,31 @@ def pool_windows(rows: np.ndarray, pos: np.ndarray, L: int, pooling: Pooling) ->
 
 
 class PooledCodes:
-    """One pooled descriptor: for each ``L`` a FAISS code over the pooled rows of every complete
-    reference window, whose row ``r`` is the window centred on reference ``r + ⌊L/2⌋``."""
+    """One pooled encoding: for each ``L`` a FAISS code over the pooled rows of every complete
+    reference window, whose row ``r`` is the window centred on reference ``r + ⌊L/2⌋``. The
+    ``specs`` asked for that share it (``seq:F`` and ``seq:F+rerank``: one pooling, one code)
+    read the same codes."""
 
-    def __init__(self, spec: PooledSpec, dim: int, lengths: list[int], n_ref: int, nprobe: int,
+    def __init__(self, specs: list[PooledSpec], dim: int, lengths: list[int], n_ref: int, nprobe: int,
                  threads: int = 1) -> None:
-        self.spec, self.n_ref = spec, n_ref
-        k = max(spec.rerank or 1, 1)
+        self.specs, self.n_ref = specs, n_ref
+        self.spec = PooledSpec(specs[0].prefix, specs[0].factory)  # the encoding: a pooling and a code
+        named = specs[0].name  # as the user wrote it, for messages
         try:
-            self.codes = {L: FaissCodes(spec.factory, dim, k, nprobe, threads, windows=False)
+            self.codes = {L: FaissCodes(self.spec.factory, dim, 1, nprobe, threads, windows=False)
                           for L in lengths if 1 < L <= n_ref}
         except InputError as err:
-            raise InputError(str(err).replace(f"--compare {spec.factory}", f"--compare {spec.name}", 1)) from None
+            raise InputError(str(err).replace(f"--compare {self.spec.factory}", f"--compare {named}", 1)) from None
         for L, codes in self.codes.items():
             if codes.ivf is not None and codes.ivf.nlist > self.windows(L):
-                raise InputError(f"--compare {spec.name}: {codes.ivf.nlist:,} inverted lists for "
+                raise InputError(f"--compare {named}: {codes.ivf.nlist:,} inverted lists for "
                                  f"{self.windows(L):,} reference windows of {L} frames; FAISS needs at least one "
                                  "window per list to train")
-        self.pooling = Pooling("mean") if spec.pooling == "mean" else None  # GeM's: once the minimum is known
+        self.pooling = Pooling("mean") if self.spec.pooling == "mean" else None  # GeM's: once the minimum is known
 
     def windows(self, L: int) -> int:
         """Complete reference windows of ``L`` frames."""
         return self.n_ref - L + 1
-
-    @property
-    def name(self) -> str:
-        return self.spec.name
 
     @property
     def bytes_per_place(self) -> float:
@@ -196,8 +195,17 @@ class PooledCodes:
         return self.codes[L].bytes_per_place * self.windows(L) / self.n_ref
 
 
+def pooled_encodings(specs: list[PooledSpec], dim: int, lengths: list[int], n_ref: int, nprobe: int,
+                     threads: int = 1) -> list[PooledCodes]:
+    """One :class:`PooledCodes` per pooling and code asked for, in the order first asked."""
+    shared: dict[tuple[str, str], list[PooledSpec]] = {}
+    for spec in specs:
+        shared.setdefault((spec.prefix, spec.factory), []).append(spec)
+    return [PooledCodes(group, dim, lengths, n_ref, nprobe, threads) for group in shared.values()]
+
+
 def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True) -> None:
-    """Train and encode every pooled descriptor, every ``L``, in two streamed passes over ``ref``
+    """Train and encode every pooled encoding, every ``L``, in two streamed passes over ``ref``
     (a third before them for GeM's per-column minimum): the first pools the evenly spaced
     windows each code is trained on, the second pools every window and encodes it. Each code
     trains with FAISS and its BLAS on one thread, as the FAISS codes compared frame by frame
@@ -233,9 +241,9 @@ def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True)
         chosen = at[(at >= first) & (at < first + len(pooled))]
         samples[(id(m), L)].append(pooled[chosen - first])
 
-    with timings.stage(f"pool the training windows of {len(methods)} sequence descriptor(s)"):
+    with timings.stage(f"pool the training windows of {len(methods)} pooled encoding(s)"):
         stream("pool reference windows (training sample)", keep_sample)
-    with timings.stage(f"train {len(jobs)} pooled code(s), one per descriptor and L"), \
+    with timings.stage(f"train {len(jobs)} pooled code(s), one per encoding and L"), \
             threadpool_limits(limits=1, user_api="blas"):
         for m, L in jobs:
             m.codes[L].train(np.concatenate(samples.pop((id(m), L))))

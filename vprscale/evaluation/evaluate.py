@@ -25,7 +25,7 @@ import zarr
 
 from vprscale.compared.encoding import load_encoding, stored_encoding
 from vprscale.compared.faisscodes import DEFAULT_NPROBE, FaissCodes
-from vprscale.compared.pooled import PooledCodes, fit_pooled, is_pooled, parse_pooled
+from vprscale.compared.pooled import PooledCodes, fit_pooled, is_pooled, parse_pooled, pooled_encodings
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import cache_folder, upload
@@ -315,9 +315,9 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                                             "bytes_per_place": c.bytes_per_place,
                                             "encoding": str(stored[c.factory]) if stored[c.factory] else None}
                                    for c in compared},
-                       "pooled": {p.name: {"pooling": p.spec.pooling, "factory": p.spec.factory,
-                                           "rerank": p.spec.rerank, "lengths": sorted(p.codes),
-                                           "bytes_per_place": p.bytes_per_place} for p in pooled},
+                       "pooled": {s.name: {"pooling": s.pooling, "factory": s.factory, "rerank": s.rerank,
+                                           "lengths": sorted(p.codes), "bytes_per_place": p.bytes_per_place}
+                                  for p in pooled for s in p.specs},
                        "compare_fit_s": fit_s if compared or pooled else None,
                        "methods": {label: {"k": _method_k(req, indexes[0][1]), "fit_s": method_fit_s[label]}
                                    for label, _ in plugged}, **columns,
@@ -409,10 +409,10 @@ def _nn(req: EvalRequest, qs: QuerySet, idx: Index, dim: int, compared: list[Fai
 
 
 def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[PooledCodes]:
-    """The pooled sequence descriptors asked for (``--compare seq:…``), one code per evaluated L > 1."""
+    """The pooled sequence descriptors asked for (``--compare seq:…``): an encoding per pooling and
+    code, with a code per evaluated L > 1."""
     specs = [parse_pooled(s) for s in req.compare if is_pooled(s)]
-    return [PooledCodes(spec, dim, req.lengths, indexes[0][1].n_ref, req.faiss_nprobe[0], req.workers)
-            for spec in specs]
+    return pooled_encodings(specs, dim, req.lengths, indexes[0][1].n_ref, req.faiss_nprobe[0], req.workers)
 
 
 def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from vprscale.compared.pooled import PooledCodes, pool_windows
+from vprscale.compared.pooled import PooledCodes, PooledSpec, pool_windows
 from vprscale.evaluation.accounting import method_ops
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, top_columns
 from vprscale.evaluation.algorithms.coarsehash import CoarseHash
@@ -33,10 +33,11 @@ class PooledMethod(Algorithm):
     family = "sequence descriptor"
     timed_side_by_side = True
 
-    def __init__(self, pooled: PooledCodes, index: Index, dim: int, n_centres: int, query_limit: int | None) -> None:
+    def __init__(self, pooled: PooledCodes, spec: PooledSpec, index: Index, dim: int, n_centres: int,
+                 query_limit: int | None) -> None:
         self.pooled, self.index, self.dim = pooled, index, dim
-        self.name = pooled.name
-        self.rerank = pooled.spec.rerank
+        self.name = spec.name
+        self.rerank = spec.rerank
         self.coarse = CoarseHash(index, dim) if self.rerank else None
         self.bytes_per_place = pooled.bytes_per_place + (self.coarse.bytes_per_place if self.coarse else 0.0)
         first = next(iter(pooled.codes.values()), None)
@@ -95,6 +96,7 @@ class PooledMethod(Algorithm):
 
 
 def create(context: Any) -> list[Algorithm]:
-    """The registry's factory: one method per pooled descriptor compared (``--compare seq:…``)."""
-    return [PooledMethod(p, context.index, context.dim, context.n_centres, context.compare_queries)
-            for p in context.pooled]
+    """The registry's factory: one method per pooled descriptor compared (``--compare seq:…``),
+    those of one pooling and code on one encoding."""
+    return [PooledMethod(p, spec, context.index, context.dim, context.n_centres, context.compare_queries)
+            for p in context.pooled for spec in p.specs]
