@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+import zarr
 
 from vprscale.cli import main
 from vprscale.compared.encoding import GRAPH, LISTS, SEARCHED, WINDOW, encoding_dir
@@ -92,9 +93,14 @@ def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_
 
 
 def test_an_encoding_is_not_redone_and_bad_input_is_refused(store, capsys):
+    capsys.readouterr()
     assert main(["encode", str(store), "--compare", "PQ4x4", "--workers", "1"]) == 0
+    n_ref = zarr.open_group(store, mode="r")["ref"].shape[0]
+    said = capsys.readouterr().out  # the field's units: rows a second per core, GB of float32 rows a second
+    assert f"encoded {n_ref:,} rows ({n_ref * 96 * 4 / 1e9:.2f} GB) in " in said and "per core on 1 core," in said
     before = (encoding_dir(store, "PQ4x4") / "codes.npy").stat().st_mtime_ns
     assert main(["encode", str(store), "--compare", "PQ4x4"]) == 0
+    assert "encoded" not in capsys.readouterr().out  # nothing encoded: no throughput
     assert (encoding_dir(store, "PQ4x4") / "codes.npy").stat().st_mtime_ns == before
     capsys.readouterr()
     for argv, message in ((["--compare", "Banana"], "--compare Banana: not a FAISS index_factory string"),

@@ -157,6 +157,9 @@ def test_the_first_rows_arrive_with_their_header_and_a_manifest_though_connectio
     server.behaviour.drops = 3
     assert main(["fetch", "deep1b", "--rows", "5K", "--url", server.url, "--out", str(tmp_path), "-q"]) == 0
     got = (tmp_path / "base.5K.fbin").read_bytes()
+    said = capsys.readouterr().out  # the field's units: rows and GB a second, per connection
+    assert f"fetched 5,000 rows ({len(got) / 1e9:.2f} GB) in " in said
+    assert "rows/s per connection on 4 connections" in said
     assert got == struct.pack("<II", 5_000, DIM) + data[8 : 8 + 4 * DIM * 5_000]  # big-ann-benchmarks' crop
     manifest = json.loads((tmp_path / "base.5K.fbin.manifest.json").read_text())
     assert manifest["bytes"] == len(got) and manifest["crc32c"] == _crc(got) and manifest["rows"] == 5_000

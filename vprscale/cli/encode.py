@@ -22,6 +22,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 
 
 def run(args: argparse.Namespace) -> int:
+    from vprscale.core.throughput import throughput
     from vprscale.jobs.encoding import encode_store
 
     summary = encode_store(args.store, args.compare or [], deep1b=args.deep1b, fas=args.fas,
@@ -29,6 +30,9 @@ def run(args: argparse.Namespace) -> int:
     for factory, m in summary["methods"].items():
         done = "up to date, kept" if m.get("skipped") else f"{m['wall_s']:,.1f} s, {m['code_bytes']} B a code"
         print(f"faiss:{factory}: {summary['n_ref']:,} references → {m['out']} ({done})")
+    if not all(m.get("skipped") for m in summary["methods"].values()):
+        print("  encoded " + throughput(summary["n_ref"], summary["n_ref"] * summary["dim"] * 4, summary["wall_s"],
+                                        args.workers))
     print(f"  peak memory {summary['peak_rss_bytes'] / 2**30:.2f} GiB")
     write_summary(args, summary)
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 from vprscale.cli.common import bounded_int, write_summary
@@ -32,12 +33,17 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 
 
 def run(args: argparse.Namespace) -> int:
+    from vprscale.core.throughput import throughput
     from vprscale.dataset.fetch import FetchRequest, fetch, parse_rows
 
+    t0 = time.perf_counter()
     summary = fetch(FetchRequest(source=args.source, out=Path(args.out),
                                  rows=parse_rows(args.rows) if args.rows else None, format=args.format,
                                  url=args.url, connections=args.connections, force=args.force))
     print(f"{summary['file']}: {summary['bytes']:,} bytes" + (f", {summary['rows']:,} rows" if summary["rows"] else "")
           + f", CRC32C {summary['crc32c']}, from {summary['source']}")
+    summary["wall_s"] = time.perf_counter() - t0  # a resumed fetch counts from where it resumed
+    print("  fetched " + throughput(summary["rows"] or 0, summary["bytes"], summary["wall_s"], args.connections,
+                                    per="connection"))
     write_summary(args, summary)
     return 0

@@ -37,6 +37,7 @@ from vprscale.core.passes import reduce_pass
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import Output, check_writable, exclusive, output_for
+from vprscale.core.throughput import throughput
 from vprscale.dataset import compact
 from vprscale.dataset.homogenise import window_mean
 from vprscale.dataset.layout import ChunkWriter, Layout, codecs, grid
@@ -324,9 +325,11 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path | Re
                                           req.quiet)
         peak = cluster_peak_rss(client)
     elapsed = time.perf_counter() - t_start
+    input_rows = (recipe.deep1b_rows_read, traverse.ref.n_rows + traverse.query.n_rows)  # the corpus, FAS100K
     summary = {"store": str(final), "scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref,
                "query_rows": lay.n_query, "resumed": resumed, "stages_s": timings.stages,
-               "wall_s": elapsed, "peak_rss_bytes": peak,
+               "wall_s": elapsed, "peak_rss_bytes": peak, "workers": req.workers, "input_rows": sum(input_rows),
+               "input_bytes": 4 * (input_rows[0] * deep.dim + input_rows[1] * traverse.ref.dim),
                "provenance": provenance(inputs={k: provenance_key[k] for k in ("recipe", "sources")})}
     group = zarr.open_group(store, mode="r+")
     _write_positions(group, traverse, lay)
@@ -400,4 +403,6 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"  {secs:8.1f} s  {name}")
     lines.append(f"  {s['wall_s']:8.1f} s  total")
     lines.append(f"  peak memory {s['peak_rss_bytes'] / 2**30:.2f} GiB, {s['bytes_on_disk'] / 2**30:.2f} GiB on disk")
+    if "input_rows" in s:  # a build's own run (a resumed one counts from where it resumed)
+        lines.append("  read " + throughput(s["input_rows"], s["input_bytes"], s["wall_s"], s["workers"]))
     return "\n".join(lines)

@@ -15,17 +15,18 @@ from typing import Any
 
 import numpy as np
 
+from vprscale.core.throughput import throughput
 from vprscale.jobs.child import vprscale_argv
 
 
 def spawn(argv: list[str], env: dict[str, str] | None = None) -> dict[str, Any]:
     """Run the process ``argv`` (``env``: its environment, default this one's) to its end: its
-    exit code, wall time and peak RSS."""
+    exit code, wall time, peak RSS and CPU time (user and system, every thread of it)."""
     t0 = time.perf_counter()
     pid = os.spawnve(os.P_NOWAIT, argv[0], argv, os.environ if env is None else env)
     _, status, usage = os.wait4(pid, 0)
     return {"code": os.waitstatus_to_exitcode(status), "wall_s": time.perf_counter() - t0,
-            "peak_rss_bytes": usage.ru_maxrss * 1024}
+            "peak_rss_bytes": usage.ru_maxrss * 1024, "cpu_s": usage.ru_utime + usage.ru_stime}
 
 
 def run_child(argv: list[str], fresh: Path | None = None, env: dict[str, str] | None = None) -> dict[str, Any]:
@@ -82,6 +83,8 @@ def bench_build(scale: str, out: str, deep1b: str | None, fas: str | None, worke
     lines = [f"build {scale}: {r['wall_s']:.1f} s wall, peak RSS {r['peak_rss_bytes'] / 2**30:.2f} GiB, "
              f"{s['ref_rows']:,} ref + {s['query_rows']:,} query rows, {s['bytes_on_disk'] / 2**30:.2f} GiB on disk"]
     lines += [f"  stage {name}: {secs:.1f} s" for name, secs in s["stages_s"].items()]
+    lines.append("  read " + throughput(s["input_rows"], s["input_bytes"], r["wall_s"], workers)
+                 + f"; CPU {r['cpu_s']:,.1f} s, {s['input_rows'] / max(r['cpu_s'], 1e-9):,.0f} rows per CPU-second")
     lines.append(f"  I/O floor: read {floor['read_bytes'] / 2**30:.2f} GiB in {floor['read_s']:.1f} s + write "
                  f"{floor['write_bytes'] / 2**30:.2f} GiB in {floor['write_s']:.1f} s = {floor_s:.1f} s; "
                  f"build / floor = {r['wall_s'] / max(floor_s, 1e-9):.1f}×")

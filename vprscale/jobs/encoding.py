@@ -137,7 +137,7 @@ def encode_store(store: str | Path | Remote, factories: list[str], deep1b: str |
     if isinstance(store, Remote):  # FAISS writes files: an encoding there is made in the cache, then uploaded
         check_writable(cache_root())
     timings = Timings(quiet)
-    summary: dict[str, Any] = {"store": str(store), "n_ref": n_ref, "methods": {}}
+    summary: dict[str, Any] = {"store": str(store), "n_ref": n_ref, "dim": dim, "methods": {}}
     t0 = time.perf_counter()
     with dask_client(scheduler, workers) as client, ExitStack() as locks:
         read, bounds = reference_reader(store, group, deep1b, fas)  # refits a compact store's transforms as its build
