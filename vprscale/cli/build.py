@@ -9,7 +9,7 @@ from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_float, positi
 from vprscale.core.errors import InputError
 
 # what it reads: no output may be written over them
-INPUTS = ('deep1b', 'fas', 'scale', 'ref', 'query', 'gt', 'part', 'ref_pos', 'query_pos')
+INPUTS = ('deep1b', 'base', 'fas', 'scale', 'ref', 'query', 'gt', 'part', 'ref_pos', 'query_pos')
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
@@ -38,7 +38,13 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     own.add_argument("--name", help="the store's name, <out>/<name>.zarr (default: the --ref file's stem)")
     own.add_argument("--stride", type=positive_int, default=1,
                      help="the evaluation's default query stride z (default 1: every centre)")
-    p.add_argument("--deep1b", help="fvecs file, directory of fvecs chunks, or .fbin (default: synthetic)")
+    p.add_argument("--base", metavar="[CORPUS:]PATH",
+                   help="the recipe's large corpus, by path or URL: a .fbin, .u8bin, .i8bin, .f16bin, fvecs or bvecs "
+                        "file (or a directory of chunks); CORPUS (deep1b, bigann, text2image, turing, spacev) checks "
+                        "its published width; rows wider than 96 are projected by the recipe's PCA (default: "
+                        "synthetic Deep1B; docs/dataset.md)")
+    p.add_argument("--deep1b", help="Deep1B as the corpus: --base deep1b:PATH (fvecs file, directory of fvecs "
+                                    "chunks, or .fbin)")
     p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")
     p.add_argument("--out", default="data", help="output directory (default: data)")
     p.add_argument("--fas-dim", type=bounded_int(MAX_FAS_DIM, "the real FAS100K has 4,096"), default=4096,
@@ -58,12 +64,16 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
 
 def run(args: argparse.Namespace) -> int:
     from vprscale.dataset.build import BuildRequest, build, format_summary
+    from vprscale.dataset.corpora import CORPORA, parse_base
 
     if args.ref or args.query or args.gt or args.ref_pos or args.query_pos:
         return _build_own(args)
     if not args.scale:
         raise InputError("build: give --scale (a recipe), or --ref, --query and --gt (your own descriptors)")
-    summary = build(BuildRequest(scale=args.scale, out=args.out, deep1b=args.deep1b, fas=args.fas,
+    if args.base and args.deep1b:
+        raise InputError("--base and --deep1b: give the corpus once (--deep1b PATH is --base deep1b:PATH)")
+    corpus, base = parse_base(args.base) if args.base else (CORPORA["deep1b"] if args.deep1b else None, args.deep1b)
+    summary = build(BuildRequest(scale=args.scale, out=args.out, deep1b=base, corpus=corpus, fas=args.fas,
                                  workers=args.workers, scheduler=args.scheduler, dry_run=args.dry_run,
                                  force=args.force, fas_dim=args.fas_dim, rescale=args.rescale,
                                  layout=args.layout, shard_chunks=args.shard_chunks))
@@ -77,7 +87,7 @@ def _build_own(args: argparse.Namespace) -> int:
     from vprscale.dataset.build import format_summary
     from vprscale.dataset.own import OwnRequest, build_own, parse_query
 
-    for flag in ("scale", "deep1b", "fas", "layout"):
+    for flag in ("scale", "deep1b", "base", "fas", "layout"):
         if getattr(args, flag):
             raise InputError(f"--{flag}: a recipe's option; your own descriptors (--ref) are stored as given")
     positions = bool(args.ref_pos and args.query_pos)  # the truth follows from them where --gt is not given

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url, public, redact
+from vprscale.dataset.corpora import parse_base
 
 EXIT_USAGE = 2  # bad input
 EXIT_FAILURE = 1  # vprscale itself failed
@@ -108,6 +109,8 @@ def _flag_paths(args: argparse.Namespace, names: Sequence[str]) -> list[tuple[st
         for v in value if isinstance(value, list) else [value]:
             if name == "query" and isinstance(v, str):  # NAME=PATH
                 v = v.partition("=")[2]
+            if name == "base" and isinstance(v, str):  # [CORPUS:]PATH
+                v = parse_base(v)[1]
             if isinstance(v, str) and v and not is_url(v) and (name != "scale" or Path(v).suffix == ".toml"):
                 found.append((name, Path(v)))
     return found

@@ -39,6 +39,7 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import Output, check_writable, exclusive, output_for
 from vprscale.core.throughput import throughput
 from vprscale.dataset import compact
+from vprscale.dataset.corpora import Corpus, check_corpus
 from vprscale.dataset.homogenise import window_mean
 from vprscale.dataset.layout import ChunkWriter, Layout, codecs, grid
 from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
@@ -67,7 +68,8 @@ class BuildRequest:
 
     scale: str
     out: str | Path  # a local directory or a URL (s3://bucket/prefix)
-    deep1b: str | None = None
+    deep1b: str | None = None  # the large corpus's file or URL (Deep1B's, or another's: ``corpus``)
+    corpus: Corpus | None = None  # the corpus it names, whose published width the file must have
     fas: str | None = None
     workers: int = 2
     scheduler: str | None = None
@@ -81,11 +83,13 @@ class BuildRequest:
 
 
 def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
-                 fas_dim: int) -> tuple[RowSource, Traverse]:
-    """The real files when given, else the synthetic generator; validated against the recipe."""
+                 fas_dim: int, corpus: Corpus | None = None) -> tuple[RowSource, Traverse]:
+    """The real files when given, else the synthetic generator; validated against the recipe
+    (and against the corpus ``deep1b`` is said to be)."""
     deep = open_deep1b(deep1b) if deep1b else SyntheticDeep1B(recipe.deep1b_rows_read, recipe.seed)
-    if deep.dim != recipe.dim:
-        raise InputError(f"{deep.name}: descriptors have {deep.dim} dimensions, the recipe needs {recipe.dim}")
+    check_corpus(corpus, deep.name, deep.dim)
+    if deep.dim < recipe.dim:  # the corpus's PCA keeps the recipe's D components: it needs as many
+        raise InputError(f"{deep.name}: descriptors have {deep.dim} dimensions, fewer than the recipe's {recipe.dim}")
     if deep.n_rows < recipe.deep1b_rows_read:
         raise InputError(f"--scale {recipe.scale}: needs {recipe.deep1b_rows_read:,} Deep1B rows but "
                          f"{deep.name} holds {deep.n_rows:,}")
@@ -176,7 +180,7 @@ def plan(recipe: Recipe, deep: RowSource, traverse: Traverse, out: Path | Remote
     est = FIXED_S + (per_deep * recipe.deep1b_rows_kept + fas_per_row * (traverse.ref.n_rows * fas_passes
                                                                            + traverse.query.n_rows * 2)) / parallel
     passes = 2 if layout == "full" else 2 + sampled
-    read = 4 * (recipe.deep1b_rows_read + 40) * (d + 1) * passes + 4 * traverse.ref.dim * (
+    read = 4 * (recipe.deep1b_rows_read + 40) * (deep.dim + 1) * passes + 4 * traverse.ref.dim * (
         traverse.ref.n_rows * fas_passes + traverse.query.n_rows * 3)
     chunk_mem = (recipe.shard_rows if layout == "full" else recipe.chunk_rows) * d * (8 + 8 + 4 * 6)
     fas_mem = 4 * traverse.ref.dim * (8192 * 3 + 128 * 4) + 8 * traverse.ref.dim * 128 * 3
@@ -213,7 +217,7 @@ def build(req: BuildRequest) -> dict[str, Any]:
             raise InputError(f"--shard-chunks {req.shard_chunks}: must be from 1 to "
                              f"{MAX_CHUNK_ROWS // recipe.chunk_rows} (shards of at most {MAX_CHUNK_ROWS:,} rows)")
         recipe = dataclasses.replace(recipe, shard_chunks=req.shard_chunks)
-    deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim)
+    deep, traverse = open_sources(recipe, req.deep1b, req.fas, req.fas_dim, req.corpus)
     out = location(req.out)
     if isinstance(out, Path):
         out = out.absolute()  # workers of a distributed cluster do not share our working directory
@@ -304,7 +308,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path | Re
             group = zarr.open_group(store, mode="a", zarr_format=3)
             with timings.stage("fit transforms (Deep1B exact PCA, FAS PCA, noise model)"):
                 moments = reduce_pass(work, "Deep1B moments", chunk_bounds(lay.n_deep, recipe.chunk_rows),
-                                      DeepMoments(deep, recipe), _add_blocks, np.zeros((d + 1, d + 1)),
+                                      DeepMoments(deep, recipe), _add_blocks, np.zeros((deep.dim + 1, deep.dim + 1)),
                                       quiet=req.quiet)
                 _check_moments(moments, deep)
                 merge = MergeTransform(d, lay.n_fas_ref, lay.n_fas_query, recipe.seed, req.rescale).fit(moments,

@@ -33,6 +33,8 @@ from vprscale.core.manifest import crc32c_of
 from vprscale.core.objects import public
 from vprscale.core.publish import check_writable, exclusive, keep_beside
 from vprscale.core.ranged import Plan, download, finish, probe, read_range
+from vprscale.dataset.corpora import CORPORA, check_corpus
+from vprscale.dataset.sources.binfile import bin_type
 from vprscale.dataset.sources.fetched import manifest_path
 
 log = logging.getLogger(__name__)
@@ -44,7 +46,10 @@ SOURCES = {  # what fetch knows: its default URL and the environment variable th
     "deep1b": (DEEP1B, "VPRSCALE_DEEP1B_URL"),
     "deep1b-queries": (DEEP1B_QUERIES, "VPRSCALE_DEEP1B_QUERIES_URL"),
     "fas100k": (None, "VPRSCALE_FAS100K_URL"),
+    # the other corpora a recipe takes (--base): their base files, cropped to --rows as Deep1B's
+    **{c.name: (c.url, f"VPRSCALE_{c.name.upper()}_URL") for c in CORPORA.values() if c.name != "deep1b"},
 }
+BASES = {"deep1b", *CORPORA}  # sources whose base file --rows crops
 MAX_DIM = 1 << 16
 CONVERT_ROWS = 1 << 18  # rows converted to fvecs at a time
 SUFFIXES = {"": 1, "K": 10**3, "M": 10**6, "B": 10**9}
@@ -70,10 +75,10 @@ def label(rows: int) -> str:
 class FetchRequest:
     """What ``vprscale fetch`` was asked for."""
 
-    source: str  # deep1b, deep1b-queries or fas100k
+    source: str  # deep1b, deep1b-queries, fas100k, or another corpus's base file (bigann, text2image, …)
     out: Path
-    rows: int | None = None  # deep1b: the first rows (None: all)
-    format: str = "fbin"  # deep1b: fbin or fvecs
+    rows: int | None = None  # a corpus's base file: the first rows (None: all)
+    format: str = "fbin"  # a float32 base file: fbin or fvecs
     url: str | None = None  # None: the environment's, else the default
     connections: int = 4
     force: bool = False
@@ -84,7 +89,8 @@ def source_url(req: FetchRequest) -> str:
     default, variable = SOURCES[req.source]
     url = req.url or os.environ.get(variable) or default
     if url is None:
-        raise InputError(f"fetch {req.source}: no default URL; its file's link is on {FAS100K_PAGE} (licence as "
+        page = CORPORA[req.source].terms if req.source in CORPORA else FAS100K_PAGE
+        raise InputError(f"fetch {req.source}: no default URL; its file's link is on {page} (licence as "
                          f"stated there): give it with --url, or set {variable}")
     scheme = url.split(":", 1)[0].lower()
     if scheme not in ("http", "https"):
@@ -96,17 +102,22 @@ def fetch(req: FetchRequest) -> dict[str, Any]:
     """Fetch one source into ``req.out``; returns the summary (and writes the manifest beside the file)."""
     if req.source not in SOURCES:
         raise InputError(f"fetch {req.source}: choose from {', '.join(SOURCES)}")
-    if req.source != "deep1b" and (req.rows is not None or req.format != "fbin"):
-        raise InputError(f"fetch {req.source}: --rows and --format are Deep1B's (its base file)")
+    if req.source not in BASES and req.rows is not None:
+        raise InputError(f"fetch {req.source}: --rows crops a corpus's base file ({', '.join(sorted(BASES))})")
+    if req.format != "fbin" and (req.source not in BASES or CORPORA[req.source].suffix != "fbin"):
+        raise InputError(f"fetch {req.source}: --format fvecs rewrites float32 base files (deep1b, text2image, "
+                         "turing)")
     url = source_url(req)
     check_writable(req.out)
     if req.source == "fas100k":
         size, version = probe(url)
         name, header, rows = "FAS_uniSam5_all.npz", None, None
     else:
-        rows, dim, size, header, version = _fbin_plan(url, req.rows if req.source == "deep1b" else None)
-        base = "base" if req.source == "deep1b" else "query.public"
-        name = f"{base}.{label(rows)}.{'fvecs' if req.format == 'fvecs' else 'fbin'}"
+        suffix = CORPORA[req.source].suffix if req.source in CORPORA else "fbin"
+        rows, dim, size, header, version = _bin_plan(url, req.rows if req.source in BASES else None, suffix)
+        base = {"deep1b": "base", "deep1b-queries": "query.public"}.get(req.source, f"{req.source}.base")
+        name = f"{base}.{label(rows)}.{'fvecs' if req.format == 'fvecs' else suffix}"
+        check_corpus(CORPORA.get(req.source), public(url), dim)
     out = req.out / name
     fetched = out if req.format == "fbin" else req.out / f"{base}.{label(rows)}.fbin"
     need = size * (2 if req.format == "fvecs" else 1)  # fvecs is written beside the fetched rows, then they go
@@ -150,21 +161,22 @@ def _held(partial: Path) -> int:
         return 0
 
 
-def _fbin_plan(url: str, rows: int | None) -> tuple[int, int, int, bytes, str]:
-    """``(rows, dim, bytes to fetch, the crop's header, the remote version)`` of an ``.fbin`` at
-    ``url``, its size checked against its header (a file cut short, or a header that lies, is
-    refused here)."""
+def _bin_plan(url: str, rows: int | None, suffix: str = "fbin") -> tuple[int, int, int, bytes, str]:
+    """``(rows, dim, bytes to fetch, the crop's header, the remote version)`` of a ``bin`` file
+    (``.fbin``, ``.u8bin``, ``.i8bin``) at ``url``, its size checked against its header (a file
+    cut short, or a header that lies, is refused here)."""
+    values = bin_type(f"x.{suffix}")
     size, version = probe(url)
     n, dim = struct.unpack("<II", read_range(url, 0, 8, version))
     if n == 0 or not 0 < dim <= MAX_DIM:
-        raise InputError(f"{public(url)}: not an .fbin file (its header says {n:,} rows of {dim:,} dimensions)")
-    if size != 8 + 4 * dim * n:
-        raise InputError(f"{public(url)}: {size:,} bytes, but its header says {n:,} rows of {dim} float32, "
-                         f"{8 + 4 * dim * n:,} bytes: a truncated or foreign file")
+        raise InputError(f"{public(url)}: not an .{suffix} file (its header says {n:,} rows of {dim:,} dimensions)")
+    if size != 8 + values.itemsize * dim * n:
+        raise InputError(f"{public(url)}: {size:,} bytes, but its header says {n:,} rows of {dim} {values.name}, "
+                         f"{8 + values.itemsize * dim * n:,} bytes: a truncated or foreign file")
     rows = n if rows is None else rows
     if rows > n:
         raise InputError(f"--rows {rows:,}: {public(url)} holds {n:,} rows")
-    return rows, dim, 8 + 4 * dim * rows, struct.pack("<II", rows, dim), version
+    return rows, dim, 8 + values.itemsize * dim * rows, struct.pack("<II", rows, dim), version
 
 
 def _check_fas(work: Path, url: str) -> None:
@@ -195,7 +207,7 @@ def _to_fvecs(fbin: Path, out: Path, rows: int, dim: int) -> Path:
 
 def _manifest(path: Path, name: str, url: str, rows: int | None, req: FetchRequest) -> dict[str, Any]:
     return {"file": name, "bytes": path.stat().st_size, "crc32c": crc32c_of(path), "source": public(url),
-            "rows": rows, "format": req.format if req.source == "deep1b" else None,
+            "rows": rows, "format": req.format if req.source in BASES else None,
             "fetched": datetime.now(UTC).isoformat(timespec="seconds")}
 
 

@@ -39,7 +39,7 @@ class MergeTransform:
 
     Parameters
     ----------
-    dim : components kept of each source (D = 96).
+    dim : components kept of each source (D = 96); the large corpus may be wider (its PCA keeps D).
     n_fas_ref, n_fas_query : FAS rows kept in the dataset.
     seed : seed of the randomized FAS PCA and of the query noise.
     rescale : match Deep1B's per-component spread to FAS's (step 4); off only for the
@@ -117,7 +117,8 @@ class MergeTransform:
 
     @property
     def deep_matrix_(self) -> np.ndarray:
-        """The (D × D) map of centred homogenised Deep1B rows to reference rows: PCA, then rescaling."""
+        """The (W × D) map of centred homogenised corpus rows (W wide: D for Deep1B) to reference rows:
+        PCA, then rescaling."""
         return self.deep_pca_.components_.T * self.scale_
 
     def ref_moments(self) -> np.ndarray:
@@ -129,9 +130,9 @@ class MergeTransform:
         these, so a store that never writes its reference rows (the compact layout) is
         indexed exactly like one that does.
         """
-        d = self.dim
-        m = self.deep_moments_
-        hh, sh, n = m[:d, :d], m[:d, d], m[d, d]
+        d, m = self.dim, self.deep_moments_
+        w = m.shape[0] - 1  # the corpus's own width (96 for Deep1B; 128 for BIGANN's SIFT, say)
+        hh, sh, n = m[:w, :w], m[:w, w], m[w, w]
         mu = self.deep_pca_.mean_
         a = self.deep_matrix_
         centred = hh - np.outer(mu, sh) - np.outer(sh, mu) + n * np.outer(mu, mu)

@@ -51,7 +51,8 @@ DIGESTS = ".input-digests.json"  # under out: the content digests of the pipelin
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
 SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "synth": {"deep1b_rows": ("int", True), "fas_dim": ("int", False), "seed": ("int", False)},
-    "build": {"scale": ("str", True), "source": ("stage", False), "deep1b": ("str", False), "fas": ("str", False),
+    "build": {"scale": ("str", True), "source": ("stage", False), "deep1b": ("str", False), "base": ("str", False),
+              "fas": ("str", False),
               "fas_dim": ("int", False), "rescale": ("bool", False)},
     "index": {"store": ("stage", True), "d": ("int", False), "k": ("int", False)},
     "encode": {"store": ("stage", True), "compare": ("list[str]", True)},
@@ -496,7 +497,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         src = outputs.get(p.get("source", ""), {})
         cmd = ["build", "--scale", p["scale"], "--out", str(pipe.out), "--force",
                "--fas-dim", str(p.get("fas_dim", 4096))]
-        for key, default in (("deep1b", src.get("fbin")), ("fas", src.get("fas"))):
+        for key, default in (("deep1b", None if "base" in p else src.get("fbin")), ("base", None),
+                             ("fas", src.get("fas"))):
             if p.get(key, default):
                 cmd += [f"--{key}", p.get(key, default)]
         return cmd + ([] if p.get("rescale", True) else ["--no-rescale"]) + cluster
