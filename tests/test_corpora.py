@@ -117,3 +117,18 @@ def test_fetch_refuses_a_file_of_another_width(tmp_path, capsys, monkeypatch):
 
 def test_the_command_line_offers_every_source_fetch_knows():
     assert set(CLI_SOURCES) == set(SOURCES)
+
+
+def test_a_pipeline_build_stage_takes_a_corpus_by_one_key(bigann, tmp_path):
+    from vprscale.core.digests import DigestCache
+    from vprscale.jobs.pipeline import _inputs, load_pipeline, stage_command
+
+    u8 = bigann["u8"].parent.parent / "base.u8bin"
+    path = tmp_path / "p.toml"
+    path.write_text(f'name = "p"\nout = "{tmp_path / "out"}"\n[[stages]]\nname = "b"\nkind = "build"\n'
+                    f'scale = "20K"\nbase = "bigann:{u8}"\n')
+    pipe = load_pipeline(path)
+    cmd = stage_command(pipe, pipe.stages[0], {}, None)
+    assert cmd[cmd.index("--base") + 1] == f"bigann:{u8}" and "--deep1b" not in cmd
+    found = _inputs(pipe.stages[0], DigestCache(tmp_path / "digests.json"))
+    assert found["base"]["dim"] == 128  # the file's fingerprint: a changed corpus file reruns the stage
