@@ -73,7 +73,8 @@ def test_nn_parquet_holds_each_method_on_each_noise_level(nearest):
     assert meta["nn_queries"] == 500
     assert sorted(zip(nn.noise, nn.method, strict=True)) == sorted(
         (n, m) for n in ("qm1", "qm2") for m in ("coarsehash", "faiss:PQ4np", "faiss:IVF32,PQ4np"))
-    assert (nn.n_queries == 500).all() and (nn.threads == 1).all() and (nn.us_per_query > 0).all()
+    assert (nn.n_queries == 500).all() and (nn.timed_queries == 500).all() and (nn.threads == 1).all()
+    assert (nn.us_per_query > 0).all()
     assert (nn.recall_at_1 <= nn.recall_at_10).all() and (nn.recall_at_10 <= nn.recall_at_100).all()
     bpp = nn.groupby("method").bytes_per_place.first()
     assert bpp["faiss:PQ4np"] == 4 and bpp["faiss:IVF32,PQ4np"] == 4 + 8  # code, and an IVF list entry's id

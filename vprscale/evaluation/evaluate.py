@@ -402,9 +402,12 @@ def _nn(req: EvalRequest, qs: QuerySet, idx: Index, dim: int, compared: list[Fai
     frames = held[spread(len(held), req.nn_queries)]
     rows = {noise: qs.rows(noise, frames) for noise in req.noises}
     truth = exact_neighbours(ref, np.concatenate(list(rows.values())), req.workers, not req.quiet)
+    bar = StepProgress("nearest neighbours", len(rows) * (1 + len(compared)), req.quiet)
     found = []
     for i, (noise, x) in enumerate(rows.items()):
-        found += nn_rows(noise, x, truth[i * len(frames) : (i + 1) * len(frames)], idx, dim, compared)
+        found += nn_rows(noise, x, truth[i * len(frames) : (i + 1) * len(frames)], idx, dim, compared, req.workers,
+                         bar)
+    bar.close()
     return found
 
 

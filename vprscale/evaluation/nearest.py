@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from itertools import combinations
 from typing import Any
@@ -24,12 +25,13 @@ import numpy as np
 
 from vprscale.compared.faisscodes import FaissCodes, code_family
 from vprscale.core.errors import InputError
-from vprscale.core.progress import ChunkProgress
+from vprscale.core.progress import ChunkProgress, StepProgress
 from vprscale.evaluation.algorithms.coarsehash import CoarseHash
 from vprscale.method.index import Index
 from vprscale.method.kernels import bit_gaps
 
 DEPTHS = (1, 10, 100)  # the R of R@R
+TIMED_ROWS = 1000  # query rows each method is timed on, one thread (the answers are of every row)
 SCAN_ROWS = 4096  # references one exact scan compares at a time, at fixed offsets (the same ids for any chunking)
 LOOKUPS = 1 << 22  # addresses looked up at a time in CoarseHash's Hamming expansion
 MAX_MASKS = 1 << 16  # the expansion stops at the Hamming radius with more addresses than this per row
@@ -130,40 +132,50 @@ def _recalls(ranking: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             for r in DEPTHS}
 
 
+def _timed(fn: Callable[[np.ndarray], Any], rows: np.ndarray) -> float:
+    """CPU µs per row of ``fn`` on ``TIMED_ROWS`` evenly spaced rows, on this thread alone."""
+    sample = rows[np.unique(np.linspace(0, len(rows) - 1, min(len(rows), TIMED_ROWS)).round().astype(np.int64))]
+    t0 = time.thread_time()
+    fn(sample)
+    return 1e6 * (time.thread_time() - t0) / max(1, len(sample))
+
+
 def nn_rows(noise: str, rows: np.ndarray, truth: np.ndarray, index: Index, dim: int,
-            compared: list[FaissCodes]) -> list[dict[str, Any]]:
+            compared: list[FaissCodes], workers: int, bar: StepProgress) -> list[dict[str, Any]]:
     """``nn.parquet``'s rows of one noise level: CoarseHash's and each FAISS code's recalls at
-    1, 10 and 100 against the exact neighbours ``truth`` of ``rows``, with CPU µs per query on one
-    thread (FAISS single-threaded, CoarseHash's numba kernels on one thread)."""
+    1, 10 and 100 against the exact neighbours ``truth`` of ``rows`` (the answers on ``workers``
+    threads: FAISS's searches in blocks of fixed size, the same whatever the threads), and CPU µs
+    per query on one thread, timed apart on ``TIMED_ROWS`` of them (FAISS single-threaded,
+    CoarseHash's numba kernels on one thread)."""
     depth = max(DEPTHS)
-    found: list[dict[str, Any]] = []
+    bar.step(f"{noise} coarsehash: nearest-neighbour ranking")
+    ranking = coarse_ranking(index, rows, depth)
     before = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        t0 = time.thread_time()
-        ranking = coarse_ranking(index, rows, depth)
-        spent = time.thread_time() - t0
+        us = _timed(lambda x: coarse_ranking(index, x, depth), rows)
     finally:
         numba.set_num_threads(before)
-    found.append({"method": "coarsehash", "family": "hashing", "params": f"d={index.d} K={index.k}",
-                  "bytes_per_place": CoarseHash(index, dim).bytes_per_place, **_recalls(ranking, truth),
-                  "us_per_query": 1e6 * spent / max(1, len(rows))})
+    found: list[dict[str, Any]] = [
+        {"method": "coarsehash", "family": "hashing", "params": f"d={index.d} K={index.k}",
+         "bytes_per_place": CoarseHash(index, dim).bytes_per_place, **_recalls(ranking, truth), "us_per_query": us}]
     for codes in compared:
+        bar.step(f"{noise} {codes.name}: nearest-neighbour search")
         threads, k, nprobe = codes.threads, codes.k, codes.nprobe
-        codes.threads = 1
         codes.set_point(depth, nprobe)
         try:
-            t0 = time.thread_time()
+            codes.threads = workers
             _, ids = codes.search(rows)
-            spent = time.thread_time() - t0
+            codes.threads = 1
+            us = _timed(codes.search, rows)
         finally:
             codes.threads = threads
             codes.set_point(k, nprobe)
         found.append({"method": codes.name, "family": code_family(codes.factory),
                       "params": f"k={depth}" + (f" nprobe={nprobe}" if codes.ivf is not None else ""),
-                      "bytes_per_place": codes.entry_bytes, **_recalls(ids, truth),
-                      "us_per_query": 1e6 * spent / max(1, len(rows))})
-    return [{"noise": noise, **row, "n_queries": len(rows), "threads": 1} for row in found]
+                      "bytes_per_place": codes.entry_bytes, **_recalls(ids, truth), "us_per_query": us})
+    return [{"noise": noise, **row, "n_queries": len(rows), "timed_queries": min(len(rows), TIMED_ROWS),
+             "threads": 1} for row in found]
 
 
 def check_nn(index: Index) -> None:
