@@ -30,3 +30,14 @@ def test_a_build_says_what_it_read_in_the_fields_units(recipe, sources, tmp_path
     assert int(got[1].replace(",", "")) == rows and got[2] == f"{nbytes / 1e9:.2f}"
     per_s = int(got[4].replace(",", ""))
     assert np.isclose(int(got[5].replace(",", "")), per_s / 2, atol=1)
+
+
+def test_bench_build_reads_a_corpus_by_url(recipe, sources, tmp_path, capsys):
+    """The I/O floor re-reads the local inputs only; a corpus read by URL is timed as the build reads it."""
+    from .test_fetch import _bytes_server
+
+    for server in _bytes_server(sources["fbin"].read_bytes()):
+        assert main(["bench", "build", str(recipe), "--deep1b", server.url, "--fas", str(sources["fas"]),
+                     "--out", str(tmp_path / "b"), "--workers", "2"]) == 0
+    said = capsys.readouterr().out
+    assert "rows/s per core on 2 cores" in said and "I/O floor: read" in said

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from vprscale.core.objects import is_url
 from vprscale.core.throughput import throughput
 from vprscale.jobs.child import vprscale_argv
 
@@ -74,9 +75,8 @@ def bench_build(scale: str, out: str, deep1b: str | None, fas: str | None, worke
     argv += (["--deep1b", deep1b] if deep1b else []) + (["--fas", fas] if fas else [])
     r = run_child(argv, fresh=Path(out) / f"{scale}.zarr")
     s = r["summary"]
-    inputs = []
-    for p in filter(None, (deep1b, fas)):
-        p = Path(p)
+    inputs = []  # the local input files, read again for the I/O floor (a URL's are read where they are)
+    for p in (Path(p) for p in (deep1b, fas) if p and not is_url(p)):
         inputs += sorted(f for f in p.iterdir() if f.is_file()) if p.is_dir() else [p]
     floor = io_floor(inputs, s["bytes_on_disk"], Path(out))
     floor_s = floor["read_s"] + floor["write_s"]
