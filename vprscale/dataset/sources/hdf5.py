@@ -1,6 +1,7 @@
 """A dataset of an HDF5 file (``file.hdf5:train``): the ann-benchmarks and VIBE layout (``train``,
-``test``, ``neighbors``), read through h5py's hyperslabs, the file opened inside each read.
-h5py is an optional dependency (``pip install "vprscale[hdf5]"``)."""
+``test``, ``neighbors``), read through h5py's hyperslabs, the file opened inside each read; a
+file at a URL (``https://…/file.hdf5:train``, ``s3://…``) is read by byte ranges, as h5py asks
+for them. h5py is an optional dependency (``pip install "vprscale[hdf5]"``)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import is_url, public
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.fingerprint import file_fingerprint
+from vprscale.dataset.sources.remote import remote_file, remote_fingerprint
 
 SUFFIXES = (".hdf5", ".h5")
 
@@ -26,31 +29,36 @@ def _h5py():
 
 
 class Hdf5Source(RowSource):
-    """The 2-D dataset ``key`` of the HDF5 file at ``path``."""
+    """The 2-D dataset ``key`` of the HDF5 file at ``path`` (a local path or a URL)."""
 
     def __init__(self, path: str | os.PathLike, key: str) -> None:
-        self.path, self.key = Path(path).absolute(), key  # tasks may run in another directory
-        self.name = f"{self.path}:{key}"
-        if not self.path.is_file():
+        self.url = str(path) if is_url(str(path)) else None
+        self.path, self.key = None if self.url else Path(path).absolute(), key  # tasks may run elsewhere
+        where = public(self.url) if self.url else str(self.path)
+        self.name = f"{where}:{key}"
+        if self.path is not None and not self.path.is_file():
             raise InputError(f"{self.path}: no such file")
         h5py = _h5py()
         try:
-            with h5py.File(self.path, "r") as f:
+            with self._open() as f:
                 if key not in f or not isinstance(f[key], h5py.Dataset):
                     datasets = sorted(k for k in f if isinstance(f[k], h5py.Dataset))
                     raise InputError(f"{self.name}: no dataset {key!r} in the file (it holds {', '.join(datasets)})")
                 shape, dtype = f[key].shape, f[key].dtype
         except OSError as exc:
-            raise InputError(f"{self.path}: not a readable HDF5 file ({str(exc).splitlines()[0][:160]})") from None
+            raise InputError(f"{where}: not a readable HDF5 file ({str(exc).splitlines()[0][:160]})") from None
         if len(shape) != 2 or dtype.kind not in "fiu" or shape[1] == 0:
             raise InputError(f"{self.name}: a 2-D dataset of descriptor rows expected, not {len(shape)}-D {dtype} "
                              f"{shape}")
         self.n_rows, self.dim = int(shape[0]), int(shape[1])
 
+    def _open(self) -> Any:
+        return _h5py().File(remote_file(self.url) if self.url else self.path, "r")
+
     def _read(self, start: int, stop: int) -> np.ndarray:
-        with _h5py().File(self.path, "r") as f:
+        with self._open() as f:
             return np.asarray(f[self.key][start:stop], np.float32)
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "hdf5", "dataset": self.key, "rows": self.n_rows, "dim": self.dim,
-                "files": [file_fingerprint(self.path)]}
+                "files": [remote_fingerprint(self.url) if self.url else file_fingerprint(self.path)]}

@@ -1,6 +1,7 @@
 """Descriptors held as a list column of Parquet files (``file.parquet:emb``, or a directory of
 Parquet files read as one table in name order): how VectorDBBench and many embedding stores
-keep vectors, and the metadata LAION-style pipelines write beside their shards. A column of
+keep vectors, and the metadata LAION-style pipelines write beside their shards; local, or by URL
+(a file, or on object storage a prefix of Parquet objects), read by byte ranges. A column of
 ``list``, ``large_list`` or ``fixed_size_list`` of floats or integers, every row of one length;
 read a row group at a time inside each read."""
 
@@ -15,8 +16,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import is_url, public
 from vprscale.dataset.sources.base import RowSource, part_spans
 from vprscale.dataset.sources.fingerprint import file_fingerprint
+from vprscale.dataset.sources.remote import remote_file, remote_fingerprint, remote_objects
 from vprscale.dataset.sources.shards import natural_order
 
 
@@ -30,22 +33,19 @@ class ParquetRowsSource(RowSource):
     in name order (numbers as numbers); ``column`` None: the files' one list column."""
 
     def __init__(self, path: str | os.PathLike, column: str | None) -> None:
-        self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
-        if self.path.is_dir():
-            self.files = sorted((p for p in self.path.iterdir() if p.suffix == ".parquet"
-                                 and not p.name.startswith(".")), key=natural_order)
-            if not self.files:
-                raise InputError(f"{self.path}: the directory holds no .parquet files")
-        elif self.path.is_file():
-            self.files = [self.path]
+        if is_url(str(path)):  # a file, or on object storage a prefix of Parquet objects
+            self.path: Path | str = public(str(path))
+            self.files: list[Path | str] = remote_objects(str(path), ".parquet")
         else:
-            raise InputError(f"{self.path}: no such file or directory")
+            self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
+            self.files = _local_files(self.path)
         groups, schema = [], None
         for i, f in enumerate(self.files):
+            shown = public(f) if isinstance(f, str) else f
             try:
-                meta = pq.ParquetFile(f).metadata
+                meta = pq.ParquetFile(_open(f)).metadata
             except (OSError, pa.ArrowException) as exc:
-                raise InputError(f"{f}: not a readable Parquet file ({str(exc).splitlines()[0][:160]})") from None
+                raise InputError(f"{shown}: not a readable Parquet file ({str(exc).splitlines()[0][:160]})") from None
             if schema is None:
                 schema = meta.schema.to_arrow_schema()
                 names = _list_columns(schema)
@@ -60,7 +60,7 @@ class ParquetRowsSource(RowSource):
                 if not (pa.types.is_floating(value) or pa.types.is_integer(value)):
                     raise InputError(f"{self.path}:{column}: lists of {value}, not of numbers")
             elif meta.schema.to_arrow_schema().field(column).type != schema.field(column).type:
-                raise InputError(f"{f}: column {column!r} is {meta.schema.to_arrow_schema().field(column).type}, "
+                raise InputError(f"{shown}: column {column!r} is {meta.schema.to_arrow_schema().field(column).type}, "
                                  f"the files before it {schema.field(column).type}")
             groups += [(i, g, meta.row_group(g).num_rows) for g in range(meta.num_row_groups)]
         self.column = column
@@ -80,7 +80,7 @@ class ParquetRowsSource(RowSource):
 
     def _group(self, k: int) -> pa.ListArray:
         i, g = self.groups[k]
-        return pq.ParquetFile(self.files[i]).read_row_group(g, columns=[self.column]).column(0).combine_chunks()
+        return pq.ParquetFile(_open(self.files[i])).read_row_group(g, columns=[self.column]).column(0).combine_chunks()
 
     def _read(self, start: int, stop: int) -> np.ndarray:
         out = np.empty((stop - start, self.dim), np.float32)
@@ -101,4 +101,22 @@ class ParquetRowsSource(RowSource):
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "parquet", "column": self.column, "rows": self.n_rows, "dim": self.dim,
-                "files": [file_fingerprint(f) for f in self.files]}
+                "files": [remote_fingerprint(f) if isinstance(f, str) else file_fingerprint(f) for f in self.files]}
+
+
+def _local_files(path: Path) -> list[Path | str]:
+    """A Parquet file, or every ``.parquet`` file of a directory in name order (numbers as numbers)."""
+    if path.is_dir():
+        files = sorted((p for p in path.iterdir() if p.suffix == ".parquet" and not p.name.startswith(".")),
+                       key=natural_order)
+        if not files:
+            raise InputError(f"{path}: the directory holds no .parquet files")
+        return list(files)
+    if path.is_file():
+        return [path]
+    raise InputError(f"{path}: no such file or directory")
+
+
+def _open(f: Path | str) -> Any:
+    """A local file as its path; one at a URL as a file object over its byte ranges."""
+    return remote_file(f) if isinstance(f, str) else f

@@ -1,13 +1,16 @@
 """Descriptor files read where they live: a ``bin`` file (``.fbin``, ``.f16bin``, ``.u8bin``,
-``.i8bin``), a vecs file (fvecs, bvecs) or (on object storage) a prefix of chunk objects, their
-rows fetched by byte ranges as the build reads them, with no local
-copy. Over http(s) through :mod:`vprscale.core.ranged` (each read checked to be exactly the
+``.i8bin``), a vecs file (fvecs, bvecs), a ``.npy`` file or (on object storage) a prefix of chunk
+or shard objects, their rows fetched by byte ranges as the build reads them, with no local
+copy; HDF5 and Parquet files are read through :class:`RangedFile`, a file object over the same
+ranges. Over http(s) through :mod:`vprscale.core.ranged` (each read checked to be exactly the
 range asked, a dropped answer retried from where it stopped); over any other scheme (``s3://``,
 ``gs://`` …) through the storage's fsspec filesystem, each read checked the same way."""
 
 from __future__ import annotations
 
+import ast
 import hashlib
+import io
 import os
 import re
 import struct
@@ -21,9 +24,10 @@ from vprscale.core.errors import InputError
 from vprscale.core.objects import Remote, cache_root, public, storage_errors
 from vprscale.core.progress import ChunkProgress
 from vprscale.core.ranged import probe, read_range
-from vprscale.dataset.sources.base import RowSource
+from vprscale.dataset.sources.base import RowSource, part_spans
 from vprscale.dataset.sources.binfile import HEADER, bin_type, check_header
 from vprscale.dataset.sources.fvecs import read_vecs, record_bytes, vecs_type
+from vprscale.dataset.sources.shards import natural_order
 
 HTTP = re.compile(r"^https?://", re.IGNORECASE)
 PART = 64 << 20  # bytes a request of a whole-file fetch asks for
@@ -97,7 +101,7 @@ class RemoteFvecsSource(RowSource):
 
     def __init__(self, url: str) -> None:
         self.name = public(url)
-        self.parts = [Ranges(u) for u in _objects(url)]
+        self.parts = [Ranges(u) for u in remote_objects(url)]
         sizes, versions = zip(*(p.probe() for p in self.parts), strict=True)
         self.form, self.values = vecs_type(self.parts[0].name.split("?", 1)[0])
         self.dim = _first_dim(self.parts[0])
@@ -123,6 +127,111 @@ class RemoteFvecsSource(RowSource):
     def fingerprint(self) -> dict[str, Any]:
         return {"format": self.form, "rows": self.n_rows, "dim": self.dim,
                 "urls": [p.name for p in self.parts], "bytes": self.sizes, "versions": self.versions}
+
+
+class RangedFile(io.RawIOBase):
+    """A read-only, seekable file object over a remote file's byte ranges (:class:`Ranges`), for
+    libraries that read a file their own way (h5py, pyarrow's Parquet reader); wrap it in an
+    ``io.BufferedReader`` so that small reads share one request."""
+
+    def __init__(self, url: str) -> None:
+        self.ranges = Ranges(url)
+        self.size, self.version = self.ranges.probe()
+        self._at = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._at
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        self._at = {io.SEEK_SET: 0, io.SEEK_CUR: self._at, io.SEEK_END: self.size}[whence] + offset
+        return self._at
+
+    def readinto(self, buffer: Any) -> int:
+        stop = min(self.size, self._at + len(buffer))
+        if stop <= self._at:
+            return 0
+        data = self.ranges.read(self._at, stop)
+        buffer[: len(data)] = data
+        self._at = stop
+        return len(data)
+
+
+def remote_file(url: str, buffer: int = 1 << 20) -> io.BufferedReader:
+    """:class:`RangedFile` of ``url``, buffered (``buffer`` bytes a request at least)."""
+    return io.BufferedReader(RangedFile(url), buffer_size=buffer)
+
+
+def remote_fingerprint(url: str) -> dict[str, Any]:
+    """How a store records a file read by URL: the URL shown, its size and version."""
+    size, version = Ranges(url).probe()
+    return {"url": public(url), "bytes": size, "version": version}
+
+
+class RemoteNpySource(RowSource):
+    """A 2-D ``.npy`` file at a URL, or on object storage a prefix of ``.npy`` shard objects read
+    as one array in name order: each header parsed and checked once (2-D, C order, numbers, one
+    width), rows read by range."""
+
+    def __init__(self, url: str) -> None:
+        self.name = public(url)
+        self.parts = [Ranges(u) for u in remote_objects(url, ".npy")]
+        self.sizes, self.versions, shapes, self.offsets, self.values = [], [], [], [], None
+        for part in self.parts:
+            size, version = part.probe()
+            shape, values, offset = _npy_header(part, size)
+            if self.values is not None and (values != self.values or shape[1] != shapes[0][1]):
+                raise InputError(f"{part.name}: {shape[1]} columns of {values}, the shards before it "
+                                 f"{shapes[0][1]} of {self.values}")
+            self.values = values
+            self.sizes.append(size)
+            self.versions.append(version)
+            shapes.append(shape)
+            self.offsets.append(offset)
+        self.dim = int(shapes[0][1])
+        self.starts = np.concatenate([[0], np.cumsum([s[0] for s in shapes], dtype=np.int64)])
+        self.n_rows = int(self.starts[-1])
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        out = np.empty((stop - start, self.dim), np.float32)
+        width = self.values.itemsize * self.dim
+        for k, lo, hi in part_spans(self.starts, start, stop):
+            data = self.parts[k].read(self.offsets[k] + width * lo, self.offsets[k] + width * hi)
+            a = int(self.starts[k]) + lo - start
+            out[a : a + hi - lo] = np.frombuffer(data, self.values).reshape(hi - lo, self.dim)
+        return out
+
+    def fingerprint(self) -> dict[str, Any]:
+        return {"format": "npy", "rows": self.n_rows, "dim": self.dim, "urls": [p.name for p in self.parts],
+                "bytes": self.sizes, "versions": self.versions}
+
+
+def _npy_header(part: Ranges, size: int) -> tuple[tuple[int, int], np.dtype, int]:
+    """``(shape, values, data offset)`` of a remote ``.npy``, checked against its size."""
+    head = part.read(0, min(size, 12))
+    if len(head) < 10 or head[:6] != b"\x93NUMPY":
+        raise InputError(f"{part.name}: not a .npy file (no NUMPY magic)")
+    wide = head[6] >= 2  # format 2 and 3: a 4-byte header length
+    begin = 12 if wide else 10
+    length = int.from_bytes(head[8:begin], "little")
+    try:
+        header = ast.literal_eval(part.read(begin, begin + length).decode("latin1"))
+        values, shape, fortran = np.dtype(header["descr"]), tuple(header["shape"]), header["fortran_order"]
+    except (ValueError, SyntaxError, KeyError, TypeError):
+        raise InputError(f"{part.name}: a .npy header that cannot be read") from None
+    if len(shape) != 2 or fortran or values.kind not in "fiu" or shape[1] == 0:
+        raise InputError(f"{part.name}: a 2-D C-order array of numbers expected, not {shape} of {values}"
+                         + (" in Fortran order" if fortran else ""))
+    offset = begin + length
+    if size != offset + values.itemsize * shape[0] * shape[1]:
+        raise InputError(f"{part.name}: {size:,} bytes, but its header says {shape[0]:,} rows of {shape[1]} "
+                         f"{values}: a truncated or foreign file")
+    return (int(shape[0]), int(shape[1])), values, offset
 
 
 def fetched_copy(url: str, quiet: bool = False) -> tuple[Path, dict[str, Any]]:
@@ -172,15 +281,30 @@ def _first_dim(part: Ranges) -> int:
     return d
 
 
-def _objects(url: str) -> list[str]:
-    """The fvecs object at ``url``, or the chunk objects under it (a prefix on object storage)."""
+def prefix_suffixes(url: str) -> set[str]:
+    """The name endings (``.npy``, ``.parquet`` …) of the objects directly under ``url`` when it is
+    a prefix on object storage (a folder); empty for a single object or an http(s) URL."""
+    if HTTP.match(url):
+        return set()
+    remote = Remote(url)
+    with storage_errors(url):
+        if remote.fs.isfile(remote.path):
+            return set()
+        return {Path(rel).suffix for rel in remote.files() if "/" not in rel and not rel.startswith(".")}
+
+
+def remote_objects(url: str, suffix: str = "") -> list[str]:
+    """The object at ``url``, or (a prefix on object storage) the chunk objects under it whose
+    names end in ``suffix``, in name order (with a suffix, numbers as numbers, as local shards)."""
     if HTTP.match(url):
         return [url]
     remote = Remote(url)
     with storage_errors(url):
         if remote.fs.isfile(remote.path):
             return [url]
-        names = sorted(rel for rel in remote.files() if "/" not in rel and not rel.startswith("."))
+        names = sorted((rel for rel in remote.files() if "/" not in rel and not rel.startswith(".")
+                        and rel.endswith(suffix)), key=natural_order if suffix else None)  # vecs: as always
     if not names:
-        raise InputError(f"{public(url)}: no fvecs object there, nor chunk objects under it")
+        kind = f"{suffix} object" if suffix else "fvecs object"
+        raise InputError(f"{public(url)}: no {kind} there, nor chunk objects under it")
     return [f"{remote.url}/{n}" for n in names]

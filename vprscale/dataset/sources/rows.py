@@ -2,7 +2,8 @@
 behind one opener (:func:`open_rows`): ``.npy`` (a file, or a directory of shards), the ``bin``
 forms (``.fbin``, ``.f16bin``, ``.u8bin``, ``.i8bin``), fvecs and bvecs (a file or a directory of
 chunks), an HDF5 dataset (``file.hdf5:train``) and a Parquet list column (``file.parquet:emb``,
-or a directory of Parquet files), local or (the ``bin`` and vecs forms) by URL; and labels,
+or a directory of Parquet files), local or by URL (http(s), or object storage, where a prefix of
+objects is a directory); and labels,
 ground truth and positions beside them."""
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
-from vprscale.core.objects import is_url
+from vprscale.core.objects import is_url, public
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.deep1b import FvecsSource, open_deep1b
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 from vprscale.dataset.sources.hdf5 import SUFFIXES as HDF5_SUFFIXES
 from vprscale.dataset.sources.hdf5 import Hdf5Source
 from vprscale.dataset.sources.parquetrows import ParquetRowsSource
+from vprscale.dataset.sources.remote import RemoteNpySource, prefix_suffixes
 from vprscale.dataset.sources.shards import NpyShardsSource, check_rows, open_npy
 
 
@@ -49,9 +51,9 @@ def open_rows(spec: str | os.PathLike) -> RowSource:
     file (or a directory of them) its list column; a directory of ``.npy`` files is shards,
     any other directory vecs chunks."""
     text = str(spec)
-    if is_url(text):
-        return open_deep1b(text)
     head, _, key = text.rpartition(":")
+    if is_url(text):  # the same forms by URL; a prefix of objects is a folder
+        return _open_url(text)
     if head and Path(head).suffix in HDF5_SUFFIXES:
         return Hdf5Source(head, key)
     if Path(text).suffix in HDF5_SUFFIXES:
@@ -65,6 +67,23 @@ def open_rows(spec: str | os.PathLike) -> RowSource:
     if p.is_dir() and any(p.glob("*.npy")):
         return NpyShardsSource(p)
     return open_deep1b(p)
+
+
+def _open_url(text: str) -> RowSource:
+    """:func:`open_rows` of a URL: a key after the last colon names an HDF5 dataset or a Parquet
+    column (of a file, or of a prefix of Parquet objects); a prefix of ``.npy`` objects is shards."""
+    head, _, key = text.rpartition(":")
+    if Path(head.split("?", 1)[0]).suffix in HDF5_SUFFIXES:
+        return Hdf5Source(head, key)
+    if Path(text.split("?", 1)[0]).suffix in HDF5_SUFFIXES:
+        raise InputError(f"{public(text)}: name the dataset of descriptors ({public(text)}:train, for example)")
+    keyed = "/" not in key and not key.isdigit()  # not a port, nor a path
+    for base, column in ((head, key), (text, None)) if keyed else ((text, None),):
+        if Path(base.split("?", 1)[0]).suffix == ".parquet" or ".parquet" in prefix_suffixes(base):
+            return ParquetRowsSource(base, column)
+    if Path(text.split("?", 1)[0]).suffix == ".npy" or ".npy" in prefix_suffixes(text):
+        return RemoteNpySource(text)
+    return open_deep1b(text)
 
 
 def neighbour_ids(path: Path) -> np.ndarray:

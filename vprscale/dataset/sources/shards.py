@@ -16,9 +16,9 @@ from vprscale.dataset.sources.base import RowSource, part_spans
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 
 
-def natural_order(path: Path) -> list:
+def natural_order(path: Path | str) -> list:
     """Name order with numbers compared as numbers (``emb_2`` before ``emb_10``), as shard writers number them."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", Path(path).name)]
 
 
 def open_npy(path: Path) -> np.ndarray:
