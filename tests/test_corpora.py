@@ -39,14 +39,16 @@ def _write_bin(path, rows: np.ndarray) -> None:
 
 @pytest.fixture(scope="module")
 def bigann(tmp_path_factory, sources):
-    """A tiny store built from a 128-d u8bin corpus, and the same rows as a 128-d fbin's store."""
+    """A tiny store built from a 128-d u8bin corpus, and from the same rows as a 128-d fbin and an .npy."""
     root = tmp_path_factory.mktemp("bigann")
     rows = _sift(ROWS)
     _write_bin(root / "base.u8bin", rows)
     _write_bin(root / "base.fbin", rows.astype("<f4"))
+    np.save(root / "base.npy", rows)
     recipe = write_recipe(root / "tiny.toml")
     stores = {}
-    for name, base in (("u8", "bigann:" + str(root / "base.u8bin")), ("f32", str(root / "base.fbin"))):
+    for name, base in (("u8", "bigann:" + str(root / "base.u8bin")), ("f32", str(root / "base.fbin")),
+                       ("npy", "bigann:" + str(root / "base.npy"))):
         assert main(["build", "--scale", str(recipe), "--base", base, "--fas", str(sources["fas"]),
                      "--out", str(root / name), "--workers", "2", "-q"]) == 0
         stores[name] = root / name / "tiny.zarr"
@@ -61,8 +63,9 @@ def test_a_wider_corpus_is_projected_to_the_recipes_width(bigann):
     assert source["dim"] == 128 and "u8bin" in str(source)  # the corpus as read, recorded in the store
 
 
-def test_the_same_rows_in_another_form_give_the_same_store(bigann):
-    one, other = (zarr.open_group(bigann[k], mode="r") for k in ("u8", "f32"))
+@pytest.mark.parametrize("form", ["f32", "npy"])
+def test_the_same_rows_in_another_form_give_the_same_store(bigann, form):
+    one, other = (zarr.open_group(bigann[k], mode="r") for k in ("u8", form))
     for name in ("ref", "query_qm1", "query_qm2", "gt"):
         assert np.array_equal(one[name][:], other[name][:]), name
 

@@ -39,10 +39,10 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     own.add_argument("--stride", type=positive_int, default=1,
                      help="the evaluation's default query stride z (default 1: every centre)")
     p.add_argument("--base", metavar="[CORPUS:]PATH",
-                   help="the recipe's large corpus, by path or URL: a .fbin, .u8bin, .i8bin, .f16bin, fvecs or bvecs "
-                        "file (or a directory of chunks); CORPUS (deep1b, bigann, text2image, turing, spacev) checks "
-                        "its published width; rows wider than 96 are projected by the recipe's PCA (default: "
-                        "synthetic Deep1B; docs/dataset.md)")
+                   help="the recipe's large corpus, by path or URL, in any form --ref takes (.fbin, .u8bin, .i8bin, "
+                        ".f16bin, fvecs, bvecs, .npy or shards, FILE.hdf5:DATASET, FILE.parquet:COLUMN); CORPUS "
+                        "(deep1b, bigann, text2image, turing, spacev) checks its published width; rows wider than 96 "
+                        "are projected by the recipe's PCA (default: synthetic Deep1B; docs/dataset.md)")
     p.add_argument("--deep1b", help="Deep1B as the corpus: --base deep1b:PATH (fvecs file, directory of fvecs "
                                     "chunks, or .fbin)")
     p.add_argument("--fas", help="FAS100K .npz (default: synthetic)")

@@ -45,8 +45,8 @@ from vprscale.dataset.layout import ChunkWriter, Layout, codecs, grid
 from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
 from vprscale.dataset.recipe import MAX_CHUNK_ROWS, Recipe, load_recipe
 from vprscale.dataset.sources.base import RowSource
-from vprscale.dataset.sources.deep1b import open_deep1b
 from vprscale.dataset.sources.fas import Traverse, open_fas
+from vprscale.dataset.sources.rows import open_rows
 from vprscale.dataset.sources.synthetic import FasParams, SyntheticDeep1B, SyntheticFAS
 from vprscale.dataset.store import ATTR
 from vprscale.method.coarsehash import hash_descriptors, sample_spans
@@ -86,7 +86,7 @@ def open_sources(recipe: Recipe, deep1b: str | None, fas: str | None,
                  fas_dim: int, corpus: Corpus | None = None) -> tuple[RowSource, Traverse]:
     """The real files when given, else the synthetic generator; validated against the recipe
     (and against the corpus ``deep1b`` is said to be)."""
-    deep = open_deep1b(deep1b) if deep1b else SyntheticDeep1B(recipe.deep1b_rows_read, recipe.seed)
+    deep = open_rows(deep1b) if deep1b else SyntheticDeep1B(recipe.deep1b_rows_read, recipe.seed)
     check_corpus(corpus, deep.name, deep.dim)
     if deep.dim < recipe.dim:  # the corpus's PCA keeps the recipe's D components: it needs as many
         raise InputError(f"{deep.name}: descriptors have {deep.dim} dimensions, fewer than the recipe's {recipe.dim}")

@@ -373,13 +373,14 @@ def _inputs(stage: Stage, digests: DigestCache) -> dict[str, Any]:
     from vprscale.dataset.recipe import recipe_path
     from vprscale.dataset.sources.deep1b import open_deep1b
     from vprscale.dataset.sources.fas import open_fas
+    from vprscale.dataset.sources.rows import open_rows
 
     recipe = recipe_path(stage.params["scale"])
     found: dict[str, Any] = {"recipe": hashlib.sha256(recipe.read_bytes()).hexdigest()}
     if stage.params.get("deep1b"):
         found["deep1b"] = _with_digests(open_deep1b(stage.params["deep1b"]).fingerprint(), digests)
     if stage.params.get("base"):
-        found["base"] = _with_digests(open_deep1b(parse_base(stage.params["base"])[1]).fingerprint(), digests)
+        found["base"] = _with_digests(open_rows(parse_base(stage.params["base"])[1]).fingerprint(), digests)
     if stage.params.get("fas"):
         found["fas"] = _with_digests(open_fas(stage.params["fas"]).fingerprint(), digests)
     return found
