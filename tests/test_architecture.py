@@ -158,9 +158,11 @@ def test_the_grid_asks_the_registry(tiny_store, tiny_index, tmp_path, capsys, mo
     monkeypatch.setattr(registry, "entry_points", lambda group: [plugin] if group == registry.ENTRY_POINT_GROUP else [])
     assert main(["methods"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert [line.split()[0] for line in out[1:]] == ["coarsehash", "baseline", "faiss:FACTORY", "CLASS", "mine"]
-    assert "--compare FACTORY" in out[3] and "--method package.module:Class" in out[4]
-    assert "installed factory tests.test_architecture:_record_context" in out[5]
+    assert [line.split()[0] for line in out[1:]] == ["coarsehash", "baseline", "faiss:FACTORY", "seq:FACTORY",
+                                                        "CLASS", "mine"]
+    assert "--compare FACTORY" in out[3] and "--compare seq:FACTORY" in out[4]
+    assert "--method package.module:Class" in out[5]
+    assert "installed factory tests.test_architecture:_record_context" in out[6]
     CALLED.clear()
     assert main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--no-baseline",
                  "--repeats", "1", "--out", str(tmp_path / "e")]) == 0

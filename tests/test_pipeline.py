@@ -115,9 +115,9 @@ def test_quickstart_runs_end_to_end(quickstart_run):
     assert saved["status"] == "ok"
     per_noise = [f"{fig}_{noise}" for noise in ("qm1", "qm2")
                  for fig in ("fig_compare", "fig_compare_bytes", "fig_compare_trends", "fig_pr")]
-    assert sorted({Path(f).stem for f in saved["figures"]}) == sorted(
-        ["fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", *per_noise])
-    assert len(saved["figures"]) == 2 * (4 + len(per_noise))  # PNG and PDF each
+    whole = ["fig3_recall", "fig4b_single_frame", "fig4c_storage", "fig4d_balance", "fig_nn"]
+    assert sorted({Path(f).stem for f in saved["figures"]}) == sorted([*whole, *per_noise])
+    assert len(saved["figures"]) == 2 * (len(whole) + len(per_noise))  # PNG and PDF each
     assert Path(summary["summary_file"]).with_suffix(".log").stat().st_size > 0
 
 
