@@ -41,8 +41,9 @@ def _watch(output: Path) -> list[str]:
 
 def _publish_points(cmd: list[str], output: Path, log: Path) -> list[tuple[str, int]]:
     """``(syscall, n)``: the n-th call of that syscall on the publish paths is a step of the publish."""
-    subprocess.run([STRACE, "-f", "-qq", "--seccomp-bpf", *_watch(output), "-e", f"trace={CALLS}", "-o", str(log), *cmd],
-                   check=True, capture_output=True)
+    # traced by seccomp-bpf: only the watched calls stop the process (a kill's injection needs ptrace's own stops)
+    subprocess.run([STRACE, "-f", "-qq", "--seccomp-bpf", *_watch(output), "-e", f"trace={CALLS}", "-o", str(log),
+                    *cmd], check=True, capture_output=True)
     seen: dict[str, int] = {}
     points, previous = [], None
     for line in log.read_text().splitlines():
