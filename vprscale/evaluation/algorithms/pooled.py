@@ -12,7 +12,7 @@ from vprscale.evaluation.algorithms.base import Algorithm, Answer, top_columns
 from vprscale.evaluation.algorithms.coarsehash import CoarseHash
 from vprscale.evaluation.algorithms.faisscodes import MIN_CENTRES, SCAN_BUDGET
 from vprscale.method.index import Index, QueryFrames
-from vprscale.method.kernels import N_BEST
+from vprscale.method.kernels import N_BEST, NO_CANDIDATE
 
 
 class PooledFrames(NamedTuple):
@@ -85,7 +85,7 @@ class PooledMethod(Algorithm):
             return Answer(*top_columns(centres, dist, n_best), n_r, ops)
         scores = self.index.window_scores(state.coarse, pos, centres, L)
         order = np.lexsort((centres, scores), axis=1)[:, :n_best]  # by score, ties to the smaller centre
-        top = np.where(np.take_along_axis(scores, order, 1) < np.iinfo(np.int64).max,
+        top = np.where(np.take_along_axis(scores, order, 1) < NO_CANDIDATE,
                        np.take_along_axis(centres, order, 1), -1)
         best = np.take_along_axis(scores, order[:, :1], 1)[:, 0]
         score = np.where(top[:, 0] >= 0, best / float(self.index.delta_tables()[2]), np.inf)
