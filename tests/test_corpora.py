@@ -55,6 +55,7 @@ def bigann(tmp_path_factory, sources):
     return stores
 
 
+@pytest.mark.slow
 def test_a_wider_corpus_is_projected_to_the_recipes_width(bigann):
     group = zarr.open_group(bigann["u8"], mode="r")
     assert group["ref"].shape[1] == 96 and group["transforms/deep1b_components"].shape == (96, 128)
@@ -63,6 +64,7 @@ def test_a_wider_corpus_is_projected_to_the_recipes_width(bigann):
     assert source["dim"] == 128 and "u8bin" in str(source)  # the corpus as read, recorded in the store
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("form", ["f32", "npy"])
 def test_the_same_rows_in_another_form_give_the_same_store(bigann, form):
     one, other = (zarr.open_group(bigann[k], mode="r") for k in ("u8", form))
@@ -70,6 +72,7 @@ def test_the_same_rows_in_another_form_give_the_same_store(bigann, form):
         assert np.array_equal(one[name][:], other[name][:]), name
 
 
+@pytest.mark.slow
 def test_a_store_of_another_corpus_is_indexed_and_evaluated(bigann, tmp_path):
     assert main(["index", str(bigann["u8"]), "--out", str(tmp_path / "i"), "-q"]) == 0
     assert main(["eval", str(bigann["u8"]), str(tmp_path / "i"), "--L", "1,9", "--noise", "qm1", "--no-baseline",
@@ -81,6 +84,7 @@ def test_a_store_of_another_corpus_is_indexed_and_evaluated(bigann, tmp_path):
     ("nope:{u8}", "nope is not a corpus vprscale knows"),
     ("bigann:", "give the bigann file after the colon"),
 ])
+@pytest.mark.slow
 def test_a_corpus_that_is_not_what_it_is_said_to_be_is_refused(bigann, tmp_path, capsys, base, says):
     u8 = bigann["u8"].parent.parent / "base.u8bin"
     code = main(["build", "--scale", str(write_recipe(tmp_path / "tiny.toml")), "--base", base.format(u8=u8),
@@ -122,6 +126,7 @@ def test_the_command_line_offers_every_source_fetch_knows():
     assert set(CLI_SOURCES) == set(SOURCES)
 
 
+@pytest.mark.slow
 def test_a_pipeline_build_stage_takes_a_corpus_by_one_key(bigann, tmp_path):
     from vprscale.core.digests import DigestCache
     from vprscale.jobs.pipeline import _inputs, load_pipeline, stage_command

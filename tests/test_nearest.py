@@ -68,6 +68,7 @@ def nearest(tiny_store, tiny_index, tmp_path_factory):
     return pq.read_table(out / "nn.parquet").to_pandas(), json.loads((out / "eval.json").read_text()), out
 
 
+@pytest.mark.slow
 def test_nn_parquet_holds_each_method_on_each_noise_level(nearest):
     nn, meta, _ = nearest
     assert meta["nn_queries"] == 500
@@ -81,6 +82,7 @@ def test_nn_parquet_holds_each_method_on_each_noise_level(nearest):
     assert list(nn.family.unique()) == ["hashing", "PQ"]
 
 
+@pytest.mark.slow
 def test_nn_recalls_are_faiss_own_search_against_brute_force(nearest, tiny_store):
     """The recalls of a FAISS code: its own top 100 of the same rows, against the exact neighbours
     by numpy's brute force."""
@@ -122,6 +124,7 @@ def test_addresses_of_one_hamming_distance_come_cheapest_first():
     assert cost == sorted(cost) and two.tolist()[:2] == [0b1010, 0b0110]
 
 
+@pytest.mark.slow
 def test_report_shows_the_nn_table_beside_the_published_figures(nearest, tmp_path):
     nn, _, out = nearest
     assert main(["report", str(out), "--out", str(tmp_path / "r")]) == 0
@@ -133,6 +136,7 @@ def test_report_shows_the_nn_table_beside_the_published_figures(nearest, tmp_pat
     assert (tmp_path / "r" / "fig_nn.png").is_file()
 
 
+@pytest.mark.slow
 def test_the_sql_console_has_the_nn_table(nearest, capsys):
     nn, _, out = nearest
     capsys.readouterr()

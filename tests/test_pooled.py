@@ -75,6 +75,7 @@ def _rows(pooled, method: str):
     return q[q.method == method].sort_values("t")
 
 
+@pytest.mark.slow
 def test_pooled_methods_run_on_sequences_only_as_their_family(pooled):
     res = pooled["results"]
     seq = res[res.method.str.startswith("seq")]
@@ -92,6 +93,7 @@ def test_pooled_methods_run_on_sequences_only_as_their_family(pooled):
         "bytes_per_place": pytest.approx(bpp["seq:Flat"])}
 
 
+@pytest.mark.slow
 def test_mean_pooled_match_is_the_nearest_reference_window(pooled):
     """seq:Flat: each match is the reference window whose mean is nearest the query window's
     (brute force over every complete window), its ranking the nearest twenty in order."""
@@ -116,6 +118,7 @@ def _digits(h: np.ndarray, d: int, k: int) -> np.ndarray:
     return np.stack([(h // np.uint64(k) ** np.uint64(d - 1 - j)) % np.uint64(k) for j in range(d)], axis=1)
 
 
+@pytest.mark.slow
 def test_reranked_match_is_coarsehash_best_among_the_pooled_proposals(pooled, tiny_index):
     """seq-gem3:Flat+rerank: the GeM-pooled windows' twenty nearest (brute force), ranked by
     CoarseHash's window score computed here from the addresses and the fixed-point weights."""
@@ -153,6 +156,7 @@ def test_reranked_match_is_coarsehash_best_among_the_pooled_proposals(pooled, ti
     assert same >= 0.9 * len(rows)
 
 
+@pytest.mark.slow
 def test_a_code_and_its_reranking_share_one_encoding(pooled):
     """seq:Flat+rerank5 re-ranks the five windows seq:Flat retrieves: the same encoding, searched once more."""
     plain, reranked = _rows(pooled, "seq:Flat"), _rows(pooled, "seq:Flat+rerank5")
@@ -180,6 +184,7 @@ def test_encode_says_pooled_descriptors_are_encoded_by_eval(tiny_store, capsys):
     assert "encoded by vprscale eval, one encoding per L" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_report_tables_pooled_descriptors_as_sequence_methods(pooled, tmp_path):
     """The report draws the paper's figures from CoarseHash and the baseline alone, and files the
     pooled descriptors with the compared methods, each as a sequence series of its family."""
