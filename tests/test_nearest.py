@@ -146,3 +146,20 @@ def test_the_sql_console_has_the_nn_table(nearest, capsys):
     want = nn[nn.noise == "qm1"].sort_values("method")
     assert [r["method"] for r in got] == want.method.tolist()
     assert [r["recall_at_100"] for r in got] == pytest.approx(want.recall_at_100.tolist())
+
+
+def test_nn_needs_query_rows_in_the_first_part(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    ref = rng.normal(size=(3_000, 16)).astype(np.float32)
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "q.npy", ref[:600] + 0.1)
+    np.save(tmp_path / "gt.npy", np.arange(600))
+    np.save(tmp_path / "part.npy", np.ones(600, np.uint8))  # every query row in the second part
+    assert main(["build", "--ref", str(tmp_path / "ref.npy"), "--query", f"q={tmp_path / 'q.npy'}", "--gt",
+                 str(tmp_path / "gt.npy"), "--part", str(tmp_path / "part.npy"), "--out", str(tmp_path), "-q"]) == 0
+    assert main(["index", str(tmp_path / "ref.zarr"), "--out", str(tmp_path / "i"), "-q"]) == 0
+    capsys.readouterr()
+    code = main(["eval", str(tmp_path / "ref.zarr"), str(tmp_path / "i"), "--L", "1", "--nn", "--out",
+                 str(tmp_path / "e")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "--nn: the store has no query rows in its first part" in err and not (tmp_path / "e").exists()

@@ -194,3 +194,11 @@ def test_report_tables_pooled_descriptors_as_sequence_methods(pooled, tmp_path):
         assert f"| {name} pooling=" in md and f"{name} (sequence)" in md
     recall_table = md[md.index("## Recall (%) at radii"):].split("\n## ")[0]
     assert "seq" not in recall_table and "sequence descriptor" in md
+
+
+def test_a_pooled_descriptor_without_a_sequence_length_is_refused(tiny_store, tiny_index, tmp_path, capsys):
+    """At L = 1 a pooled window is the frame: asking for one there alone would pool and encode for nothing."""
+    code = main(["eval", str(tiny_store), str(tiny_index), "--L", "1", "--noise", "qm1", "--compare", "seq:PQ4np",
+                 "--out", str(tmp_path / "e")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "evaluate an --L above 1" in err and "\n" not in err and not (tmp_path / "e").exists()

@@ -265,7 +265,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         stored = {m.factory: stored_encoding(req.store, m.factory, identity) for m in compared}  # vprscale encode's
         _check_methods(req, plugged, indexes[0][1])
         if req.nn:
-            check_nn(indexes[0][1])
+            check_nn(indexes[0][1], qs.n_deep)
         base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
             for path in index_paths:  # re-indexing is refused during evaluations of the index, not they of each other
@@ -415,6 +415,9 @@ def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> li
     """The pooled sequence descriptors asked for (``--compare seq:…``): an encoding per pooling and
     code, with a code per evaluated L > 1."""
     specs = [parse_pooled(s) for s in req.compare if is_pooled(s)]
+    if specs and not any(1 < L <= indexes[0][1].n_ref for L in req.lengths):
+        raise InputError(f"--compare {specs[0].name}: a pooled descriptor matches sequences; evaluate an --L above 1 "
+                         f"(--L {','.join(map(str, req.lengths))} has none)")
     return pooled_encodings(specs, dim, req.lengths, indexes[0][1].n_ref, req.faiss_nprobe[0], req.workers)
 
 

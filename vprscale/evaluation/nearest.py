@@ -178,8 +178,12 @@ def nn_rows(noise: str, rows: np.ndarray, truth: np.ndarray, index: Index, dim: 
              "threads": 1} for row in found]
 
 
-def check_nn(index: Index) -> None:
-    """Refuse ``--nn`` where CoarseHash's Hamming expansion is not defined (K > 2)."""
+def check_nn(index: Index, n_deep: int) -> None:
+    """Refuse ``--nn`` where CoarseHash's Hamming expansion is not defined (K > 2), or where the
+    store has no query rows of the part it is measured on (the first: Deep1B's)."""
     if index.k != 2:
         raise InputError(f"--nn: CoarseHash's ranking expands over Hamming balls of binary addresses; this index "
                          f"has K = {index.k}")
+    if n_deep == 0:
+        raise InputError("--nn: the store has no query rows in its first part (Deep1B's, or part 0 of your own), "
+                         "where the nearest-neighbour axis is measured")
