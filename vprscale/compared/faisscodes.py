@@ -483,7 +483,6 @@ class FaissCodes:
     def start(self, n_ref: int) -> None:
         """Make room for the codes of ``n_ref`` references (after :meth:`train`), then
         :meth:`encode` them block by block, in order, then :meth:`finish`."""
-        width = self.subs.columns if self.form == "tables" and not self.nibbles else self.code_bytes
         if not self.windows:  # nothing kept beside FAISS's index but a graph's rows, which it links at finish
             width = self.code_bytes if self.graph else 0
         elif self.form == "residual":  # a record: the table indices, the list number, the term's level
@@ -492,6 +491,8 @@ class FaissCodes:
         elif self.form == "factors":
             width = rabitq.record_width(self.inner.d, self._list_bytes)
             self._centres()
+        else:
+            width = self.subs.columns if self.form == "tables" and not self.nibbles else self.code_bytes
         self.codes = np.empty((n_ref, width), np.uint8)
         self._filled, self._pending = 0, _NO_ROWS
         self._values = None

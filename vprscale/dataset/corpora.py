@@ -9,9 +9,11 @@ file is, and hold its published width, form and where big-ann-benchmarks serves 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 from vprscale.core.errors import InputError
+from vprscale.core.objects import is_url
 
 
 @dataclass(frozen=True)
@@ -42,13 +44,14 @@ CORPORA = {c.name: c for c in (
 
 def parse_base(value: str) -> tuple[Corpus | None, str]:
     """``--base [CORPUS:]PATH``: the corpus it names (None: unnamed) and the path or URL."""
+    if is_url(value):  # a URL's scheme is not a corpus
+        return None, value
     name, sep, rest = value.partition(":")
     if sep and name in CORPORA:
         if not rest:
             raise InputError(f"--base {value}: give the {name} file after the colon ({name}:PATH or {name}:URL)")
         return CORPORA[name], rest
-    if sep and "/" not in name and "." not in name and name not in ("http", "https", "s3", "gs", "file") \
-            and len(name) > 1:  # a word before a colon that no corpus has (one letter: a Windows drive)
+    if sep and re.fullmatch(r"[A-Za-z][\w-]+", name):  # a word no corpus has (one letter: a Windows drive)
         raise InputError(f"--base {value}: {name} is not a corpus vprscale knows ({', '.join(CORPORA)}); "
                          "give CORPUS:PATH, or the path alone")
     return None, value

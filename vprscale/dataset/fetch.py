@@ -49,7 +49,7 @@ SOURCES = {  # what fetch knows: its default URL and the environment variable th
     # the other corpora a recipe takes (--base): their base files, cropped to --rows as Deep1B's
     **{c.name: (c.url, f"VPRSCALE_{c.name.upper()}_URL") for c in CORPORA.values() if c.name != "deep1b"},
 }
-BASES = {"deep1b", *CORPORA}  # sources whose base file --rows crops
+BASES = set(CORPORA)  # sources whose base file --rows crops (Deep1B's among them)
 MAX_DIM = 1 << 16
 CONVERT_ROWS = 1 << 18  # rows converted to fvecs at a time
 SUFFIXES = {"": 1, "K": 10**3, "M": 10**6, "B": 10**9}

@@ -93,8 +93,9 @@ def _append_lists(out: np.ndarray, filled: np.ndarray, owner: np.ndarray, start:
 
 def _masks(d: int, r: int, gaps: np.ndarray) -> np.ndarray:
     """The ``d``-bit masks of ``r`` bits, the cheapest first by CoarseHash's δ (its bits' gaps), then by value."""
-    masks = np.array([sum(1 << b for b in bits) for bits in combinations(range(d), r)], np.uint64)
-    cost = np.array([sum(int(gaps[b]) for b in bits) for bits in combinations(range(d), r)], np.int64)
+    bits = np.array(list(combinations(range(d), r)), np.int64).reshape(math.comb(d, r), r)
+    masks = (np.uint64(1) << bits.astype(np.uint64)).sum(axis=1, dtype=np.uint64)
+    cost = np.asarray(gaps, np.int64)[bits].sum(axis=1)
     return masks[np.lexsort((masks, cost))]
 
 

@@ -51,6 +51,7 @@ class Hdf5Source(RowSource):
             raise InputError(f"{self.name}: a 2-D dataset of descriptor rows expected, not {len(shape)}-D {dtype} "
                              f"{shape}")
         self.n_rows, self.dim = int(shape[0]), int(shape[1])
+        self._file = remote_fingerprint(self.url) if self.url else file_fingerprint(self.path)
 
     def _open(self) -> Any:
         return _h5py().File(remote_file(self.url) if self.url else self.path, "r")
@@ -61,4 +62,4 @@ class Hdf5Source(RowSource):
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "hdf5", "dataset": self.key, "rows": self.n_rows, "dim": self.dim,
-                "files": [remote_fingerprint(self.url) if self.url else file_fingerprint(self.path)]}
+                "files": [self._file]}

@@ -65,6 +65,7 @@ class ParquetRowsSource(RowSource):
             groups += [(i, g, meta.row_group(g).num_rows) for g in range(meta.num_row_groups)]
         self.column = column
         self.name = f"{self.path}:{column}"
+        self._files = [remote_fingerprint(f) if isinstance(f, str) else file_fingerprint(f) for f in self.files]
         self.groups = [(i, g) for i, g, _ in groups]
         self.starts = np.concatenate([[0], np.cumsum([n for _, _, n in groups], dtype=np.int64)])
         self.n_rows = int(self.starts[-1])
@@ -101,7 +102,7 @@ class ParquetRowsSource(RowSource):
 
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "parquet", "column": self.column, "rows": self.n_rows, "dim": self.dim,
-                "files": [remote_fingerprint(f) if isinstance(f, str) else file_fingerprint(f) for f in self.files]}
+                "files": self._files}
 
 
 def _local_files(path: Path) -> list[Path | str]:

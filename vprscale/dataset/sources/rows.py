@@ -78,12 +78,19 @@ def _open_url(text: str) -> RowSource:
     if Path(text.split("?", 1)[0]).suffix in HDF5_SUFFIXES:
         raise InputError(f"{public(text)}: name the dataset of descriptors ({public(text)}:train, for example)")
     keyed = "/" not in key and not key.isdigit()  # not a port, nor a path
+    listed: dict[str, set[str]] = {}  # what a prefix holds, asked of the storage once
+
+    def holds(base: str, suffix: str) -> bool:
+        if Path(base.split("?", 1)[0]).suffix == suffix:
+            return True
+        if base not in listed:
+            listed[base] = prefix_suffixes(base)
+        return suffix in listed[base]
+
     for base, column in ((head, key), (text, None)) if keyed else ((text, None),):
-        if Path(base.split("?", 1)[0]).suffix == ".parquet" or ".parquet" in prefix_suffixes(base):
+        if holds(base, ".parquet"):
             return ParquetRowsSource(base, column)
-    if Path(text.split("?", 1)[0]).suffix == ".npy" or ".npy" in prefix_suffixes(text):
-        return RemoteNpySource(text)
-    return open_deep1b(text)
+    return RemoteNpySource(text) if holds(text, ".npy") else open_deep1b(text)
 
 
 def neighbour_ids(path: Path) -> np.ndarray:
