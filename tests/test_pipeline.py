@@ -271,7 +271,7 @@ def test_a_changed_recipe_source_or_code_reruns_the_stage(tmp_path, sources, mon
 
     (tmp_path / "store").mkdir()
 
-    def fake_stage(pipe, stage, outputs, scheduler, console):  # the decision is under test, not the build
+    def fake_stage(pipe, stage, outputs, scheduler, console, end):  # the decision is under test, not the build
         ran.append(stage.name)
         return {"store": str(tmp_path / "store")}
 
@@ -462,7 +462,7 @@ def test_an_output_changed_in_place_with_its_times_put_back_reruns_its_stage(tmp
     store = tmp_path / "store"
     store.mkdir()
     (store / "data.bin").write_bytes(b"\x01" * 4096)
-    monkeypatch.setattr(pl, "_run_stage", lambda pipe, stage, outputs, scheduler, console: {"store": str(store)})
+    monkeypatch.setattr(pl, "_run_stage", lambda pipe, stage, outputs, scheduler, console, end: {"store": str(store)})
     assert run_pipeline(path)["stages"][0]["status"] == "ran"
     assert run_pipeline(path)["stages"][0]["status"] == "skipped"
     kept = (store / "data.bin").stat()

@@ -1,6 +1,7 @@
 """The ``vprscale`` command line. User errors print one line and exit with status 2; a bug in
-vprscale itself prints one line and exits with status 1 (``--verbose`` adds its traceback); a reader
-that closes the pipe (``| head``) ends the command quietly with status 0.
+vprscale itself prints one line and exits with status 1 (``--verbose`` adds its traceback); a job
+stopped at a checkpoint by a time budget exits with 75 (more to do); a reader that closes the pipe
+(``| head``) ends the command quietly with status 0.
 
 Each command is a module of this package (``add`` declares its arguments, ``run`` does the
 work), so a pipeline stage's fingerprint counts the command it runs, not every command:
@@ -35,6 +36,7 @@ from vprscale.cli import (
 )
 from vprscale.cli.common import EXIT_FAILURE, EXIT_USAGE, HelpFormatter, check_outputs, disk_full, shared_flags
 from vprscale.cli.examples import epilog
+from vprscale.core.deadline import EXIT_MORE, BudgetSpent
 from vprscale.core.errors import CLUSTER, InputError, JobFailed, raised_by
 from vprscale.core.objects import storage_failure
 from vprscale.core.provenance import set_command
@@ -154,6 +156,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except InputError as exc:
         print(f"vprscale {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BudgetSpent as exc:  # not a failure: the job stopped at a checkpoint, as vprscale run --budget asked
+        print(f"vprscale {args.command}: stopped at a checkpoint, the time budget spent ({exc}); the same command "
+              "continues from it", file=sys.stderr)
+        return EXIT_MORE
     except JobFailed as exc:
         print(f"vprscale {args.command}: failed: {exc}", file=sys.stderr)
         return EXIT_FAILURE

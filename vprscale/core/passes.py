@@ -12,12 +12,14 @@ the pass was interrupted or scheduled.
 from __future__ import annotations
 
 import pickle
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 import dask
 
+from vprscale.core import deadline
 from vprscale.core.progress import ChunkProgress
 
 S = TypeVar("S")
@@ -29,7 +31,8 @@ def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Call
     """Fold ``task(a, b)`` of every chunk into ``state``, in chunk order, resumably.
 
     ``work`` holds the checkpoint ``<checkpoint or name>.pass``: the state after the first
-    ``n`` chunks. ``name`` is what the progress shows.
+    ``n`` chunks. ``name`` is what the progress shows. Under a deadline
+    (:mod:`vprscale.core.deadline`) a group starts only if the last one's time still fits before it.
     """
     ckpt = work / f"{checkpoint or name}.pass"
     done = 0
@@ -38,7 +41,10 @@ def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Call
             done, state = pickle.load(f)
     progress = None if quiet else ChunkProgress(name, len(bounds), done)
     run = dask.delayed(task, pure=True)  # the task object (small matrices, a reader) is hashed once
+    last = 0.0  # the last group's wall time: what the next one is expected to take
     for g in range(done, len(bounds), group):
+        deadline.check(last, f"{name}: {g:,} of {len(bounds):,} chunks done")
+        started = time.perf_counter()
         results = dask.compute(*[run(a, b) for a, b in bounds[g : g + group]])
         for r in results:
             state = fold(state, r)
@@ -49,4 +55,5 @@ def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Call
         tmp.replace(ckpt)
         if progress:
             progress.update(len(results))
+        last = time.perf_counter() - started
     return state

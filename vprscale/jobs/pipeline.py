@@ -10,6 +10,11 @@ would run and why. Every run writes a
 JSON summary (times, peak memory, bytes on disk per stage) and a log under
 ``<out>/runs/``; two runs on the same output directory never overlap.
 
+A run may cover some stages (:func:`select`: named ones, what they read, with ``downstream``
+what reads them), override parameters (:func:`override`) and keep to a wall-clock budget
+(:mod:`vprscale.jobs.budget`): a stage that checkpoints is stopped inside at a checkpoint, its
+time so far kept in the state, and the next call resumes it. :func:`stage_graph` draws the plan.
+
 Relative paths are taken from the current directory (run pipelines from the repository root).
 """
 
@@ -26,13 +31,17 @@ import shlex
 import subprocess
 import sys
 import time
+import tomllib
 import traceback
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import vprscale
+from vprscale.core import deadline
+from vprscale.core.deadline import BudgetSpent
 from vprscale.core.digests import DigestCache
 from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.manifest import check_manifest, read_manifest
@@ -41,11 +50,14 @@ from vprscale.core.provenance import provenance
 from vprscale.core.publish import check_writable, exclusive
 from vprscale.dataset.recipe import read_toml, shipped
 from vprscale.evaluation.algorithms.registry import BUILTIN
-from vprscale.jobs import estimates
+from vprscale.jobs import budget as budget_rules
+from vprscale.jobs import estimates, stagegraph
 from vprscale.jobs.child import vprscale_argv
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
+STOPPED = ".stopped"  # in the state: stages a budget stopped at a checkpoint (time spent, peak), by name (no
+# stage's name starts with a dot)
 DIGESTS = ".input-digests.json"  # under out: the content digests of the pipeline's input and output files
 # Parameter schema per stage kind: name → (type, required). Types: "str", "int", "bool",
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
@@ -154,25 +166,87 @@ def load_pipeline(path: str | Path) -> Pipeline:
         if name in kinds:
             raise InputError(f"{where}: the name is used twice")
         params = {k: v for k, v in raw.items() if k not in ("name", "kind")}
-        schema = SCHEMA[kind]
-        for key in params:
-            if key not in schema:
-                raise InputError(f"{where}: unknown key '{key}' for a {kind} stage (known: {', '.join(schema)})")
-        for key, (typ, required) in schema.items():
-            if key not in params:
-                if required:
-                    raise InputError(f"{where}: missing key '{key}'")
-                continue
-            if not _type_ok(params[key], typ):
-                raise InputError(f"{where}: key '{key}' must be {_TYPE_WORDS[typ]}, got {params[key]!r}")
-            if typ in ("stage", "list[stage]"):
-                for ref in params[key] if isinstance(params[key], list) else [params[key]]:
-                    if kinds.get(ref) not in PRODUCERS[key]:
-                        raise InputError(f"{where}: key '{key}' must name an earlier "
-                                         f"{' or '.join(sorted(PRODUCERS[key]))} stage, got '{ref}'")
+        _check_params(where, kind, params, kinds)
         kinds[name] = kind
         pipe.stages.append(Stage(name, kind, params))
     return pipe
+
+
+def _check_params(where: str, kind: str, params: dict[str, Any], earlier: dict[str, str]) -> None:
+    """Every key known to a ``kind`` stage, of its type, required ones present, and stage references
+    naming an ``earlier`` stage (name → kind) of a kind that makes what the key reads."""
+    schema = SCHEMA[kind]
+    for key in params:
+        if key not in schema:
+            raise InputError(f"{where}: unknown key '{key}' for a {kind} stage (known: {', '.join(schema)})")
+    for key, (typ, required) in schema.items():
+        if key not in params:
+            if required:
+                raise InputError(f"{where}: missing key '{key}'")
+            continue
+        if not _type_ok(params[key], typ):
+            raise InputError(f"{where}: key '{key}' must be {_TYPE_WORDS[typ]}, got {params[key]!r}")
+        if typ in ("stage", "list[stage]"):
+            for ref in params[key] if isinstance(params[key], list) else [params[key]]:
+                if earlier.get(ref) not in PRODUCERS[key]:
+                    raise InputError(f"{where}: key '{key}' must name an earlier "
+                                     f"{' or '.join(sorted(PRODUCERS[key]))} stage, got '{ref}'")
+
+
+def references(stage: Stage) -> list[str]:
+    """The stages ``stage`` reads from (its keys that name stages)."""
+    found = []
+    for key, value in stage.params.items():
+        if SCHEMA[stage.kind][key][0] in ("stage", "list[stage]"):
+            found += value if isinstance(value, list) else [value]
+    return found
+
+
+def override(pipe: Pipeline, settings: Sequence[str]) -> None:
+    """Apply ``--set STAGE.KEY=VALUE`` (VALUE in TOML: ``7``, ``[1, 50]``, ``false``, ``"x"``; a bare word
+    is a string) to the pipeline, checked as the file's own keys are. An override is a parameter like
+    any other: it is part of the stage's fingerprint, so the stage re-runs with it, and again without."""
+    kinds = {s.name: s.kind for s in pipe.stages}
+    for setting in settings:
+        target, eq, raw = setting.partition("=")
+        name, dot, key = target.rpartition(".")
+        if not eq or not dot or not name or not key:
+            raise InputError(f"--set {setting!r}: give STAGE.KEY=VALUE, e.g. --set eval-1M.L=[1,50]")
+        stage = next((s for s in pipe.stages if s.name == name), None)
+        if stage is None:
+            raise InputError(f"--set {setting!r}: {pipe.path} has no stage '{name}' (stages: {', '.join(kinds)})")
+        try:
+            value = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        earlier = dict(list(kinds.items())[: pipe.stages.index(stage)])
+        _check_params(f"--set {setting!r}: stage '{name}'", stage.kind, {**stage.params, key: value}, earlier)
+        stage.params[key] = value
+
+
+def select(pipe: Pipeline, names: Sequence[str], downstream: bool) -> tuple[list[Stage], set[str]]:
+    """The stages a run covers, in the file's order, and those asked for (``--force`` forces those).
+
+    Asked: the named stages (all if none), with ``downstream`` every stage that reads from them,
+    directly or not. Covered: those and every stage they read from, which run only if out of
+    date, as ``make`` does with a target's prerequisites.
+    """
+    known = [s.name for s in pipe.stages]
+    for name in names:
+        if name not in known:
+            raise InputError(f"{pipe.path}: no stage '{name}' (stages: {', '.join(known)})")
+    if not names:
+        return list(pipe.stages), set(known)
+    asked = set(names)
+    if downstream:
+        for stage in pipe.stages:  # a stage reads only from earlier ones: one pass in order closes the set
+            if asked & set(references(stage)):
+                asked.add(stage.name)
+    covered = set(asked)
+    for stage in reversed(pipe.stages):
+        if stage.name in covered:
+            covered |= set(references(stage))
+    return [s for s in pipe.stages if s.name in covered], asked
 
 
 class _Tee(io.TextIOBase):
@@ -186,83 +260,168 @@ class _Tee(io.TextIOBase):
         return len(s)
 
 
+@dataclass
+class Decision:
+    """One stage's plan: run or not and why, its fingerprint, its estimated cost."""
+
+    stage: Stage
+    parts: dict[str, Any]
+    fingerprint: str
+    reasons: list[str]  # empty: up to date
+    estimate: estimates.Estimate
+    spent: float = 0.0  # seconds that calls stopped by a budget already spent on it (same fingerprint)
+
+    @property
+    def run(self) -> bool:
+        return bool(self.reasons)
+
+    def state(self) -> tuple[str, str]:
+        """``(state, why)``: done (up to date), pending (never finished: no complete run recorded,
+        or stopped at a checkpoint) or stale (it finished once and something it depends on changed)."""
+        if not self.run:
+            return "done", ""
+        never = self.reasons == ["no complete run recorded"] or self.spent > 0
+        return ("pending" if never else "stale"), "; ".join(self.reasons)
+
+    def pending(self) -> budget_rules.Pending:
+        left = None if self.estimate.seconds is None else max(self.estimate.seconds - self.spent, 0.0)
+        return budget_rules.Pending(self.stage.name, self.stage.kind, left)
+
+
+def decide(pipe: Pipeline, stages: list[Stage], asked: set[str], state: dict[str, Any], force: bool,
+           graph: Any, digests: DigestCache) -> list[Decision]:
+    """Each covered stage's decision, in order: a stage's fingerprint is of what it reads, not
+    of what it made, so the whole plan is known before anything runs."""
+    kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
+    measured = estimates.read_measurements(pipe.out, pipe.path)
+    stopped = state.get(STOPPED, {})
+    decisions: list[Decision] = []
+    fingerprints: dict[str, str] = {}
+    for stage in stages:
+        parts = _parts(stage, fingerprints, graph, digests)
+        fp = fingerprints[stage.name] = _digest(parts)
+        reasons = _reasons(stage, parts, state.get(stage.name, {}), {d.stage.name for d in decisions if d.run},
+                           force and stage.name in asked, digests)
+        partial = stopped.get(stage.name) or {}
+        spent = float(partial.get("seconds", 0.0)) if partial.get("fingerprint") == fp else 0.0
+        if spent and reasons == ["no complete run recorded"]:
+            reasons = [f"stopped at a checkpoint by a budget after {budget_rules.words(spent)}; resumes from it"]
+        cost = estimates.estimate(stage.name, stage.kind, stage.params,
+                                  estimates.places(stage.params, stage.kind, kinds), measured)
+        decisions.append(Decision(stage, parts, fp, reasons, cost, spent))
+    return decisions
+
+
 def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False,
-                 dry_run: bool = False, save_costs: bool = False) -> dict[str, Any]:
+                 dry_run: bool = False, save_costs: bool = False, stages: Sequence[str] = (),
+                 downstream: bool = False, settings: Sequence[str] = (), budget: float | None = None,
+                 ) -> dict[str, Any]:
     """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``).
 
-    Each stage runs when something it depends on changed (:func:`plan_stage` says what) and
-    is skipped otherwise; ``force`` re-runs every stage. ``dry_run`` decides and reports,
-    stage by stage, with each stage's estimated cost (:mod:`vprscale.jobs.estimates`), without
-    running anything or writing a summary. ``save_costs`` writes the figures of the stages that
-    ran beside the pipeline file, for a dry run on a machine that has not run it yet.
+    Each stage runs when something it depends on changed (:func:`decide` says what) and is
+    skipped otherwise; ``force`` re-runs every stage asked for. ``stages`` (names) with
+    ``downstream`` restrict the run (:func:`select`); ``settings`` override parameters
+    (:func:`override`). ``budget`` (seconds) runs stages while it lasts (:mod:`vprscale.jobs.budget`):
+    the summary's status is then ``"more to do"`` if it ran out, with what is left and its
+    estimate. ``dry_run`` decides and reports, stage by stage, with each stage's estimated cost
+    (:mod:`vprscale.jobs.estimates`) and, under a budget, the call that runs it, without running
+    anything or writing a summary. ``save_costs`` writes the figures of the stages that ran beside
+    the pipeline file, for a dry run on a machine that has not run it yet.
     """
     pipe = load_pipeline(path)
+    override(pipe, settings)
+    covered, asked = select(pipe, stages, downstream)
     state_file = pipe.out / "pipeline-state.json"
-    state = _read_state(state_file)
     graph = _import_graph()
     digests = DigestCache(pipe.out / DIGESTS)
-    kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
     if dry_run:
-        decisions = []
-        measured = estimates.read_measurements(pipe.out, pipe.path)
-        for stage in pipe.stages:
-            parts = _parts(stage, {d["name"]: d["fingerprint"] for d in decisions}, graph, digests)
-            reasons = _reasons(stage, parts, state.get(stage.name, {}), {d["name"] for d in decisions if d["run"]},
-                               force, digests)
-            cost = estimates.estimate(stage.name, stage.kind, stage.params,
-                                      estimates.places(stage.params, stage.kind, kinds), measured)
-            decisions.append({"name": stage.name, "kind": stage.kind, "fingerprint": _digest(parts),
-                              "run": bool(reasons), "reasons": reasons, "estimate": cost})
+        decisions = decide(pipe, covered, asked, _read_state(state_file), force, graph, digests)
         if pipe.out.is_dir():  # a cache, not an output: the next run need not hash the sources again
             digests.save()
-        total = estimates.totals([d["estimate"] for d in decisions if d["run"]], [d["estimate"] for d in decisions])
-        return {"name": pipe.name, "dry_run": True, "stages": decisions, "estimate": total}
+        running = [d for d in decisions if d.run]
+        calls = iter(budget_rules.plan_calls([d.pending() for d in running], budget) if budget else [])
+        total = estimates.totals([d.estimate for d in running], [d.estimate for d in decisions])
+        return {"name": pipe.name, "dry_run": True, "estimate": total,
+                "stages": [{"name": d.stage.name, "kind": d.stage.kind, "fingerprint": d.fingerprint, "run": d.run,
+                            "reasons": d.reasons, "estimate": d.estimate, "spent": d.spent,
+                            "checkpoints": d.stage.kind in budget_rules.CHECKPOINTED,
+                            **(dict(zip(("calls", "call"), next(calls), strict=True)) if d.run and budget else {})}
+                           for d in decisions]}
     check_writable(pipe.out, f"{pipe.path}: out")  # before any stage: its state, logs and summaries are written there
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    end = None if budget is None else time.time() + budget
     runs = pipe.out / "runs"
     runs.mkdir(exist_ok=True)
     summary: dict[str, Any] = {"pipeline": str(pipe.path), "name": pipe.name, "started": stamp, "stages": [],
                                "vprscale": vprscale.__version__, "status": "running",
+                               "selected": list(stages), "downstream": downstream, "set": list(settings),
+                               "budget_s": budget,
                                "provenance": provenance(inputs={"pipeline": hashlib.sha256(
                                    pipe.path.read_bytes()).hexdigest()[:16]})}
     with exclusive(pipe.out / "pipeline"), open(runs / f"{stamp}.log", "w") as log:
         state = _read_state(state_file)  # as it is now that the run holds the lock
-        fingerprints: dict[str, str] = {}
-        ran: set[str] = set()
         outputs: dict[str, dict[str, Any]] = {}
+        kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
         # the run's log file gets everything; the console only what the logging level lets through
         tee_err = _Tee(*([sys.stderr] if logging.getLogger(__name__).isEnabledFor(logging.INFO) else []), log)
+        started_any = False
+        summary["covered"] = len(covered)
         try:
-            for stage in pipe.stages:
-                parts = _parts(stage, fingerprints, graph, digests)
-                digests.save()
-                fp = fingerprints[stage.name] = _digest(parts)
-                prev = state.get(stage.name, {})
-                reasons = _reasons(stage, parts, prev, ran, force, digests)
-                entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": fp,
+            decisions = decide(pipe, covered, asked, state, force, graph, digests)  # a bad source fails the run
+            digests.save()
+            for i, d in enumerate(decisions):
+                stage, prev = d.stage, state.get(d.stage.name, {})
+                entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": d.fingerprint,
                                          "params": redact(stage.params),
                                          "places": estimates.places(stage.params, stage.kind, kinds)}
-                if not reasons:
+                if not d.run:
                     outputs[stage.name] = prev["outputs"]
                     entry |= {"status": "skipped", "outputs": prev["outputs"], "seconds": 0.0}
                     print(f"= {stage.name} ({stage.kind}): up to date, skipped", file=tee_err)
-                else:
-                    print(f"▶ {stage.name} ({stage.kind}): {'; '.join(reasons)}", file=tee_err)
-                    t0 = time.perf_counter()
-                    state.pop(stage.name, None)  # a stage that fails midway is not up to date
+                    summary["stages"].append(entry)
+                    continue
+                if end is not None:
+                    why = budget_rules.may_start(d.pending(), end - time.time(), not started_any, budget)
+                    if why is not None:
+                        _left(summary, decisions[i:], why, tee_err)
+                        break
+                print(f"▶ {stage.name} ({stage.kind}): {'; '.join(d.reasons)}", file=tee_err)
+                t0 = time.perf_counter()
+                started_any = True
+                state.pop(stage.name, None)  # a stage that fails midway is not up to date
+                _write_json(state_file, state)
+                deadline_given = end if stage.kind in budget_rules.CHECKPOINTED else None
+                try:
+                    out = _run_stage(pipe, stage, outputs, scheduler, tee_err, deadline_given)
+                except BudgetSpent as stop:
+                    seconds = d.spent + time.perf_counter() - t0
+                    state.setdefault(STOPPED, {})[stage.name] = {"fingerprint": d.fingerprint, "seconds": seconds,
+                                                                 "peak_rss_bytes": max(stop.args[1], _stopped_peak(
+                                                                     state, stage.name, d.fingerprint))}
                     _write_json(state_file, state)
-                    out = _run_stage(pipe, stage, outputs, scheduler, tee_err)
-                    outputs[stage.name] = out
-                    ran.add(stage.name)
-                    entry |= {"status": "ran", "reasons": reasons, "outputs": out,
-                              "seconds": time.perf_counter() - t0}
-                    state[stage.name] = {"fingerprint": fp, "parts": parts, "outputs": out,
-                                         "signatures": _signatures(out, digests),
-                                         "finished": datetime.now(UTC).isoformat()}
-                    digests.save()
-                    _write_json(state_file, state)
+                    entry |= {"status": "stopped", "reasons": d.reasons, "seconds": time.perf_counter() - t0}
+                    summary["stages"].append(entry)
+                    _left(summary, decisions[i:], f"'{stage.name}' stopped at a checkpoint", tee_err,
+                          spent={stage.name: seconds})
+                    break
+                outputs[stage.name] = out
+                if _stopped_peak(state, stage.name, d.fingerprint):  # the calls a budget stopped count too
+                    out["peak_rss_bytes"] = max(out.get("peak_rss_bytes") or 0,
+                                                _stopped_peak(state, stage.name, d.fingerprint))
+                entry |= {"status": "ran", "reasons": d.reasons, "outputs": out,
+                          # a stage resumed after a budget's stop: its whole time, for the estimates
+                          "seconds": d.spent + time.perf_counter() - t0}
+                state.get(STOPPED, {}).pop(stage.name, None)
+                # what a report of the pipeline states of each stage: the code it ran (at which commit), its cost
+                state[stage.name] = {"fingerprint": d.fingerprint, "parts": d.parts, "outputs": out,
+                                     "signatures": _signatures(out, digests),
+                                     "finished": datetime.now(UTC).isoformat(), "seconds": entry["seconds"],
+                                     "vprscale": vprscale.__version__,
+                                     **{k: summary["provenance"].get(k) for k in ("commit", "dirty")}}
+                digests.save()
+                _write_json(state_file, state)
                 summary["stages"].append(entry)
-            summary["status"] = "ok"
+            summary["status"] = "more to do" if "left" in summary else "ok"
         except Exception as exc:
             summary["status"] = "failed"
             summary["error"] = f"{type(exc).__name__}: {exc}"
@@ -278,6 +437,49 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         summary["costs_file"] = str(estimates.save_costs(pipe.path, pipe.out,
                                                          [(s.name, s.kind, s.params) for s in pipe.stages], machine))
     return summary
+
+
+def stage_graph(path: str | Path, form: str, settings: Sequence[str] = (), stages: Sequence[str] = (),
+                downstream: bool = False, force: bool = False) -> str:
+    """The covered stages' graph with their states (:mod:`vprscale.jobs.stagegraph`), decided as a
+    dry run decides, running nothing."""
+    pipe = load_pipeline(path)
+    override(pipe, settings)
+    covered, asked = select(pipe, stages, downstream)
+    digests = DigestCache(pipe.out / DIGESTS)
+    decisions = decide(pipe, covered, asked, _read_state(pipe.out / "pipeline-state.json"), force, _import_graph(),
+                       digests)
+    if pipe.out.is_dir():
+        digests.save()
+    edges = [(ref, d.stage.name) for d in decisions for ref in dict.fromkeys(references(d.stage))]
+    return stagegraph.render([(d.stage.name, d.stage.kind, *d.state()) for d in decisions], edges, form)
+
+
+def _left(summary: dict[str, Any], rest: list[Decision], why: str, console: io.TextIOBase,
+          spent: dict[str, float] | None = None) -> None:
+    """Record and say what a budgeted run leaves for the next call, and its estimate."""
+    spent = spent or {}
+    left = []
+    for d in (d for d in rest if d.run):
+        e = d.estimate.seconds
+        left.append({"name": d.stage.name, "estimate_s": None if e is None else
+                     max(e - spent.get(d.stage.name, d.spent), 0.0)})
+    known = [x["estimate_s"] for x in left if x["estimate_s"] is not None]
+    summary |= {"left": left, "left_s": sum(known), "left_unmeasured": len(left) - len(known), "stopped_because": why}
+    print(f"⏸ {why}: {len(left)} stage(s) left ({', '.join(x['name'] for x in left)}), "
+          f"{left_words(sum(known), len(left) - len(known))}; the same command continues", file=console)
+
+
+def left_words(seconds: float, unmeasured: int) -> str:
+    """What is left, as a reader says it: its estimate and how many stages it leaves out."""
+    if seconds == 0 and unmeasured:
+        return "no estimate (never measured)"
+    return f"about {budget_rules.words(seconds)}" + (f", {unmeasured} never measured left out" if unmeasured else "")
+
+
+def _stopped_peak(state: dict[str, Any], name: str, fingerprint: str) -> int:
+    record = state.get(STOPPED, {}).get(name) or {}
+    return int(record.get("peak_rss_bytes") or 0) if record.get("fingerprint") == fingerprint else 0
 
 
 def _read_state(path: Path) -> dict[str, Any]:
@@ -544,18 +746,25 @@ _OUTPUT_KEYS = {"synth": ("dir", "fvecs", "fbin", "fas"), "build": ("store",), "
 
 
 def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
-               scheduler: str | None, console: io.TextIOBase) -> dict[str, Any]:
-    """Run one stage as its own process (its memory is its own) and read back its summary."""
+               scheduler: str | None, console: io.TextIOBase, end: float | None = None) -> dict[str, Any]:
+    """Run one stage as its own process (its memory is its own) and read back its summary. With
+    ``end`` (a time), the stage's job stops at a checkpoint before it: :class:`BudgetSpent` with
+    the process's peak memory."""
     argv = stage_command(pipe, stage, outputs, scheduler)
     summary_file = pipe.out / "runs" / f".{stage.name}.summary.json"
     summary_file.unlink(missing_ok=True)
     print("$ vprscale " + shlex.join(redact(argv)), file=console)
-    proc = subprocess.Popen(vprscale_argv(*argv, "--summary", str(summary_file)),
+    env = {k: v for k, v in os.environ.items() if k != deadline.ENV}
+    if end is not None:
+        env[deadline.ENV] = repr(end)
+    proc = subprocess.Popen(vprscale_argv(*argv, "--summary", str(summary_file)), env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
     for line in proc.stdout:
         console.write(line)
     _, status, usage = os.wait4(proc.pid, 0)  # the stage's own peak memory, whatever its job records
     proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode == deadline.EXIT_MORE and end is not None:
+        raise BudgetSpent(f"stage '{stage.name}' stopped at a checkpoint", usage.ru_maxrss * 1024)
     if proc.returncode != 0:
         message = (f"{pipe.path}: stage '{stage.name}' failed (exit status {proc.returncode}); "
                    f"see the log under {pipe.out / 'runs'}")

@@ -1,0 +1,240 @@
+"""A pipeline under a wall-clock budget, part of a pipeline, overrides and the stage graph."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import vprscale.core.deadline as deadline_mod
+import vprscale.core.passes as passes
+import vprscale.jobs.pipeline as pl
+from vprscale.cli import main
+from vprscale.core.deadline import EXIT_MORE, BudgetSpent
+from vprscale.core.errors import InputError
+from vprscale.jobs.budget import Pending, may_start, parse_duration, plan_calls
+from vprscale.jobs.pipeline import load_pipeline, override, run_pipeline, select, stage_graph
+
+STAGES = """name = "t"
+out = "{out}"
+
+[[stages]]
+name = "build"
+kind = "build"
+scale = "20K"
+
+[[stages]]
+name = "index"
+kind = "index"
+store = "build"
+
+[[stages]]
+name = "eval"
+kind = "eval"
+store = "build"
+index = "index"
+noise = ["qm1"]
+L = [1, 50]
+baseline = false
+
+[[stages]]
+name = "build-b"
+kind = "build"
+scale = "20K"
+rescale = false
+
+[[stages]]
+name = "report"
+kind = "report"
+results = ["eval"]
+out = "{out}/report"
+"""
+
+
+def _pipeline(tmp_path: Path) -> Path:
+    path = tmp_path / "p.toml"
+    path.write_text(STAGES.format(out=tmp_path / "data"))
+    return path
+
+
+class _Clock:
+    """A clock the test moves: each chunk of a pass takes 10 s of it."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+        self.lock = threading.Lock()
+
+    def tick(self, seconds: float) -> None:
+        with self.lock:
+            self.now += seconds
+
+    def time(self) -> float:
+        return self.now
+
+
+def _pass(work: Path, calls: list[int], clock: _Clock | None = None) -> np.ndarray:
+    def task(a: int, b: int) -> np.ndarray:
+        calls.append(a)
+        if clock is not None:
+            clock.tick(10.0)
+        return np.arange(a, b, dtype=np.float64) ** 1.5
+
+    bounds = [(i * 10, i * 10 + 10) for i in range(12)]
+    return passes.reduce_pass(work, "test pass", bounds, task, lambda s, r: s + [float(r.sum())], [], group=2,
+                              quiet=True)
+
+
+@pytest.mark.parametrize(("budget", "chunks_done"), [(25.0, 2), (45.0, 4), (-1.0, 0)])
+def test_a_pass_stops_at_the_last_checkpoint_that_fits_and_resumes_to_the_same_state(
+        tmp_path, monkeypatch, budget, chunks_done):
+    """Under a deadline a pass starts a group only if the last group's time still fits before it;
+    the next run (no deadline) continues from the checkpoint, computing no chunk twice, and
+    reduces to what an uninterrupted pass does."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    clock = _Clock()
+    fake = types.SimpleNamespace(time=clock.time, perf_counter=clock.time)
+    monkeypatch.setattr(passes, "time", fake)
+    monkeypatch.setattr(deadline_mod, "time", fake)
+    monkeypatch.setenv(deadline_mod.ENV, repr(clock.now + budget))
+    calls: list[int] = []
+    with pytest.raises(BudgetSpent, match=f"test pass: {chunks_done} of 12 chunks done"):
+        _pass(tmp_path / "a", calls, clock)
+    assert sorted(calls) == [i * 10 for i in range(chunks_done)]
+    monkeypatch.delenv(deadline_mod.ENV)
+    resumed = _pass(tmp_path / "a", calls)
+    assert sorted(calls) == [i * 10 for i in range(12)]  # every chunk once
+    whole = _pass(tmp_path / "b", [])
+    assert resumed == whole
+
+
+def test_a_budget_is_a_duration():
+    assert parse_duration("2h") == 7200 and parse_duration("1h30m") == 5400 and parse_duration("90") == 90
+    assert parse_duration("1.5d") == 129600 and parse_duration("45s") == 45
+    for bad in ("", "2 hours", "h", "0", "-1h", "1x"):
+        with pytest.raises(InputError, match="--budget"):
+            parse_duration(bad)
+    assert main(["run", "quickstart", "--budget", "soon"]) == 2
+
+
+def test_a_stage_that_cannot_stop_midway_starts_only_where_its_estimate_fits():
+    build, index = Pending("b", "build", 3000.0), Pending("i", "index", 1000.0)
+    assert may_start(build, 10.0, False, 3600) is None  # it stops at a checkpoint when it must
+    assert "more than the 10 s left" in may_start(index, 10.0, False, 3600)
+    assert may_start(index, 1000.0, False, 3600) is None
+    assert may_start(index, 10.0, True, 3600) is None  # first in a call: the only way it ever runs
+    assert "never measured" in may_start(Pending("e", "eval", None), 3000.0, False, 3600)
+    assert may_start(build, 0.0, True, 3600) == "the budget is spent"
+    with pytest.raises(InputError, match="stage 'i' cannot stop midway and is estimated at 17 min, longer than the "
+                                         "whole budget"):
+        may_start(index, 600.0, True, 600)
+    # the plan: the build spans two calls, the index waits for the third, the evaluation fits beside it
+    plan = plan_calls([Pending("b", "build", 5000.0), Pending("i", "index", 3000.0), Pending("e", "eval", 500.0)],
+                      3600)
+    assert [c for c, _ in plan] == [2, 3, 3]
+    assert plan[0][1] == "calls 1-2: stops at a checkpoint and continues"
+    assert plan[1][1] == "call 3; cannot stop midway"
+
+
+def test_part_of_a_pipeline_takes_what_it_reads_and_downstream_what_reads_it(tmp_path):
+    pipe = load_pipeline(_pipeline(tmp_path))
+
+    def names(stages, downstream=False):
+        covered, asked = select(pipe, stages, downstream)
+        return [s.name for s in covered], asked
+
+    assert names(["index"]) == (["build", "index"], {"index"})
+    assert names(["index"], True) == (["build", "index", "eval", "report"], {"index", "eval", "report"})
+    assert names(["build-b"], True) == (["build-b"], {"build-b"})
+    assert names([]) == (["build", "index", "eval", "build-b", "report"],
+                         {"build", "index", "eval", "build-b", "report"})
+    with pytest.raises(InputError, match="no stage 'indx'"):
+        select(pipe, ["indx"], False)
+
+
+def test_an_override_is_checked_as_the_file_is_and_changes_the_fingerprint(tmp_path, capsys):
+    path = _pipeline(tmp_path)
+    pipe = load_pipeline(path)
+    override(pipe, ["eval.L=[1, 100]", "build-b.rescale=true", "eval.noise=[\"qm2\"]"])
+    params = {s.name: s.params for s in pipe.stages}
+    assert params["eval"]["L"] == [1, 100] and params["build-b"]["rescale"] is True
+    assert params["eval"]["noise"] == ["qm2"]
+    for bad, message in [("eval.L=fifty", "key 'L' must be a list of integers, got 'fifty'"),
+                         ("eval.colour=red", "unknown key 'colour' for a eval stage"),
+                         ("eval.index=build-b", "key 'index' must name an earlier index stage, got 'build-b'"),
+                         ("nothing.L=[1]", "has no stage 'nothing'"), ("eval.L", "give STAGE.KEY=VALUE")]:
+        with pytest.raises(InputError, match=message):
+            override(load_pipeline(path), [bad])
+        assert main(["run", str(path), "--set", bad, "--dry-run"]) == 2
+        assert message in capsys.readouterr().err
+    plain = {s["name"]: s["fingerprint"] for s in run_pipeline(path, dry_run=True)["stages"]}
+    changed = {s["name"]: s["fingerprint"] for s in run_pipeline(path, dry_run=True, settings=["eval.L=[1]"])["stages"]}
+    assert {n for n in plain if plain[n] != changed[n]} == {"eval", "report"}  # the stage and what reads it
+
+
+def test_the_stage_graph_shows_each_stage_and_what_it_reads_with_its_state(tmp_path, monkeypatch):
+    path = _pipeline(tmp_path)
+    mermaid = stage_graph(path, "mermaid")
+    assert mermaid.startswith("flowchart TD\n")
+    assert 's0["build (build)<br/>pending: no complete run recorded"]:::pending' in mermaid
+    for edge in ("s0 --> s1", "s0 --> s2", "s1 --> s2", "s2 --> s4"):
+        assert f"  {edge}\n" in mermaid
+    assert "s3 -->" not in mermaid and mermaid.count("-->") == 4
+    dot = stage_graph(path, "dot", stages=["index"])
+    assert dot.startswith("digraph pipeline {") and "s0 -> s1;" in dot and "eval" not in dot
+    # a reason names paths, which may hold anything: a label stays text in both forms
+    real = pl._reasons
+    monkeypatch.setattr(pl, "_reasons", lambda stage, *a: ['output /x/"]:::done<img src=x> `changed`'] if
+                        stage.name == "index" else real(stage, *a))
+    hostile = stage_graph(path, "mermaid")
+    line = next(x for x in hostile.splitlines() if "index (index)" in x)
+    assert line == ('  s1["index (index)<br/>stale: output /x/#quot;]:::done#lt;img src=x#gt; #96;changed#96;"]'
+                    ":::stale")
+    line = next(x for x in stage_graph(path, "dot").splitlines() if "index (index)" in x)
+    assert '\\"]:::done<img src=x> `changed`", fillcolor="#fce5cd"];' in line
+
+
+def _tree(store: Path) -> dict[str, str]:
+    """Every file of a store but its run record (times), by content digest."""
+    return {str(f.relative_to(store)): hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(store.rglob("*"))
+            if f.is_file() and f.name not in ("build.json", "manifest.json") and "zarr.json" not in f.name}
+
+
+@pytest.mark.slow
+def test_a_budget_stops_a_build_at_a_checkpoint_and_the_next_call_continues_it(tmp_path, monkeypatch, capsys):
+    """``--budget``: a build stopped at a checkpoint, exit status 75 with what is left; the next
+    call resumes it (nothing finished redone) and runs the rest, and the store is the bytes of an
+    uninterrupted build."""
+    path = _pipeline(tmp_path)
+    real = time.time
+    # the pipeline's clock 100 s behind: the budget's end, 50 s after its start, has already passed
+    # when the build's first pass looks, so the build stops at its first checkpoint whatever the machine
+    monkeypatch.setattr(pl, "time", types.SimpleNamespace(time=lambda: real() - 100, perf_counter=time.perf_counter))
+    assert main(["run", str(path), "build", "index", "--budget", "50s"]) == EXIT_MORE
+    out = capsys.readouterr().out
+    assert "pipeline t: more to do; ran 0 of 2 stages" in out
+    assert "more to do: 2 stage(s) left (build, index), no estimate (never measured); run the same command" in out
+    summary = json.loads(next((tmp_path / "data" / "runs").glob("*.json")).read_text())
+    assert summary["status"] == "more to do" and [s["status"] for s in summary["stages"]] == ["stopped"]
+    state = json.loads((tmp_path / "data" / "pipeline-state.json").read_text())
+    assert set(state) == {".stopped"} and state[".stopped"]["build"]["seconds"] > 0
+    assert (tmp_path / "data" / ".20K.zarr.partial").is_dir() and not (tmp_path / "data" / "20K.zarr").exists()
+    plan = run_pipeline(path, dry_run=True, stages=["build", "index"])["stages"]
+    assert plan[0]["reasons"][0].startswith("stopped at a checkpoint by a budget after")
+    monkeypatch.undo()
+    assert main(["run", str(path), "build", "index"]) == 0
+    log = sorted((tmp_path / "data" / "runs").glob("*.log"))[-1].read_text()
+    assert "resuming the unfinished build" in log
+    second = json.loads(sorted((tmp_path / "data" / "runs").glob("*.json"))[-1].read_text())
+    assert [s["status"] for s in second["stages"]] == ["ran", "ran"]
+    assert second["stages"][0]["seconds"] > state[".stopped"]["build"]["seconds"]  # both calls' time
+    assert not json.loads((tmp_path / "data" / "pipeline-state.json").read_text()).get(".stopped")
+    assert main(["build", "--scale", "20K", "--out", str(tmp_path / "whole"), "--workers", "2"]) == 0
+    assert _tree(tmp_path / "data" / "20K.zarr") == _tree(tmp_path / "whole" / "20K.zarr")
+    assert main(["run", str(path), "build", "index", "--budget", "1h"]) == 0  # nothing left: done, exit 0
