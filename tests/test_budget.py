@@ -129,7 +129,7 @@ def test_a_stage_that_cannot_stop_midway_starts_only_where_its_estimate_fits():
     assert "more than the 10 s left" in may_start(index, 10.0, False, 3600)
     assert may_start(index, 1000.0, False, 3600) is None
     assert may_start(index, 10.0, True, 3600) is None  # first in a call: the only way it ever runs
-    assert "never measured" in may_start(Pending("e", "eval", None), 3000.0, False, 3600)
+    assert may_start(Pending("e", "eval", None), 1.0, False, 3600) is None  # nothing to judge it by: it starts
     assert may_start(build, 0.0, True, 3600) == "the budget is spent"
     with pytest.raises(InputError, match="stage 'i' cannot stop midway and is estimated at 17 min, longer than the "
                                          "whole budget"):
@@ -140,6 +140,9 @@ def test_a_stage_that_cannot_stop_midway_starts_only_where_its_estimate_fits():
     assert [c for c, _ in plan] == [2, 3, 3]
     assert plan[0][1] == "calls 1-2: stops at a checkpoint and continues"
     assert plan[1][1] == "call 3; cannot stop midway"
+    plan = plan_calls([Pending("i", "index", None), Pending("e", "eval", 3000.0), Pending("r", "report", None)], 3600)
+    assert plan == [(1, "call 1 at the earliest; never measured, may run past the budget"),
+                    (1, "call 1; cannot stop midway"), (1, "call 1 at the earliest; never measured, may run past the budget")]
 
 
 def test_part_of_a_pipeline_takes_what_it_reads_and_downstream_what_reads_it(tmp_path):

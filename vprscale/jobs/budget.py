@@ -6,8 +6,9 @@ starts the stages that are out of date in order while the budget lasts. A stage 
 checkpoints (:data:`CHECKPOINTED`: a build's and an encoding's passes) is given the budget's end
 and stops at its last checkpoint that fits (:mod:`vprscale.core.deadline`); the next call resumes
 it. A stage that cannot stop midway starts only if its estimate fits what is left, or first in a
-call (the only way a stage never measured, or longer than what is left, can run at all); one whose
-estimate is longer than the whole budget is refused before any work.
+call (else one longer than what is left could never run); one whose estimate is longer than the
+whole budget is refused before any work. A stage never measured has nothing to judge by: it starts
+while any budget is left, and the dry run says it may run past it.
 """
 
 from __future__ import annotations
@@ -60,8 +61,8 @@ def may_start(stage: Pending, left: float, first: bool, budget: float) -> str | 
             raise InputError(f"--budget {words(budget)}: stage '{stage.name}' cannot stop midway and is estimated "
                              f"at {words(stage.seconds)}, longer than the whole budget: give a larger one")
         return None
-    if stage.seconds is None:
-        return f"'{stage.name}' cannot stop midway and was never measured: it starts first in a call"
+    if stage.seconds is None:  # nothing to judge by: progress, rather than a call that does nothing
+        return None
     if stage.seconds > left:
         return (f"'{stage.name}' cannot stop midway and is estimated at {words(stage.seconds)}, more than the "
                 f"{words(left)} left")
@@ -71,7 +72,7 @@ def may_start(stage: Pending, left: float, first: bool, budget: float) -> str | 
 def plan_calls(stages: list[Pending], budget: float) -> list[tuple[int, str]]:
     """Which call of ``vprscale run --budget`` runs each stage, by the rules of :func:`may_start`
     and the estimates: per stage, the call that ends it and a note. A stage never measured is
-    taken to use the rest of its call."""
+    counted as taking no time: the plan is then the fewest calls it may take."""
     notes: list[tuple[int, str]] = []
     call, left, first = 1, budget, True
     for stage in stages:
@@ -79,9 +80,8 @@ def plan_calls(stages: list[Pending], budget: float) -> list[tuple[int, str]]:
             call, left, first = call + 1, budget, True
         start = call
         if stage.seconds is None:
-            left = 0.0
-            notes.append((call, f"call {call}; never measured, so taken to fill it"
-                          + ("; stops at a checkpoint if it must" if stage.checkpoints else "")))
+            notes.append((call, f"call {call} at the earliest; never measured, " + (
+                "stops at a checkpoint if it must" if stage.checkpoints else "may run past the budget")))
         elif stage.checkpoints:
             need = stage.seconds
             while need > left:
