@@ -141,8 +141,8 @@ def test_a_stage_that_cannot_stop_midway_starts_only_where_its_estimate_fits():
     assert plan[0][1] == "calls 1-2: stops at a checkpoint and continues"
     assert plan[1][1] == "call 3; cannot stop midway"
     plan = plan_calls([Pending("i", "index", None), Pending("e", "eval", 3000.0), Pending("r", "report", None)], 3600)
-    assert plan == [(1, "call 1 at the earliest; never measured, may run past the budget"),
-                    (1, "call 1; cannot stop midway"), (1, "call 1 at the earliest; never measured, may run past the budget")]
+    unmeasured = (1, "call 1 at the earliest; never measured, may run past the budget")
+    assert plan == [unmeasured, (1, "call 1; cannot stop midway"), unmeasured]
 
 
 def test_part_of_a_pipeline_takes_what_it_reads_and_downstream_what_reads_it(tmp_path):
