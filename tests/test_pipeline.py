@@ -190,6 +190,48 @@ def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp
 
 
 @pytest.mark.slow
+def test_a_pipelines_report_states_each_stages_code_and_its_time(quickstart_run, monkeypatch, capsys):
+    """The report of a pipeline lists every stage it reads, the code each ran and whether that is
+    this vprscale's code; its time table is the pipeline's record (stages.json beside it)."""
+    import vprscale.jobs.pipeline as pl
+    from vprscale.evaluation.stagerecord import provenance_lines, read_record
+
+    tmp, path, summary = quickstart_run
+    record = read_record(tmp / "report" / "stages.json")
+    ran = {s["name"]: s for s in summary["stages"]}
+    assert [s["name"] for s in record["stages"]] == [n for n in ran if n != "report"]
+    for s in record["stages"]:
+        assert s["differs"] == [] and s["commit"] == summary["provenance"]["commit"]
+        assert s["seconds"] == pytest.approx(ran[s["name"]]["seconds"])
+        assert s["peak_rss_bytes"] == ran[s["name"]]["outputs"]["peak_rss_bytes"]
+    md = (tmp / "report" / "report.md").read_text()
+    assert "**every stage's code is this vprscale's**" in md and "different commits" not in md
+    eval_row = next(line for line in md.splitlines() if line.startswith("| eval-20K | eval | 20,000 |"))
+    assert f"| {ran['eval-20K']['seconds']:,.1f} |" in eval_row
+    # a stage whose recorded code is not this vprscale's is named, with its modules
+    pipe = load_pipeline(path)
+    state = json.loads((tmp / "data" / "pipeline-state.json").read_text())
+    real = pl.stage_code
+    monkeypatch.setattr(pl, "stage_code", lambda kind, graph: {**real(kind, graph), "vprscale.evaluation.metrics": "x"}
+                        if kind == "eval" else real(kind, graph))
+    pl._write_stage_record(pipe, pipe.stages[-1], state, pl._import_graph())
+    changed = read_record(pl.stage_record_path(pipe, pipe.stages[-1]))
+    assert {s["name"]: s["differs"] for s in changed["stages"]}["eval-20K"] == ["vprscale.evaluation.metrics"]
+    lines = provenance_lines(changed, lambda header, rows: "")
+    assert "**1 stage(s) ran code that differs from this vprscale's**" in lines[0]
+    assert lines[1].startswith("  - **eval-20K** ran other code than this vprscale's in 1 module(s) "
+                               "(vprscale.evaluation.metrics)")
+    bad = tmp / "bad-stages.json"
+    for text, message in [("{", "not JSON"), ('{"pipeline": "p", "stages": [{"name": "a"}]}',
+                                               "stages[0] ('a'): 'kind' is missing or of the wrong type")]:
+        bad.write_text(text)
+        assert main(["report", str(tmp / "data" / "20K-d15-k2.index" / "eval"), "--out", str(tmp / "r2"),
+                     "--stages", str(bad)]) == 2
+        assert f"--stages {bad}: " in (err := capsys.readouterr().err) and message in err
+        assert not (tmp / "r2").exists()
+
+
+@pytest.mark.slow
 def test_dry_run_estimates_each_stage_and_the_run_from_measured_figures(quickstart_run, capsys):
     """``--dry-run --force`` gives each stage its last run's time and the run's total; ``--save-costs``
     writes those figures beside the pipeline, and a dry run into an empty directory reads them."""

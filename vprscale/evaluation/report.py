@@ -28,6 +28,7 @@ from vprscale.core.plaintext import markdown, markdown_code  # noqa: E402
 from vprscale.core.provenance import provenance  # noqa: E402
 from vprscale.core.publish import check_writable, exclusive, keep_beside, refuse_foreign  # noqa: E402
 from vprscale.dataset.recipe import known_scales  # noqa: E402
+from vprscale.evaluation import stagerecord  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
 from vprscale.evaluation.comparison import compare_section, method_family  # noqa: E402
 from vprscale.evaluation.htmlreport import write_html
@@ -274,8 +275,9 @@ def _whole_index_bytes(meta: dict) -> int | None:
     return sum(meta["parts"].values()) if "parts" in meta else None
 
 
-def _provenance_block(evals: list[dict]) -> list[str]:
-    """Who made this report and the results in it: commits, machines, commands; mixed commits said so."""
+def _provenance_block(evals: list[dict], record: dict[str, Any] | None = None) -> list[str]:
+    """Who made this report and the results in it: commits, machines, commands; mixed commits said so,
+    or, for a pipeline's report, the code state stage by stage (:mod:`vprscale.evaluation.stagerecord`)."""
     me = provenance()
     lines = ["## Provenance", "",
              f"- report: vprscale {me['vprscale']}, commit {_commit(me)}, {me['time']}, on {me['cpu']} "
@@ -293,6 +295,8 @@ def _provenance_block(evals: list[dict]) -> list[str]:
                      f"{rec['time']}, {rec['cpu']} ({rec['cores']} cores, "
                      f"load {', '.join(map(str, rec['load_average']))} at start), "
                      f"{markdown_code(_here(rec['command']))}")
+    if record is not None:  # what makes a pipeline's results one state is each stage's code, not one commit
+        return [*lines, *stagerecord.provenance_lines(record, _md_table)]
     if len(commits) > 1:
         lines.append(f"- **These results come from {len(commits)} different commits** "
                      f"({', '.join(sorted(commits))}); figures from different commits are not one run.")
@@ -345,17 +349,23 @@ def _check_replaceable(out: Path, force: bool) -> None:
 
 
 def write_report(results: list[str | Path], out: Path | Remote, extra_indexes: list[str] | None = None,
-                 force: bool = False) -> dict[str, Any]:
-    """Write the figures and ``report.md`` into ``out``; returns their paths.
+                 force: bool = False, stages: str | Path | None = None) -> dict[str, Any]:
+    """Write the figures and ``report.md`` into ``out``; returns their paths. ``stages``: the stage
+    record of the pipeline the results come from (its code state and time table, kept as ``stages.json``).
 
     The report is drawn in a hidden folder beside ``out`` and renamed into place when whole, so
     ``out`` never holds half a report; an existing report is replaced only with ``force``, and is
     then kept beside as ``<out>.previous``. On object storage it is drawn in the cache and
     uploaded with a manifest, written last, as every output there is.
     """
+    record = None if stages is None else stagerecord.read_record(stages)  # before any work: a bad one is refused
     if isinstance(out, Remote):
-        return _write_remote(results, out, extra_indexes, force)
-    out = Path(out)
+        return _write_remote(results, out, extra_indexes, force, record)
+    return _write_local(results, Path(out), extra_indexes, force, record)
+
+
+def _write_local(results: list[str | Path], out: Path, extra_indexes: list[str] | None, force: bool,
+                 record: dict[str, Any] | None) -> dict[str, Any]:
     check_writable(out.parent)  # before any work: the report is drawn beside out and renamed into place
     with exclusive(out):
         _check_replaceable(out, force)
@@ -364,7 +374,7 @@ def write_report(results: list[str | Path], out: Path | Remote, extra_indexes: l
             shutil.rmtree(work)
         work.mkdir(parents=True)
         try:
-            rep = _draw(results, work, extra_indexes)
+            rep = _draw(results, work, extra_indexes, record)
         except BaseException:
             shutil.rmtree(work, ignore_errors=True)
             raise
@@ -375,20 +385,21 @@ def write_report(results: list[str | Path], out: Path | Remote, extra_indexes: l
 
 
 def _write_remote(results: list[str | Path], out: Remote, extra_indexes: list[str] | None,
-                  force: bool) -> dict[str, Any]:
+                  force: bool, record: dict[str, Any] | None) -> dict[str, Any]:
     check_writable(out.parent)
     refuse_foreign(out)  # before the drawing: what is there is replaced only if vprscale wrote it
     if (out / "report.md").exists() and not force:
         raise InputError(f"--out {out}: holds a report; --force replaces it (the old one is kept beside, as "
                          f"{out.name}.previous)")
     local = cache_folder(out, fresh=True)
-    rep = write_report(results, local, extra_indexes)
+    rep = _write_local(results, local, extra_indexes, False, record)
     write_manifest(local)
     upload(local, out, keep=True)
     return {"report": str(out / "report.md"), "figures": [str(out / Path(f).name) for f in rep["figures"]]}
 
 
-def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None) -> dict[str, Any]:
+def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None,
+          record: dict[str, Any] | None) -> dict[str, Any]:
     res, evals, indexes = load_results(results)
     for p in extra_indexes or []:
         from vprscale.method.indexfile import load_index_meta
@@ -412,9 +423,11 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     metres = load_metres(list(dict.fromkeys(res.run)))
     compared += metres_section(metres, scales, _md_table)
     compared += nn_section(load_nn(list(dict.fromkeys(res.run))), scales, out, save, _md_table)
-    text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared)
+    text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared, record)
     (out / "report.md").write_text(text)
-    write_html(res, metres, _provenance_block(evals), REPORT_TITLE.removeprefix("# "), out)
+    write_html(res, metres, _provenance_block(evals, record), REPORT_TITLE.removeprefix("# "), out)
+    if record is not None:
+        stagerecord.write_record(out / stagerecord.FILE, record["pipeline"], record["stages"])
     small = res[res.radius.isin([0, 5, 10, 20])].drop(columns=["store", "index"], errors="ignore")
     if "run" in small.columns:  # as the provenance block shows them: relative to here
         small = small.assign(run=small["run"].map(_here))
@@ -422,10 +435,11 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None)
     return {"report": str(out / "report.md"), "figures": figures}
 
 
-def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared: list[str]) -> str:
+def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared: list[str],
+              record: dict[str, Any] | None) -> str:
     md = [REPORT_TITLE, "",
           "Generated by `vprscale report` from evaluation results. Scales: " + ", ".join(
-              f"{s} (d = {mains[s]})" for s in scales) + ".", "", *_provenance_block(evals)]
+              f"{s} (d = {mains[s]})" for s in scales) + ".", "", *_provenance_block(evals, record)]
     md += ["## Figures", "", "![Fig. 3](fig3_recall.png)", ""]
     if has_sweep:
         md += ["![Fig. 4a](fig4a_dsweep.png)", ""]
@@ -514,9 +528,12 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
                      _num(ev.get("peak_rss_bytes", math.nan) / gib, ".2f"),
                      _num(_disk(i["store"].get("path", "")) / gib, ".2f"), _num(_disk(i.get("path", "")) / gib, ".2f")])
     md += compared
-    md += ["## Time (s), peak memory (GiB) and disk (GiB) per stage", "",
-           _md_table(["scale", "d", "build s", "build GiB", "index s", "index GiB", "eval s", "eval GiB",
-                      "store on disk", "index on disk"], rows), ""]
+    if record is not None:  # the pipeline's own record: every stage, its time over every call it took
+        md += stagerecord.time_table(record, _md_table)
+    else:
+        md += ["## Time (s), peak memory (GiB) and disk (GiB) per stage", "",
+               _md_table(["scale", "d", "build s", "build GiB", "index s", "index GiB", "eval s", "eval GiB",
+                          "store on disk", "index on disk"], rows), ""]
     if set(scales) & set(known_scales()):  # a store of your own data has no paper figure to stand beside
         md += ["## The paper's text figures beside ours", "", *_paper_comparison(res, indexes, scales, mains), ""]
     return "\n".join(md)

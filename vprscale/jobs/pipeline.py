@@ -49,6 +49,7 @@ from vprscale.core.objects import redact
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import check_writable, exclusive
 from vprscale.dataset.recipe import read_toml, shipped
+from vprscale.evaluation import stagerecord
 from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import budget as budget_rules
 from vprscale.jobs import estimates, stagegraph
@@ -391,6 +392,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 state.pop(stage.name, None)  # a stage that fails midway is not up to date
                 _write_json(state_file, state)
                 deadline_given = end if stage.kind in budget_rules.CHECKPOINTED else None
+                if stage.kind == "report":
+                    _write_stage_record(pipe, stage, state, graph)
                 try:
                     out = _run_stage(pipe, stage, outputs, scheduler, tee_err, deadline_given)
                 except BudgetSpent as stop:
@@ -437,6 +440,32 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         summary["costs_file"] = str(estimates.save_costs(pipe.path, pipe.out,
                                                          [(s.name, s.kind, s.params) for s in pipe.stages], machine))
     return summary
+
+
+def stage_record_path(pipe: Pipeline, stage: Stage) -> Path:
+    return pipe.out / "runs" / f".{stage.name}.stages.json"
+
+
+def _write_stage_record(pipe: Pipeline, report: Stage, state: dict[str, Any], graph: Any) -> None:
+    """The record a report stage states its pipeline's code and costs from
+    (:mod:`vprscale.evaluation.stagerecord`): every stage it reads from, directly or not, as the
+    state recorded it, and where its code differs from this vprscale's."""
+    kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
+    read = set(references(report))
+    for stage in reversed(pipe.stages):
+        if stage.name in read:
+            read |= set(references(stage))
+    entries = []
+    for stage in (s for s in pipe.stages if s.name in read):
+        done = state[stage.name]
+        code, now = done["parts"]["code"], stage_code(stage.kind, graph)
+        out = done.get("outputs", {})
+        entries.append({"name": stage.name, "kind": stage.kind, "code": _digest(code),
+                        "differs": sorted(m for m in set(code) | set(now) if code.get(m) != now.get(m)),
+                        **{k: done.get(k) for k in ("commit", "dirty", "vprscale", "finished", "seconds")},
+                        "peak_rss_bytes": out.get("peak_rss_bytes"), "bytes_on_disk": out.get("bytes_on_disk"),
+                        "places": estimates.places(stage.params, stage.kind, kinds)})
+    stagerecord.write_record(stage_record_path(pipe, report), pipe.name, entries)
 
 
 def stage_graph(path: str | Path, form: str, settings: Sequence[str] = (), stages: Sequence[str] = (),
@@ -734,7 +763,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
             cmd += ["--" + key.replace("_", "-"), value] if key in p else []
         # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)
         return cmd + ["--force"] + cluster
-    cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"]]
+    cmd = ["report", *(outputs[r]["eval"] for r in p["results"]), "--out", p["out"],
+           "--stages", str(stage_record_path(pipe, stage))]
     for i in p.get("indexes", []):
         cmd += ["--index", outputs[i]["index"]]
     # --force: the pipeline decided this report is out of date (the old one is kept beside)

@@ -1,0 +1,111 @@
+"""A pipeline's stage record: the code each stage ran and what it cost, for a report of the pipeline.
+
+A pipeline's stages may run in separate calls (``vprscale run --budget``), sessions and commits;
+what makes their results one state is that every stage's code is the code of one vprscale. So
+``vprscale run`` gives its report stage this record (``vprscale report --stages FILE``), one entry
+per stage, and the report states the code state stage by stage instead of counting commits: the
+digest of the modules the stage ran, the commit it ran at, and whether that code differs from
+the vprscale drawing the report (the modules that do). The report's time table is this record
+(each stage's time summed over the calls it took), and the report keeps it as ``stages.json``.
+
+The record holds no paths: a report is read, and committed, on other machines.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from vprscale.core.errors import InputError
+from vprscale.core.plaintext import markdown_code
+
+FILE = "stages.json"  # its name in a report
+_NONE = type(None)
+_FIELDS: dict[str, tuple[type, ...]] = {
+    "name": (str,), "kind": (str,), "code": (str,), "differs": (list,), "commit": (str, _NONE),
+    "dirty": (bool, _NONE), "vprscale": (str, _NONE), "finished": (str, _NONE), "seconds": (int, float, _NONE),
+    "peak_rss_bytes": (int, _NONE), "bytes_on_disk": (int, _NONE), "places": (int, _NONE)}
+
+
+def write_record(path: Path, pipeline: str, stages: list[dict[str, Any]]) -> None:
+    """Write the record of ``pipeline``'s ``stages`` (each with the fields of :data:`_FIELDS`)."""
+    record = {"pipeline": pipeline, "stages": [{k: s.get(k) for k in _FIELDS} for s in stages]}
+    check(record, str(path))
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(record, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def read_record(path: str | Path) -> dict[str, Any]:
+    """A stage record, checked (one line naming the file and the stage where it is not one)."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise InputError(f"--stages {path}: cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"--stages {path}: not JSON ({exc})") from None
+    check(record, f"--stages {path}")
+    return record
+
+
+def check(record: Any, where: str) -> None:
+    if not isinstance(record, dict) or not isinstance(record.get("pipeline"), str) or not isinstance(
+            record.get("stages"), list):
+        raise InputError(f"{where}: not a stage record (a pipeline's name and its stages)")
+    for i, stage in enumerate(record["stages"]):
+        if not isinstance(stage, dict):
+            raise InputError(f"{where}: stages[{i}] is not an object")
+        for key, kind in _FIELDS.items():
+            value = stage.get(key)
+            if not isinstance(value, kind) or (isinstance(value, bool) and bool not in kind):
+                raise InputError(f"{where}: stages[{i}] ({stage.get('name')!r}): '{key}' is missing or of the "
+                                 "wrong type")
+        if not all(isinstance(m, str) for m in stage["differs"]):
+            raise InputError(f"{where}: stages[{i}] ({stage['name']!r}): 'differs' must list module names")
+
+
+def provenance_lines(record: dict[str, Any], table: Callable[[list[str], list[list[Any]]], str]) -> list[str]:
+    """The code state of the pipeline, stage by stage: one line that says whether every stage ran
+    this vprscale's code, a warning per stage that did not, and the table."""
+    stages = record["stages"]
+    stale = [s for s in stages if s["differs"]]
+    commits = sorted({_commit(s) for s in stages})
+    lines = [f"- pipeline {markdown_code(record['pipeline'])}: {len(stages)} stages, run at "
+             f"{len(commits)} commit(s) ({', '.join(commits)}); "
+             + ("**every stage's code is this vprscale's**" if not stale else
+                f"**{len(stale)} stage(s) ran code that differs from this vprscale's**")]
+    for s in stale:
+        shown = ", ".join(s["differs"][:6]) + (", …" if len(s["differs"]) > 6 else "")
+        lines.append(f"  - **{s['name']}** ran other code than this vprscale's in {len(s['differs'])} module(s) "
+                     f"({shown}): its figures are not this code's")
+    rows = [[s["name"], s["kind"], s["code"], _commit(s), (s["finished"] or "–")[:16].replace("T", " "),
+             "yes" if not s["differs"] else f"no ({len(s['differs'])} modules)"] for s in stages]
+    return [*lines, "", "Each stage's code (a digest of the modules its job runs) and the commit it ran at:", "",
+            table(["stage", "kind", "code", "commit", "finished (UTC)", "this vprscale's code"], rows), ""]
+
+
+def time_table(record: dict[str, Any], table: Callable[[list[str], list[list[Any]]], str]) -> list[str]:
+    """The pipeline's cost per stage: wall time (over every call it took), peak memory, bytes on disk."""
+    gib = 2**30
+    rows = [[s["name"], s["kind"], _number(s["places"], ","), _number(s["seconds"], ",.1f"),
+             _number(None if s["peak_rss_bytes"] is None else s["peak_rss_bytes"] / gib, ".2f"),
+             _number(None if s["bytes_on_disk"] is None else s["bytes_on_disk"] / gib, ".2f")]
+            for s in record["stages"]]
+    total = sum(s["seconds"] or 0 for s in record["stages"])
+    return ["## Time (s), peak memory (GiB) and disk (GiB) per stage", "",
+            f"As the pipeline recorded them ({FILE} beside this report): a stage's time is its wall time summed "
+            f"over the calls it took; {total / 3600:.2f} hours in all, one stage after another.", "",
+            table(["stage", "kind", "places", "time s", "peak GiB", "disk GiB"], rows), ""]
+
+
+def _commit(stage: dict[str, Any]) -> str:
+    if not stage["commit"]:
+        return "unknown"
+    return stage["commit"][:12] + (" (dirty tree)" if stage["dirty"] else "")
+
+
+def _number(x: float | None, fmt: str) -> str:
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
