@@ -44,6 +44,13 @@ BASE = 'name = "t"\nout = "{out}"\n'
     ('[[stages]]\nname = "a/b"\nkind = "build"\nscale = "20K"\n', "stage name 'a/b' must be letters"),
     (f'[[stages]]\nname = "{"x" * 101}"\nkind = "build"\nscale = "20K"\n', "at most 100 characters"),
     ("x = " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply to be a pipeline"),
+    # a FAISS code no stage could build, refused before the stages before it run for hours
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "a"\n'
+     'compare = ["PQ3", "PQ5x4fs"]\n', "stage 'e': key 'compare': --compare PQ5x4fs: not a FAISS index_factory string "
+     "with standalone codes for 96-d rows"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "encode"\nstore = "a"\n'
+     'compare = ["seq:PQ3"]\n', "stage 'e': key 'compare': --compare seq:PQ3: a pooled sequence descriptor is encoded "
+     "by its evaluation"),
 ])
 def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
     out = tmp_path / "out"

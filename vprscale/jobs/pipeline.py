@@ -48,7 +48,7 @@ from vprscale.core.manifest import check_manifest, read_manifest
 from vprscale.core.objects import redact
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import check_writable, exclusive
-from vprscale.dataset.recipe import read_toml, shipped
+from vprscale.dataset.recipe import load_recipe, read_toml, shipped
 from vprscale.evaluation import stagerecord
 from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import budget as budget_rules
@@ -170,7 +170,36 @@ def load_pipeline(path: str | Path) -> Pipeline:
         _check_params(where, kind, params, kinds)
         kinds[name] = kind
         pipe.stages.append(Stage(name, kind, params))
+    _check_compared(pipe)
     return pipe
+
+
+def _check_compared(pipe: Pipeline) -> None:
+    """Every FAISS code a stage compares, buildable for the rows its build makes: a typo in the
+    last stage of a ladder is refused now, not hours into the run."""
+    from vprscale.compared.faisscodes import FaissCodes
+    from vprscale.compared.pooled import is_pooled, parse_pooled
+
+    kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
+    for stage in pipe.stages:
+        store = kinds.get(stage.params.get("store", ""))
+        if not stage.params.get("compare") or store is None or store[0] != "build":
+            continue
+        try:
+            dim = load_recipe(store[1]["scale"]).dim
+        except InputError:
+            continue  # the build stage's own check names its scale
+        for spec in stage.params["compare"]:
+            try:
+                if stage.kind == "encode" and is_pooled(spec):
+                    raise InputError(f"--compare {spec}: a pooled sequence descriptor is encoded by its evaluation, "
+                                     "not by an encode stage")
+                if is_pooled(spec):  # its FAISS code, over pooled rows of the same width
+                    FaissCodes(parse_pooled(spec).factory, dim, k=1, windows=False)
+                else:
+                    FaissCodes(spec, dim, k=1)
+            except InputError as exc:
+                raise InputError(f"{pipe.path}: stage '{stage.name}': key 'compare': {exc}") from None
 
 
 def _check_params(where: str, kind: str, params: dict[str, Any], earlier: dict[str, str]) -> None:
