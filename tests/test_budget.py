@@ -241,3 +241,40 @@ def test_a_budget_stops_a_build_at_a_checkpoint_and_the_next_call_continues_it(t
     assert main(["build", "--scale", "20K", "--out", str(tmp_path / "whole"), "--workers", "2"]) == 0
     assert _tree(tmp_path / "data" / "20K.zarr") == _tree(tmp_path / "whole" / "20K.zarr")
     assert main(["run", str(path), "build", "index", "--budget", "1h"]) == 0  # nothing left: done, exit 0
+
+
+@pytest.mark.slow
+def test_a_terminated_run_is_recorded_stops_its_stage_and_the_next_run_goes_on(tmp_path):
+    """SIGTERM (a batch scheduler's time limit, ``kill``): the run stops its stage, records itself as
+    interrupted and exits 143; no stage process is left behind; the next run finishes the work."""
+    import signal
+    import subprocess
+
+    from vprscale.jobs.child import vprscale_argv
+
+    path = _pipeline(tmp_path)
+    proc = subprocess.Popen(vprscale_argv("run", str(path), "build"), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if line.startswith("$ vprscale build"):  # the stage's process is starting
+            break
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    seen.append(proc.stdout.read())
+    assert proc.wait(timeout=60) == 143, "".join(seen)
+    summary = json.loads(next((tmp_path / "data" / "runs").glob("*.json")).read_text())
+    assert summary["status"] == "interrupted"
+    out = str(tmp_path / "data")
+    left = [p for p in Path("/proc").glob("[0-9]*") if out.encode() in _cmdline(p)]
+    assert not left, "a stage's process outlived its run"
+    assert main(["run", str(path), "build"]) == 0
+    assert (tmp_path / "data" / "20K.zarr" / "manifest.json").is_file()
+
+
+def _cmdline(proc: Path) -> bytes:
+    try:
+        return (proc / "cmdline").read_bytes()
+    except OSError:
+        return b""

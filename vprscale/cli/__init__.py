@@ -13,7 +13,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable, Sequence
 
@@ -37,7 +39,7 @@ from vprscale.cli import (
 from vprscale.cli.common import EXIT_FAILURE, EXIT_USAGE, HelpFormatter, check_outputs, disk_full, shared_flags
 from vprscale.cli.examples import epilog
 from vprscale.core.deadline import EXIT_MORE, BudgetSpent
-from vprscale.core.errors import CLUSTER, InputError, JobFailed, raised_by
+from vprscale.core.errors import CLUSTER, InputError, Interrupted, JobFailed, raised_by
 from vprscale.core.objects import storage_failure
 from vprscale.core.provenance import set_command
 
@@ -145,6 +147,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         announce_compiling()
     set_command(["vprscale", *argv])
+    if threading.current_thread() is threading.main_thread():  # a batch scheduler's time limit sends SIGTERM
+        signal.signal(signal.SIGTERM, _terminated)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         check_outputs(args)
@@ -179,9 +183,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"vprscale {args.command}: error: the disk is full{where}; free space and run the same command "
               "again (finished work is kept and resumed)", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (Interrupted): finished work is kept for the re-run
         print("interrupted", file=sys.stderr)
-        return 130
+        return 128 + getattr(exc, "signum", signal.SIGINT)
     except Exception as exc:  # noqa: BLE001 - a bug of ours: one line, not a traceback
         if storage_failure(exc):
             return _storage_failed(args, exc)
@@ -190,6 +194,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _bug(args, exc, level)
     finally:
         set_command([])  # this command's line is not the provenance of what the process makes next
+
+
+def _terminated(signum: int, frame: object) -> None:
+    raise Interrupted(signum)
 
 
 def _storage_failed(args: argparse.Namespace, exc: BaseException) -> int:

@@ -27,6 +27,15 @@ class JobFailed(RuntimeError):
     """A job of vprscale's own failed (a pipeline stage crashed): exit status 1, not bad input."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """A signal asked the process to stop (SIGTERM: a batch scheduler's time limit, ``kill``): raised
+    like Ctrl-C's KeyboardInterrupt, so every ``finally`` runs and a job's record is written."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
 def raised_by(exc: BaseException, packages: tuple[str, ...]) -> bool:
     """Whether ``exc``, or an error in its chain of causes, was raised by these packages' code."""
     seen: BaseException | None = exc

@@ -28,6 +28,7 @@ import logging
 import os
 import re
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -454,8 +455,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 _write_json(state_file, state)
                 summary["stages"].append(entry)
             summary["status"] = "more to do" if "left" in summary else "ok"
-        except Exception as exc:
-            summary["status"] = "failed"
+        except BaseException as exc:  # a signal too (Ctrl-C, a scheduler's SIGTERM): the record says so
+            summary["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
             summary["error"] = f"{type(exc).__name__}: {exc}"
             log.write(traceback.format_exc())
             raise
@@ -818,8 +819,13 @@ def _run_stage(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any]],
         env[deadline.ENV] = repr(end)
     proc = subprocess.Popen(vprscale_argv(*argv, "--summary", str(summary_file)), env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
-    for line in proc.stdout:
-        console.write(line)
+    try:
+        for line in proc.stdout:
+            console.write(line)
+    except BaseException:  # the run was interrupted: so is its stage, which keeps its checkpoints
+        proc.send_signal(signal.SIGTERM)
+        proc.wait()
+        raise
     _, status, usage = os.wait4(proc.pid, 0)  # the stage's own peak memory, whatever its job records
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode == deadline.EXIT_MORE and end is not None:
