@@ -152,3 +152,22 @@ def test_bench_codes_times_faiss_distance_computer_on_fast_scan_ivf_and_few_plac
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("IVF16,PQ4x4fsr"))
     computer = float(line.split()[7])  # FAISS: distance comp. (median)
     assert computer > 0
+
+
+def test_bench_assign_prints_each_coarse_quantisers_cost_and_its_agreement_with_the_exact_list(tiny_store, capsys):
+    """``vprscale bench assign``: a line per IVF code with its CPU µs a row, the ratio to the first
+    and the share of rows sent to their exact nearest list (all, for a flat quantiser); a code
+    without a coarse assignment, or a compact store, is one line and exit 2."""
+    from vprscale.cli import main
+
+    assert main(["bench", "assign", str(tiny_store), "--compare", "IVF32,PQ4", "--compare", "IVF8,PQ4",
+                 "--compare", "IVF32_HNSW32,PQ4"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = {line.split()[0]: line for line in lines[1:]}
+    assert list(rows) == ["IVF32,PQ4", "IVF8,PQ4", "IVF32_HNSW32,PQ4"]
+    assert " 1.00× " in rows["IVF32,PQ4"]
+    for factory in ("IVF32,PQ4", "IVF8,PQ4"):
+        assert rows[factory].endswith("exact list for 100.0% of rows")
+    assert float(rows["IVF8,PQ4"].split()[1]) > 0
+    assert main(["bench", "assign", str(tiny_store), "--compare", "PQ4"]) == 2
+    assert "--compare PQ4: not an IVF code" in capsys.readouterr().err

@@ -14,9 +14,11 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
         summary: argparse.ArgumentParser) -> None:
     p = sub.add_parser("bench", help="benchmark a build, an index, look-ups, an evaluation or the one-shot commands' "
                                      "start-up (prints figures)")
-    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes", "startup"],
+    p.add_argument("job", choices=["build", "index", "lookup", "eval", "online", "format", "codes", "assign",
+                                   "startup"],
                    help="what to benchmark")
-    p.add_argument("target", help="build: a scale; index/eval/online/format/codes: a store; lookup, startup: an index")
+    p.add_argument("target", help="build: a scale; index/eval/online/format/codes/assign: a store; lookup, startup: "
+                   "an index")
     p.add_argument("--out", default="data/bench", help="build: output directory")
     p.add_argument("--deep1b", help="build: a Deep1B file (default: synthetic)")
     p.add_argument("--fas", help="build: a FAS100K .npz (default: synthetic)")
@@ -29,8 +31,10 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--L", type=positive_int, help="online, codes, format: sequence length (default: online 1, 50 "
                    "and 100; codes and format 100)")
     p.add_argument("--compare", action="append", metavar="FACTORY",
-                   help="codes: a FAISS index_factory string (repeat; default PQ3, OPQ3,PQ3, IVF1024,PQ3)")
-    p.add_argument("--places", type=positive_int, help="codes: references encoded (default: all of the store's)")
+                   help="codes, assign: a FAISS index_factory string (repeat; default codes: PQ3, OPQ3,PQ3, "
+                   "IVF1024,PQ3; assign: IVF4096,PQ3, IVF1024,PQ3, IVF4096_HNSW32,PQ3)")
+    p.add_argument("--places", type=positive_int,
+                   help="codes, assign: references read (default: all of the store's)")
     p.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
                    help="threads for the job (default: all cores)")
     p.add_argument("--eval-args", default="", help='eval: further eval options, e.g. "--L 100 --modes paper"')
@@ -59,6 +63,11 @@ def run(args: argparse.Namespace) -> int:
         from vprscale.jobs.codesbench import DEFAULT_FACTORIES, bench_codes
 
         print(bench_codes(args.target, args.compare or list(DEFAULT_FACTORIES), args.places, args.L or 100))
+    elif args.job == "assign":
+        from vprscale.jobs.assignbench import DEFAULT_FACTORIES as ASSIGN_FACTORIES
+        from vprscale.jobs.assignbench import bench_assign
+
+        print(bench_assign(args.target, args.compare or list(ASSIGN_FACTORIES), args.places))
     elif args.job in ("online", "format"):
         if not args.index:
             raise InputError(f"bench {args.job}: give --index")
