@@ -258,3 +258,38 @@ def test_a_stale_encoding_is_refused_in_one_line(store, tiny_index, tmp_path, ca
     err = capsys.readouterr().err.strip()
     assert message in err and str(encoding_dir(store, "PQ4x4")) in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_a_budget_stops_an_encoding_before_its_graph_is_linked_and_the_next_run_links_it(store, monkeypatch, capsys):
+    """Under a deadline (``vprscale run --budget``) the encode pass checkpoints, and a graph's link (one
+    step, most of an hour at 10M) does not start once the deadline has passed: exit 75 with the codes
+    kept; the next run links the graph without encoding again, to the bytes of an uninterrupted run."""
+    import vprscale.jobs.encoding as enc
+    from vprscale.core import deadline
+
+    real_encode, linked = enc._encode, []
+
+    def encode_then_run_out(*args, **kwargs):
+        real_encode(*args, **kwargs)
+        monkeypatch.setenv(deadline.ENV, "0")  # the budget ends as the codes are written
+
+    monkeypatch.setattr(enc, "_encode", encode_then_run_out)
+    real_graph = enc.write_graph
+    monkeypatch.setattr(enc, "write_graph", lambda *a, **k: linked.append(1) or real_graph(*a, **k))
+    assert main(["encode", str(store), "--compare", "HNSW16", "--workers", "1"]) == deadline.EXIT_MORE
+    err = capsys.readouterr().err
+    assert "stopped at a checkpoint, the time budget spent (HNSW16: every reference encoded, its graph not " \
+           "written yet)" in err and not linked
+    assert not encoding_dir(store, "HNSW16").exists()  # nothing published half made
+    monkeypatch.delenv(deadline.ENV)
+    monkeypatch.setattr(enc, "_encode", real_encode)
+    counted = {"n": 0}
+    real_chunk = enc._EncodeChunk.__call__
+    monkeypatch.setattr(enc._EncodeChunk, "__call__", lambda self, a, b: counted.update(n=counted["n"] + 1)
+                        or real_chunk(self, a, b))
+    assert main(["encode", str(store), "--compare", "HNSW16", "--workers", "1"]) == 0
+    assert linked == [1] and counted["n"] == 0  # the codes were kept: no chunk encoded again
+    graph = (encoding_dir(store, "HNSW16") / GRAPH).read_bytes()
+    assert main(["encode", str(store), "--compare", "HNSW16", "--force", "--workers", "1"]) == 0
+    assert (encoding_dir(store, "HNSW16") / GRAPH).read_bytes() == graph

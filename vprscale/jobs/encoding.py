@@ -47,6 +47,7 @@ from vprscale.compared.encoding import (
 )
 from vprscale.compared.faisscodes import ENCODE_ROWS, FaissCodes, training_rows
 from vprscale.compared.pooled import is_pooled
+from vprscale.core import deadline
 from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.localcopy import cache_folder, upload
@@ -244,6 +245,11 @@ def _finish(job: _Job, n_ref: int, dim: int, identity: str, workers: int, timing
             quiet: bool) -> dict[str, Any]:
     """A method's lists and records (or its graph) from its codes, its record, published; its summary."""
     factory, method, partial_out = job.factory, job.method, job.partial_out
+    # each step below is one unit (a graph's link: most of an hour at 10M): under a budget
+    # (vprscale run --budget) none starts once the budget is spent; the codes are kept
+    if method.records_on_disk or (method.graph and not partial_out.done("graph")):
+        deadline.check(0.0, f"{factory}: every reference encoded, its {'graph' if method.graph else 'lists'} "
+                       "not written yet")
     if method.records_on_disk:
         with timings.stage(f"{factory}: inverted lists on disk and window records"):
             write_searched(partial_out.path, factory, dim, partial_out.done, partial_out.mark)
