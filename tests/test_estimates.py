@@ -86,3 +86,21 @@ def test_places_follow_the_stages_to_their_build():
     assert places({"scale": "1M"}, "build", stages) == 1_000_000
     assert places({"results": ["e"]}, "report", stages) is None
     assert places({"store": "elsewhere"}, "eval", stages) is None
+
+
+def test_a_stage_on_a_compact_store_is_not_scaled_from_one_on_a_full_store(tmp_path):
+    """A compact store (100M and up) is built, indexed and encoded by other jobs than a full one:
+    its disk is 12 bytes a place, not 1.15 KB; scaling across layouts would say a terabyte."""
+    runs = tmp_path / "out" / "runs"
+    runs.mkdir(parents=True)
+    full = {**_stage("build-1M", "build", {"scale": "1M"}, 15.0, 800, 1_200_000_000, 1_000_000), "layout": "full"}
+    compact = {**_stage("build-100M", "build", {"scale": "100M"}, 460.0, 900, 1_300_000_000, 100_000_000),
+               "layout": "compact"}
+    (runs / "20261201T100000Z.json").write_text(json.dumps(_summary("20261201T100000Z", full)))
+    measured = read_measurements(tmp_path / "out", tmp_path / "p.toml")
+    assert estimate("build-1B", "build", {"scale": "1B"}, 1_000_000_000, measured, "compact").seconds is None
+    assert estimate("build-10M", "build", {"scale": "10M"}, 10_000_000, measured, "full").seconds == 150.0
+    (runs / "20261202T100000Z.json").write_text(json.dumps(_summary("20261202T100000Z", compact)))
+    measured = read_measurements(tmp_path / "out", tmp_path / "p.toml")
+    e = estimate("build-1B", "build", {"scale": "1B"}, 1_000_000_000, measured, "compact")
+    assert (e.seconds, e.disk_bytes, e.basis) == (4600.0, 13_000_000_000, "scaled from build-100M ×10")

@@ -9,9 +9,10 @@ the stage's parameters; a stage is then estimated by, in order:
    output directory, or in the costs file shipped beside a pipeline (``<pipeline>.costs.json``:
    the stage figures of a whole run on the reference machine kind, written by ``vprscale run
    --save-costs``);
-2. **scaled**: a measured stage of the same kind and parameters at another scale, its time and
-   disk scaled by the ratio of the places each reads, its memory too except a build's, which
-   streams its rows in chunks;
+2. **scaled**: a measured stage of the same kind and parameters at another scale of the same
+   store layout (a compact store's build, index and encodings are other jobs than a full one's),
+   its time and disk scaled by the ratio of the places each reads, its memory too except a
+   build's, which streams its rows in chunks;
 3. **unmeasured**: nothing to go on; the totals say how many stages they leave out.
 
 The run's time is the sum of the stages that would run, its peak memory the largest of theirs
@@ -50,6 +51,7 @@ class _Measured:
     kind: str
     params: dict[str, Any]
     places: int | None
+    layout: str | None
     seconds: float
     peak_bytes: int | None
     disk_bytes: int | None
@@ -59,6 +61,17 @@ class _Measured:
 def places(stage_params: dict[str, Any], kind: str, stages: dict[str, tuple[str, dict[str, Any]]]) -> int | None:
     """The places a stage works on: its build's recipe's rows (read through the stage it reads
     from), None where no build is named (a store given by path, a synth or report stage)."""
+    recipe = _recipe(stage_params, kind, stages)
+    return None if recipe is None else int(recipe.deep1b_rows_read)
+
+
+def layout(stage_params: dict[str, Any], kind: str, stages: dict[str, tuple[str, dict[str, Any]]]) -> str | None:
+    """The layout of the store a stage works on (its build's recipe's), None where no build is named."""
+    recipe = _recipe(stage_params, kind, stages)
+    return None if recipe is None else recipe.layout
+
+
+def _recipe(stage_params: dict[str, Any], kind: str, stages: dict[str, tuple[str, dict[str, Any]]]) -> Any:
     seen = 0
     params = stage_params
     while kind != "build" and seen < len(stages) + 1:
@@ -70,10 +83,9 @@ def places(stage_params: dict[str, Any], kind: str, stages: dict[str, tuple[str,
     if kind != "build":
         return None
     try:
-        recipe = load_recipe(params["scale"])
+        return load_recipe(params["scale"])
     except InputError:
         return None
-    return int(recipe.deep1b_rows_read)
 
 
 def _own_params(params: dict[str, Any]) -> dict[str, Any]:
@@ -96,7 +108,8 @@ def read_measurements(out: Path, pipeline_path: Path) -> list[_Measured]:
             if not isinstance(s, dict) or s.get("status") != "ran" or "params" not in s:
                 continue
             outputs = s.get("outputs") or {}
-            found.append(_Measured(s["name"], s["kind"], s["params"], s.get("places"), float(s["seconds"]),
+            found.append(_Measured(s["name"], s["kind"], s["params"], s.get("places"), s.get("layout"),
+                                   float(s["seconds"]),
                                    outputs.get("peak_rss_bytes"), outputs.get("bytes_on_disk"),
                                    REFERENCE if path == costs else summary.get("started", "?")))
     return found
@@ -107,13 +120,15 @@ def _last(measured: list[_Measured], name: str, kind: str, params: dict[str, Any
     return next((m for m in reversed(measured) if m.name == name and m.kind == kind and m.params == params), None)
 
 
-def estimate(name: str, kind: str, params: dict[str, Any], n: int | None, measured: list[_Measured]) -> Estimate:
+def estimate(name: str, kind: str, params: dict[str, Any], n: int | None, measured: list[_Measured],
+             store_layout: str | None = None) -> Estimate:
     """One stage's estimate from the measurements (the latest of each kind wins)."""
     m = _last(measured, name, kind, params)
     if m is not None:
         return Estimate(m.seconds, m.peak_bytes, m.disk_bytes, f"measured {_when(m.when)}")
     own = _own_params(params)
-    alike = [m for m in measured if m.kind == kind and _own_params(m.params) == own and m.places and n]
+    alike = [m for m in measured if m.kind == kind and _own_params(m.params) == own and m.places and n
+             and m.layout == store_layout]
     if alike:
         m = min(reversed(alike), key=lambda m: abs(m.places - n))  # the nearest scale, latest first
         ratio = n / m.places
@@ -149,7 +164,8 @@ def save_costs(pipeline_path: Path, out: Path, stages: list[tuple[str, str, dict
     for name, kind, params in stages:
         m = _last(measured, name, kind, params)
         if m is not None:
-            entries.append({"name": name, "kind": kind, "params": params, "places": m.places, "status": "ran",
+            entries.append({"name": name, "kind": kind, "params": params, "places": m.places, "layout": m.layout,
+                            "status": "ran",
                             "seconds": m.seconds, "measured": m.when,
                             "outputs": {"peak_rss_bytes": m.peak_bytes, "bytes_on_disk": m.disk_bytes}})
     costs = {"machine": machine, "stages": entries}

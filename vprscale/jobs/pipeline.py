@@ -338,7 +338,8 @@ def decide(pipe: Pipeline, stages: list[Stage], asked: set[str], state: dict[str
         if spent and reasons == ["no complete run recorded"]:
             reasons = [f"stopped at a checkpoint by a budget after {budget_rules.words(spent)}; resumes from it"]
         cost = estimates.estimate(stage.name, stage.kind, stage.params,
-                                  estimates.places(stage.params, stage.kind, kinds), measured)
+                                  estimates.places(stage.params, stage.kind, kinds), measured,
+                                  estimates.layout(stage.params, stage.kind, kinds))
         decisions.append(Decision(stage, parts, fp, reasons, cost, spent))
     return decisions
 
@@ -404,7 +405,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 stage, prev = d.stage, state.get(d.stage.name, {})
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": d.fingerprint,
                                          "params": redact(stage.params),
-                                         "places": estimates.places(stage.params, stage.kind, kinds)}
+                                         "places": estimates.places(stage.params, stage.kind, kinds),
+                                         "layout": estimates.layout(stage.params, stage.kind, kinds)}
                 if not d.run:
                     outputs[stage.name] = prev["outputs"]
                     entry |= {"status": "skipped", "outputs": prev["outputs"], "seconds": 0.0}
