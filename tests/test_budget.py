@@ -18,7 +18,7 @@ import vprscale.jobs.pipeline as pl
 from vprscale.cli import main
 from vprscale.core.deadline import EXIT_MORE, BudgetSpent
 from vprscale.core.errors import InputError
-from vprscale.jobs.budget import Pending, may_start, parse_duration, plan_calls
+from vprscale.jobs.budget import Pending, check, may_start, parse_duration, plan_calls
 from vprscale.jobs.pipeline import load_pipeline, override, run_pipeline, select, stage_graph
 
 STAGES = """name = "t"
@@ -125,15 +125,16 @@ def test_a_budget_is_a_duration():
 
 def test_a_stage_that_cannot_stop_midway_starts_only_where_its_estimate_fits():
     build, index = Pending("b", "build", 3000.0), Pending("i", "index", 1000.0)
-    assert may_start(build, 10.0, False, 3600) is None  # it stops at a checkpoint when it must
-    assert "more than the 10 s left" in may_start(index, 10.0, False, 3600)
-    assert may_start(index, 1000.0, False, 3600) is None
-    assert may_start(index, 10.0, True, 3600) is None  # first in a call: the only way it ever runs
-    assert may_start(Pending("e", "eval", None), 1.0, False, 3600) is None  # nothing to judge it by: it starts
-    assert may_start(build, 0.0, True, 3600) == "the budget is spent"
+    assert may_start(build, 10.0, False) is None  # it stops at a checkpoint when it must
+    assert "more than the 10 s left" in may_start(index, 10.0, False)
+    assert may_start(index, 1000.0, False) is None
+    assert may_start(index, 10.0, True) is None  # first in a call: the only way it ever runs
+    assert may_start(Pending("e", "eval", None), 1.0, False) is None  # nothing to judge it by: it starts
+    assert may_start(build, 0.0, True) == "the budget is spent"
+    check([build, index], 1000)  # a build longer than the budget stops at checkpoints
     with pytest.raises(InputError, match="stage 'i' cannot stop midway and is estimated at 17 min, longer than the "
                                          "whole budget"):
-        may_start(index, 600.0, True, 600)
+        check([build, index], 600)
     # the plan: the build spans two calls, the index waits for the third, the evaluation fits beside it
     plan = plan_calls([Pending("b", "build", 5000.0), Pending("i", "index", 3000.0), Pending("e", "eval", 500.0)],
                       3600)
@@ -278,3 +279,20 @@ def _cmdline(proc: Path) -> bytes:
         return (proc / "cmdline").read_bytes()
     except OSError:
         return b""
+
+
+def test_a_budget_no_call_could_keep_is_refused_before_any_stage_runs(tmp_path, capsys):
+    """An index measured at 20 minutes cannot stop midway: a 5-minute budget is refused in one line,
+    exit 2, before the build before it starts (and so is the dry run's plan)."""
+    path = _pipeline(tmp_path)
+    runs = tmp_path / "data" / "runs"
+    runs.mkdir(parents=True)
+    (runs / "20261201T100000Z.json").write_text(json.dumps({"name": "t", "started": "20261201T100000Z", "stages": [
+        {"name": "index", "kind": "index", "params": {"store": "build"}, "status": "ran", "seconds": 1200.0,
+         "outputs": {"peak_rss_bytes": 1, "bytes_on_disk": 1}}]}))
+    message = ("--budget 5 min: stage 'index' cannot stop midway and is estimated at 20 min, longer than the whole "
+               "budget")
+    for argv in (["--dry-run"], []):
+        assert main(["run", str(path), "--budget", "5m", *argv]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "data" / ".20K.zarr.partial").exists() and not (tmp_path / "data" / "20K.zarr").exists()

@@ -51,32 +51,35 @@ class Pending:
         return self.kind in CHECKPOINTED
 
 
-def may_start(stage: Pending, left: float, first: bool, budget: float) -> str | None:
+def check(stages: list[Pending], budget: float) -> None:
+    """Refuse, before any work, a budget that a stage to run cannot stop within: one that cannot
+    stop midway and is estimated longer than the whole budget would never fit a call."""
+    for stage in stages:
+        if not stage.checkpoints and stage.seconds is not None and stage.seconds > budget:
+            raise InputError(f"--budget {words(budget)}: stage '{stage.name}' cannot stop midway and is estimated "
+                             f"at {words(stage.seconds)}, longer than the whole budget: give a larger one")
+
+
+def may_start(stage: Pending, left: float, first: bool) -> str | None:
     """Why ``stage`` does not start now with ``left`` seconds of the budget (None: it starts).
     ``first``: nothing has started in this call yet."""
     if left <= 0:
         return "the budget is spent"
-    if stage.checkpoints or first:
-        if not stage.checkpoints and stage.seconds is not None and stage.seconds > budget:
-            raise InputError(f"--budget {words(budget)}: stage '{stage.name}' cannot stop midway and is estimated "
-                             f"at {words(stage.seconds)}, longer than the whole budget: give a larger one")
-        return None
-    if stage.seconds is None:  # nothing to judge by: progress, rather than a call that does nothing
-        return None
-    if stage.seconds > left:
-        return (f"'{stage.name}' cannot stop midway and is estimated at {words(stage.seconds)}, more than the "
-                f"{words(left)} left")
-    return None
+    if stage.checkpoints or first or stage.seconds is None or stage.seconds <= left:
+        return None  # never measured: nothing to judge by, so progress rather than a call that does nothing
+    return (f"'{stage.name}' cannot stop midway and is estimated at {words(stage.seconds)}, more than the "
+            f"{words(left)} left")
 
 
 def plan_calls(stages: list[Pending], budget: float) -> list[tuple[int, str]]:
     """Which call of ``vprscale run --budget`` runs each stage, by the rules of :func:`may_start`
     and the estimates: per stage, the call that ends it and a note. A stage never measured is
     counted as taking no time: the plan is then the fewest calls it may take."""
+    check(stages, budget)
     notes: list[tuple[int, str]] = []
     call, left, first = 1, budget, True
     for stage in stages:
-        if may_start(stage, left, first, budget) is not None:
+        if may_start(stage, left, first) is not None:
             call, left, first = call + 1, budget, True
         start = call
         if stage.seconds is None:

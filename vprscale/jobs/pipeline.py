@@ -401,6 +401,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         try:
             decisions = decide(pipe, covered, asked, state, force, graph, digests)  # a bad source fails the run
             digests.save()
+            if budget is not None:
+                budget_rules.check([d.pending() for d in decisions if d.run], budget)
             for i, d in enumerate(decisions):
                 stage, prev = d.stage, state.get(d.stage.name, {})
                 entry: dict[str, Any] = {"name": stage.name, "kind": stage.kind, "fingerprint": d.fingerprint,
@@ -414,7 +416,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                     summary["stages"].append(entry)
                     continue
                 if end is not None:
-                    why = budget_rules.may_start(d.pending(), end - time.time(), not started_any, budget)
+                    why = budget_rules.may_start(d.pending(), end - time.time(), not started_any)
                     if why is not None:
                         _left(summary, decisions[i:], why, tee_err)
                         break
