@@ -74,7 +74,7 @@ def _plan(summary: dict, budget: str | None) -> int:
     total = summary["estimate"]
     running = [s for s in summary["stages"] if s["run"]]
     if running and total["unmeasured"] == len(running):  # nothing to add up: no figure, not a zero
-        print(f"estimated: nothing (none of the {len(running)} stage(s) to run was ever measured here, nor has a "
+        print(f"estimated: nothing (none of the {len(running)} stage(s) to run was ever measured here, nor is in a "
               "costs file beside the pipeline: docs/pipelines.md)")
         return 0
     left = (f"; at least that: {total['unmeasured']} of the {len(running)} stage(s) to run never measured, left out"
