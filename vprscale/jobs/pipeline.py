@@ -375,8 +375,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         total = estimates.totals([d.estimate for d in running], [d.estimate for d in decisions])
         return {"name": pipe.name, "dry_run": True, "estimate": total,
                 "stages": [{"name": d.stage.name, "kind": d.stage.kind, "fingerprint": d.fingerprint, "run": d.run,
-                            "reasons": d.reasons, "estimate": d.estimate, "spent": d.spent,
-                            "checkpoints": d.stage.kind in budget_rules.CHECKPOINTED,
+                            "reasons": d.reasons, "estimate": d.estimate,
                             **(dict(zip(("calls", "call"), next(calls), strict=True)) if d.run and budget else {})}
                            for d in decisions]}
     check_writable(pipe.out, f"{pipe.path}: out")  # before any stage: its state, logs and summaries are written there
@@ -442,9 +441,9 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                           spent={stage.name: seconds})
                     break
                 outputs[stage.name] = out
-                if _stopped_peak(state, stage.name, d.fingerprint):  # the calls a budget stopped count too
-                    out["peak_rss_bytes"] = max(out.get("peak_rss_bytes") or 0,
-                                                _stopped_peak(state, stage.name, d.fingerprint))
+                earlier_peak = _stopped_peak(state, stage.name, d.fingerprint)  # the calls a budget stopped count too
+                if earlier_peak:
+                    out["peak_rss_bytes"] = max(out.get("peak_rss_bytes") or 0, earlier_peak)
                 entry |= {"status": "ran", "reasons": d.reasons, "outputs": out,
                           # a stage resumed after a budget's stop: its whole time, for the estimates
                           "seconds": d.spent + time.perf_counter() - t0}
