@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -130,6 +132,33 @@ def tiny_store(tmp_path_factory, sources) -> Path:
     build(BuildRequest(scale=str(recipe), out=root / "out", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
                        workers=2, quiet=True))
     return root / "out" / "tiny.zarr"
+
+
+@pytest.fixture(scope="session")
+def fas_fit_20k(tmp_path_factory) -> Path:
+    """The ``fas-fit`` folder of a cache that holds the FAS fit of the shipped 20K recipe on the
+    synthetic traverse, made once by a real 20K build (a cold fit is most of a 20K build's time)."""
+    from vprscale.dataset.build import BuildRequest, build
+
+    cache = tmp_path_factory.mktemp("fitted-cache")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("VPRSCALE_CACHE", str(cache))
+        build(BuildRequest(scale="20K", out=tmp_path_factory.mktemp("fit-build"), workers=2, quiet=True))
+    return cache / "fas-fit"
+
+
+def seed_fas_fit(cache: Path, fitted: Path) -> None:
+    """``cache`` (a ``$VPRSCALE_CACHE``) given the fit in ``fitted``, linked: the cache replaces an
+    entry whole (written beside, then renamed), never writes one in place."""
+    shutil.copytree(fitted, cache / "fas-fit", copy_function=os.link)
+
+
+@pytest.fixture
+def fas_fitted(own_cache, fas_fit_20k) -> None:
+    """This test's own cache seeded with that fit, for tests whose 20K builds (in this process or
+    a child) are about something else: the same store bytes, without fitting FAS again. Tests of
+    the fit itself keep an empty cache."""
+    seed_fas_fit(Path(os.environ["VPRSCALE_CACHE"]), fas_fit_20k)
 
 
 @pytest.fixture(scope="session")

@@ -211,7 +211,8 @@ def _tree(store: Path) -> dict[str, str]:
 
 
 @pytest.mark.slow
-def test_a_budget_stops_a_build_at_a_checkpoint_and_the_next_call_continues_it(tmp_path, monkeypatch, capsys):
+def test_a_budget_stops_a_build_at_a_checkpoint_and_the_next_call_continues_it(tmp_path, monkeypatch, capsys,
+                                                                               fas_fitted):
     """``--budget``: a build stopped at a checkpoint, exit status 75 with what is left; the next
     call resumes it (nothing finished redone) and runs the rest, and the store is the bytes of an
     uninterrupted build."""

@@ -170,7 +170,8 @@ def test_every_method_states_its_bytes_per_place(compared, tiny_store, tiny_inde
 
 
 @pytest.mark.slow
-def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch):
+def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, tmp_path, monkeypatch,
+                                                       small_training):
     """A run whose frames would visit more codes than the budget localises an evenly spaced
     sample of the centres (the same ones for every scanning flat method), never fewer than
     the floor; IVF visits a few lists per frame and an enumerable flat code (PQ4) finds its
@@ -196,7 +197,7 @@ def test_flat_codes_on_a_sample_beyond_the_scan_budget(tiny_store, tiny_index, t
     assert all(run["faiss:PQ4np"] == n["coarsehash"] for run in runs.values())
 
 
-def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tmp_path):
+def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tmp_path, small_training):
     """``--flat-noise qm1``: flat codes whose evaluation scans every code per frame (fast-scan
     PQ) run on QM1 alone; IVF codes, enumerable flat codes (PQ4np: no scan) and CoarseHash on
     every noise level; the evaluation records what was run."""

@@ -56,7 +56,8 @@ def _fail_at_third_chunk(monkeypatch) -> Callable:
 
 
 @pytest.mark.slow
-def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path, monkeypatch, capfd):
+def test_stored_encoding_answers_as_the_evaluation_s_own(store, tiny_index, tmp_path, monkeypatch, capfd,
+                                                          small_training):
     """An evaluation reading the stored encodings gives the answers, scores included, of one
     that encodes in its own process (IVF-PQ's searched on on-disk inverted lists merged from
     several shards, its window records memory-mapped; IVF-RQ's and IVF-RaBitQ's likewise); and it
@@ -112,7 +113,7 @@ def test_an_encoding_is_not_redone_and_bad_input_is_refused(store, capsys):
 
 
 @pytest.mark.slow
-def test_killed_encoding_resumes_to_the_bytes_of_one_run_on_any_workers(store, monkeypatch, capsys):
+def test_killed_encoding_resumes_to_the_bytes_of_one_run_on_any_workers(store, monkeypatch, capsys, small_training):
     """A run that fails after some chunks resumes from its checkpoint (the chunks done are not
     redone) and ends with the codes an uninterrupted run wrote, on 1 or 2 workers."""
     import vprscale.jobs.encoding as enc

@@ -16,7 +16,11 @@ from vprscale.core.errors import InputError
 from vprscale.core.publish import exclusive
 from vprscale.jobs.pipeline import load_pipeline, run_pipeline, stage_command
 
+from .conftest import seed_fas_fit
+
 ROOT = Path(__file__).resolve().parents[1]
+# the stages' 20K builds find the FAS fit cached (conftest.fas_fitted): these tests are about the pipeline
+pytestmark = pytest.mark.usefixtures("fas_fitted")
 
 
 def _write(path: Path, text: str) -> Path:
@@ -94,10 +98,13 @@ def _quickstart(tmp_path: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def quickstart_run(tmp_path_factory):
+def quickstart_run(tmp_path_factory, fas_fit_20k):
     tmp = tmp_path_factory.mktemp("quickstart")
     path = _quickstart(tmp)
-    return tmp, path, run_pipeline(path)
+    seed_fas_fit(tmp / "cache", fas_fit_20k)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("VPRSCALE_CACHE", str(tmp / "cache"))
+        return tmp, path, run_pipeline(path)
 
 
 @pytest.mark.slow
