@@ -102,7 +102,7 @@ def _venv_beside_this_environment(venv: Path) -> Path:
 
 
 @pytest.mark.slow
-def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path, fas_fitted):
+def test_wheel_install_builds_plans_and_runs_the_python_example(tmp_path):
     """A wheel, built by ``python -m build`` from an sdist of a checkout, installed into a fresh
     venv (the dependencies come from this environment): from an empty folder it builds, indexes and
     evaluates the 20K store where the quickstart puts it, recording the checkout's commit, plans the
