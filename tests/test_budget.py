@@ -246,7 +246,7 @@ def test_a_budget_stops_a_build_at_a_checkpoint_and_the_next_call_continues_it(t
 
 
 @pytest.mark.slow
-def test_a_terminated_run_is_recorded_stops_its_stage_and_the_next_run_goes_on(tmp_path):
+def test_a_terminated_run_is_recorded_stops_its_stage_and_the_next_run_goes_on(tmp_path, fas_fitted):
     """SIGTERM (a batch scheduler's time limit, ``kill``): the run stops its stage, records itself as
     interrupted and exits 143; no stage process is left behind; the next run finishes the work."""
     import signal
