@@ -72,20 +72,6 @@ def faiss_own(factory: str, train: np.ndarray, ref: np.ndarray, anneal: int | No
     return index
 
 
-# Modules holding a test of a minute or more, handed to the workers first and longest first
-# (pyproject's ``--no-loadscope-reorder`` keeps this order; pytest-xdist would otherwise order
-# modules by their number of tests, which put the 6-test wheel install last): the shorter modules
-# then fill the end of the run, so that neither worker is left with a long one while the other idles.
-LONG_FIRST = ("test_pipeline.py", "test_publish_faults.py", "test_compare.py", "test_install.py", "test_encode.py",
-              "test_objects.py", "test_compact.py", "test_bring_your_own.py", "test_engine.py", "test_codescore.py",
-              "test_cli.py", "test_budget.py")
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    rank = {name: i for i, name in enumerate(LONG_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep pytest's order
-
-
 @pytest.fixture(autouse=True)
 def own_cache(tmp_path, monkeypatch):
     """Each test its own ``$VPRSCALE_CACHE``: a FAS fit (or a fetched copy) cached by one test must
