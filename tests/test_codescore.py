@@ -254,7 +254,14 @@ def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_bes
     codes_arg = codes.codes if codes_arg is None else codes_arg
     vectors = np.zeros((0, 0), np.float32) if vectors is None else vectors
     return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, codes.per_list,
-                         codes_arg, t.vectors, vectors, codes.centroids, n_best)
+                         _read_only(codes_arg), t.vectors, _read_only(vectors), codes.centroids, n_best)
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """Places' codes and vectors as vprscale passes them (one compiled signature of the kernel)."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
 
 
 @settings(max_examples=200, deadline=None)

@@ -268,7 +268,7 @@ class Index:
                n_best: int = N_BEST) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(top, score, n_r)`` of the centres at positions ``pos`` of the query frames (see
         :class:`Matches`; ``score`` of the best, in δ_max units)."""
-        pos = np.asarray(pos, np.int64)
+        pos = np.ascontiguousarray(pos, np.int64)  # a slice too: one compiled signature of match_batch
         if L == 1:  # the frame's own list, decoded with the per-frame work: its best first
             err = None if qf.errors is None else np.asarray(qf.errors)[pos]
             score = self.single_scores(qf.hashes[pos], qf.taken[pos], err)
