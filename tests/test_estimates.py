@@ -78,6 +78,25 @@ def test_saved_costs_estimate_a_machine_with_no_history(history, tmp_path):
     assert (e.seconds, e.basis) == (60.0, "measured on the reference machine")
 
 
+def test_saved_costs_keep_the_figures_of_stages_this_output_never_ran(history, tmp_path):
+    """A ladder started again in an empty output (a new machine) refreshes what it measures and
+    keeps the costs file's figures of the stages it has not reached, as they were written."""
+    stages = [("build-1M", "build", {"scale": "1M"}), ("eval-1M", "eval", {"store": "build-1M", "L": [1, 50]})]
+    path = save_costs(history / "p.toml", history / "out", stages, {"cpu": "AMD EPYC", "cores": 2})
+    before = {s["name"]: s for s in json.loads(path.read_text())["stages"]}
+    runs = tmp_path / "new" / "runs"
+    runs.mkdir(parents=True)
+    (runs / "20261206T050000Z.json").write_text(json.dumps(_summary(
+        "20261206T050000Z", _stage("build-1M", "build", {"scale": "1M"}, 80.0, 600, 1_000, 1_000_000))))
+    save_costs(history / "p.toml", tmp_path / "new", stages, {"cpu": "AMD EPYC", "cores": 2})
+    after = {s["name"]: s for s in json.loads(path.read_text())["stages"]}
+    assert (after["build-1M"]["seconds"], after["build-1M"]["measured"]) == (80.0, "20261206T050000Z")
+    assert after["eval-1M"] == before["eval-1M"] and before["eval-1M"]["measured"] == "20261201T100000Z"
+    path.write_text("[not a costs file")
+    save_costs(history / "p.toml", tmp_path / "new", stages, {"cpu": "AMD EPYC", "cores": 2})
+    assert [s["name"] for s in json.loads(path.read_text())["stages"]] == ["build-1M"]
+
+
 def test_places_follow_the_stages_to_their_build():
     stages = {"b": ("build", {"scale": "1M"}), "i": ("index", {"store": "b"}), "e": ("eval", {"store": "b",
                                                                                              "index": "i"}),

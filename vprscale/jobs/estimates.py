@@ -154,12 +154,27 @@ def totals(running: list[Estimate], every: list[Estimate]) -> dict[str, Any]:
             "unmeasured": sum(e.seconds is None for e in running)}
 
 
+def _entries(costs: Path) -> list[dict[str, Any]]:
+    """The stage entries of a costs file as written (none if it is missing or unreadable)."""
+    try:
+        stages = json.loads(costs.read_text()).get("stages", [])
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        return []
+    return [s for s in stages if isinstance(s, dict)] if isinstance(stages, list) else []
+
+
 def save_costs(pipeline_path: Path, out: Path, stages: list[tuple[str, str, dict[str, Any]]],
                machine: dict[str, Any]) -> Path:
     """Write each stage's last measured figures under ``out`` (whichever run measured it) to the
-    pipeline's costs file, with the machine they were measured on; returns its path."""
+    pipeline's costs file, with the machine they were measured on; returns its path.
+
+    A stage no run under ``out`` measured keeps the file's entry as it was: a ladder that runs
+    over several calls, or starts again on a new machine of the same kind with an empty ``out``,
+    refreshes the figures it measures without dropping those of the stages it has not reached.
+    """
     path = pipeline_path.with_name(pipeline_path.stem + COSTS_SUFFIX)
     measured = [m for m in read_measurements(out, pipeline_path) if m.when != REFERENCE]
+    shipped = _entries(path)
     entries = []
     for name, kind, params in stages:
         m = _last(measured, name, kind, params)
@@ -168,6 +183,9 @@ def save_costs(pipeline_path: Path, out: Path, stages: list[tuple[str, str, dict
                             "status": "ran",
                             "seconds": m.seconds, "measured": m.when,
                             "outputs": {"peak_rss_bytes": m.peak_bytes, "bytes_on_disk": m.disk_bytes}})
+        else:
+            entries += [e for e in shipped
+                        if (e.get("name"), e.get("kind"), e.get("params")) == (name, kind, params)][:1]
     costs = {"machine": machine, "stages": entries}
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(costs, indent=1, default=str) + "\n")
