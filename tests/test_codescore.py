@@ -16,7 +16,7 @@ from threadpoolctl import threadpool_limits
 
 from vprscale.compared import rabitq
 from vprscale.compared.codescore import REF_LEVEL_BYTES, _smallest, score_windows
-from vprscale.compared.faisscodes import ENCODE_ROWS, FaissCodes, FrameTerms, _plain_twin, training_rows
+from vprscale.compared.faisscodes import ENCODE_ROWS, FaissCodes, FrameTerms, _plain_twin, _read_only, training_rows
 from vprscale.core.errors import InputError
 
 from .conftest import faiss_own
@@ -256,12 +256,6 @@ def _score(codes: FaissCodes, t: FrameTerms, centres, L, cand, first, n_r, n_bes
     return score_windows(centres, L, cand, first, n_r, codes.n_ref, t.tables, t.levels, t.scale, codes.per_list,
                          _read_only(codes_arg), t.vectors, _read_only(vectors), codes.centroids, n_best)
 
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    """Places' codes and vectors as vprscale passes them (one compiled signature of the kernel)."""
-    view = a.view()
-    view.flags.writeable = False
-    return view
 
 
 @settings(max_examples=200, deadline=None)
