@@ -29,6 +29,10 @@ import heapq
 import numba
 import numpy as np
 
+from vprscale.core.kernelcache import share_kernels
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
+
 NO_PLACE = -1
 MAX_KEY_BITS = 62  # a code value is one int64 key: Σ index_m << (bits · m)
 # A visit (a heap pop and its pushes, a value's look-up) costs about as much as 32–40 values of a pass

@@ -1,10 +1,9 @@
 """Saying so when numba compiles: a first run on a machine compiles vprscale's kernels (tens of
 seconds to a few minutes, depending on the command) before any progress can be shown; numba
-caches them (``cache=True``, beside the modules or under ``$NUMBA_CACHE_DIR``), so every later
-process loads them in milliseconds. A listener on numba's compile event logs one line the first
-time a kernel of vprscale's is compiled in a process, and nothing when they come from the cache;
-while compiling goes on, a line every ``HEARTBEAT_S`` says so, so that a log is never silent for
-long.
+caches them (:mod:`vprscale.core.kernelcache`), so every later process loads them in
+milliseconds. A listener on numba's compile event logs one line the first time a kernel of
+vprscale's is compiled in a process, and nothing when they come from the cache; while compiling
+goes on, a line every ``HEARTBEAT_S`` says so, so that a log is never silent for long.
 """
 
 from __future__ import annotations

@@ -12,7 +12,10 @@ import numba
 import numpy as np
 
 from vprscale.core.blocks import block_spans
+from vprscale.core.kernelcache import share_kernels
 from vprscale.dataset.sources.base import RowSource
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
 
 
 @numba.njit(cache=True, nogil=True)

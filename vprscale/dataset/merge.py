@@ -14,11 +14,14 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from vprscale.core.blocks import BLOCK, block_spans
+from vprscale.core.kernelcache import share_kernels
 from vprscale.core.progress import compute
 from vprscale.dataset import fascache
 from vprscale.dataset.gaussian import block_standard_normal
 from vprscale.dataset.sources.fas import Traverse
 from vprscale.method.pca import ExactPCA, RandomizedPCA, block_moments
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
 
 NOISE_STREAM = 17
 _FAS_CHUNK = 4096

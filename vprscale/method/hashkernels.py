@@ -11,6 +11,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vprscale.core.kernelcache import share_kernels
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
+
 _TILE = 1024  # rows projected at a time before they are binned column by column
 
 

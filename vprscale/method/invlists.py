@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from vprscale.core.kernelcache import share_kernels
 from vprscale.method.intrinsics import prefetch
 from vprscale.method.succinct import (
     SAMPLE_BITS,
@@ -36,6 +37,8 @@ from vprscale.method.succinct import (
     unpack,
     width,
 )
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
 
 SHARED_ABOVE = 1 << 25  # ids (256 MB decoded) beyond which frames share their lists' copies
 AHEAD = 8  # frames ahead whose select samples are fetched while a frame is looked up

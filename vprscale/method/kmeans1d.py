@@ -12,6 +12,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vprscale.core.kernelcache import share_kernels
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
+
 
 @numba.njit(cache=True)
 def _segment_cost(cw: np.ndarray, cx: np.ndarray, cxx: np.ndarray, i: int, j: int) -> float:

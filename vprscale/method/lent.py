@@ -17,6 +17,10 @@ import numba
 from numba import types
 from numba.extending import intrinsic
 
+from vprscale.core.kernelcache import share_kernels
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
+
 
 @intrinsic
 def _address(typingctx, a):

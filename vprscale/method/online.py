@@ -28,6 +28,7 @@ import numpy as np
 from numba.core import types
 from numba.experimental import structref
 
+from vprscale.core.kernelcache import share_kernels
 from vprscale.method.hashkernels import hash_one
 from vprscale.method.index import Index
 from vprscale.method.invlists import list_span, nearest_slot
@@ -45,6 +46,8 @@ from vprscale.method.kernels import (
 from vprscale.method.lent import borrow, lend
 from vprscale.method.succinct import get_packed
 from vprscale.protocol import MAX_BEST, check_window
+
+share_kernels()  # before the kernels below: numba caches them by code state, not by install
 
 
 class OnlineMatcher:
