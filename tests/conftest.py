@@ -24,6 +24,21 @@ from vprscale.method.kmeans1d import kmeans_1d
 settings.register_profile("vprscale", deadline=None)
 settings.load_profile("vprscale")
 
+# With -n, xdist hands out whole modules (--dist loadscope) in collection order
+# (--no-loadscope-reorder, pyproject's addopts): the costliest first, so that a long module does not
+# start when the other worker has nothing left to run. A module costs its tests, each end-to-end
+# (slow) test counted as SLOW_WEIGHT of them; xdist's own order counts tests alone, and handed out
+# a module of two fault-injection tests (two minutes) last.
+SLOW_WEIGHT = 30
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    cost: dict[str, int] = {}
+    for item in items:
+        module = item.nodeid.split("::", 1)[0]
+        cost[module] = cost.get(module, 0) + (SLOW_WEIGHT if item.get_closest_marker("slow") else 1)
+    items.sort(key=lambda item: -cost[item.nodeid.split("::", 1)[0]])  # stable: a module's own order kept
+
 
 def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Codes ``argmin_k |y_j − c_jk|`` (ties: the smaller k) and errors ``Σ_j min_k |y_j − c_jk|`` of
