@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+from collections import Counter
 from pathlib import Path
 
 import faiss
@@ -33,11 +34,10 @@ SLOW_WEIGHT = 30
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    cost: dict[str, int] = {}
+    cost: Counter[str] = Counter()
     for item in items:
-        module = item.nodeid.split("::", 1)[0]
-        cost[module] = cost.get(module, 0) + (SLOW_WEIGHT if item.get_closest_marker("slow") else 1)
-    items.sort(key=lambda item: -cost[item.nodeid.split("::", 1)[0]])  # stable: a module's own order kept
+        cost[item.path] += SLOW_WEIGHT if item.get_closest_marker("slow") else 1
+    items.sort(key=lambda item: -cost[item.path])  # stable: a module's own order kept
 
 
 def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

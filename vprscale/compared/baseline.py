@@ -13,7 +13,7 @@ import numpy as np
 from vprscale.core.kernelcache import share_kernels
 from vprscale.method.kernels import NO_CANDIDATE, finish_best, keep_best
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 
 @numba.njit(cache=True, nogil=True)

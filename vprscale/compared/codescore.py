@@ -42,7 +42,7 @@ from numba.extending import intrinsic
 from vprscale.core.kernelcache import share_kernels
 from vprscale.method.kernels import NO_CANDIDATE, finish_best, keep_best
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 # Relative rounding allowed between a window's sum of bounded terms and its exact sum (float64
 # sums of terms of float32 parts differ by far less), so that the bounds stay bounds.

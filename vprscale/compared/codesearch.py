@@ -31,7 +31,7 @@ import numpy as np
 
 from vprscale.core.kernelcache import share_kernels
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 NO_PLACE = -1
 MAX_KEY_BITS = 62  # a code value is one int64 key: Σ index_m << (bits · m)

@@ -29,7 +29,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.kernelcache import share_kernels
 from vprscale.core.progress import ChunkProgress, Timings
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 POOLINGS = {"seq": "mean", "seq-gem3": "gem"}  # prefix of a --compare string → how its windows are pooled
 GEM_P = 3.0  # GeM's exponent (JIST's SeqGeM and GeM's usual starting value)

@@ -23,7 +23,7 @@ import numpy as np
 from vprscale.compared.codescore import list_numbers
 from vprscale.core.kernelcache import share_kernels
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 FACTOR_BYTES = 8  # F and D, float32
 PAIRWISE_BLOCK = 128  # numpy sums a row of at most this many in one block (longer: halves, recursively)

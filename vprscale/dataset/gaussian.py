@@ -23,7 +23,7 @@ import numpy as np
 from vprscale.core.blocks import block_rng
 from vprscale.core.kernelcache import share_kernels
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 LAYERS = 256
 R = 3.6541528853610088  # right edge of the base layer's rectangle (Marsaglia & Tsang, 256 layers)

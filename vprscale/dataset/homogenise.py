@@ -15,7 +15,7 @@ from vprscale.core.blocks import block_spans
 from vprscale.core.kernelcache import share_kernels
 from vprscale.dataset.sources.base import RowSource
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 
 @numba.njit(cache=True, nogil=True)

@@ -21,7 +21,7 @@ from vprscale.dataset.gaussian import block_standard_normal
 from vprscale.dataset.sources.fas import Traverse
 from vprscale.method.pca import ExactPCA, RandomizedPCA, block_moments
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 NOISE_STREAM = 17
 _FAS_CHUNK = 4096

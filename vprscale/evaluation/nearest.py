@@ -31,7 +31,7 @@ from vprscale.evaluation.algorithms.coarsehash import CoarseHash
 from vprscale.method.index import Index
 from vprscale.method.kernels import bit_gaps
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 DEPTHS = (1, 10, 100)  # the R of R@R
 TIMED_ROWS = 1000  # query rows each method is timed on, one thread (the answers are of every row)

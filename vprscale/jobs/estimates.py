@@ -55,7 +55,8 @@ class _Measured:
     seconds: float
     peak_bytes: int | None
     disk_bytes: int | None
-    when: str
+    when: str  # the run's stamp (a costs file's entry: the stamp it was measured at)
+    reference: bool = False  # from the shipped costs file, not a run under the output
 
 
 def places(stage_params: dict[str, Any], kind: str, stages: dict[str, tuple[str, dict[str, Any]]]) -> int | None:
@@ -111,7 +112,8 @@ def read_measurements(out: Path, pipeline_path: Path) -> list[_Measured]:
             found.append(_Measured(s["name"], s["kind"], s["params"], s.get("places"), s.get("layout"),
                                    float(s["seconds"]),
                                    outputs.get("peak_rss_bytes"), outputs.get("bytes_on_disk"),
-                                   REFERENCE if path == costs else summary.get("started", "?")))
+                                   s.get("measured", "?") if path == costs else summary.get("started", "?"),
+                                   path == costs))
     return found
 
 
@@ -125,7 +127,8 @@ def estimate(name: str, kind: str, params: dict[str, Any], n: int | None, measur
     """One stage's estimate from the measurements (the latest of each kind wins)."""
     m = _last(measured, name, kind, params)
     if m is not None:
-        return Estimate(m.seconds, m.peak_bytes, m.disk_bytes, f"measured {_when(m.when)}")
+        basis = REFERENCE if m.reference else _when(m.when)
+        return Estimate(m.seconds, m.peak_bytes, m.disk_bytes, f"measured {basis}")
     own = _own_params(params)
     alike = [m for m in measured if m.kind == kind and _own_params(m.params) == own and m.places and n
              and m.layout == store_layout]
@@ -154,15 +157,6 @@ def totals(running: list[Estimate], every: list[Estimate]) -> dict[str, Any]:
             "unmeasured": sum(e.seconds is None for e in running)}
 
 
-def _entries(costs: Path) -> list[dict[str, Any]]:
-    """The stage entries of a costs file as written (none if it is missing or unreadable)."""
-    try:
-        stages = json.loads(costs.read_text()).get("stages", [])
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        return []
-    return [s for s in stages if isinstance(s, dict)] if isinstance(stages, list) else []
-
-
 def save_costs(pipeline_path: Path, out: Path, stages: list[tuple[str, str, dict[str, Any]]],
                machine: dict[str, Any]) -> Path:
     """Write each stage's last measured figures under ``out`` (whichever run measured it) to the
@@ -173,19 +167,16 @@ def save_costs(pipeline_path: Path, out: Path, stages: list[tuple[str, str, dict
     refreshes the figures it measures without dropping those of the stages it has not reached.
     """
     path = pipeline_path.with_name(pipeline_path.stem + COSTS_SUFFIX)
-    measured = [m for m in read_measurements(out, pipeline_path) if m.when != REFERENCE]
-    shipped = _entries(path)
+    measured = read_measurements(out, pipeline_path)
+    ran, shipped = [m for m in measured if not m.reference], [m for m in measured if m.reference]
     entries = []
     for name, kind, params in stages:
-        m = _last(measured, name, kind, params)
+        m = _last(ran, name, kind, params) or _last(shipped, name, kind, params)
         if m is not None:
             entries.append({"name": name, "kind": kind, "params": params, "places": m.places, "layout": m.layout,
                             "status": "ran",
                             "seconds": m.seconds, "measured": m.when,
                             "outputs": {"peak_rss_bytes": m.peak_bytes, "bytes_on_disk": m.disk_bytes}})
-        else:
-            entries += [e for e in shipped
-                        if (e.get("name"), e.get("kind"), e.get("params")) == (name, kind, params)][:1]
     costs = {"machine": machine, "stages": entries}
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(costs, indent=1, default=str) + "\n")

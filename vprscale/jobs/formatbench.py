@@ -33,7 +33,7 @@ from vprscale.method.index import Index, QueryFrames
 from vprscale.method.indexfile import fill_from_tables, load_index_meta, read_model
 from vprscale.method.kernels import address_delta, bit_planes, match_batch
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 PLAIN_PLACES = 1 << 27  # the largest index whose plain arrays bench format builds beside the succinct ones
 PREFIX_BITS = (16, 24)  # format 2's prefix table: about one entry per occupied address, 2^16 to 2^24

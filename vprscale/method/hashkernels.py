@@ -13,7 +13,7 @@ import numpy as np
 
 from vprscale.core.kernelcache import share_kernels
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 _TILE = 1024  # rows projected at a time before they are binned column by column
 

@@ -38,7 +38,7 @@ from vprscale.method.succinct import (
     width,
 )
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 SHARED_ABOVE = 1 << 25  # ids (256 MB decoded) beyond which frames share their lists' copies
 AHEAD = 8  # frames ahead whose select samples are fetched while a frame is looked up

@@ -16,7 +16,7 @@ from vprscale.core.kernelcache import share_kernels
 from vprscale.method.intrinsics import funnel_shift_right, popcount, prefetch
 from vprscale.method.succinct import get_packed
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 DELTA_MAX_UNITS = 2**36  # δ_max in fixed point: L · d · δ never overflows int64
 N_BEST = 20  # candidates an answer keeps, best first: Recall@N for N up to 20 (docs/protocol.md)

@@ -14,7 +14,7 @@ import numpy as np
 
 from vprscale.core.kernelcache import share_kernels
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 
 @numba.njit(cache=True)

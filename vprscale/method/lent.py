@@ -19,7 +19,7 @@ from numba.extending import intrinsic
 
 from vprscale.core.kernelcache import share_kernels
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 
 @intrinsic

@@ -47,7 +47,7 @@ from vprscale.method.lent import borrow, lend
 from vprscale.method.succinct import get_packed
 from vprscale.protocol import MAX_BEST, check_window
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 
 class OnlineMatcher:

@@ -37,7 +37,7 @@ import numpy as np
 from vprscale.core.kernelcache import share_kernels
 from vprscale.method.intrinsics import leading_zeros, popcount, trailing_zeros
 
-share_kernels()  # before the kernels below: numba caches them by code state, not by install
+share_kernels()
 
 SAMPLE_BITS = 8
 SAMPLE = 1 << SAMPLE_BITS  # every 256th one (and zero) keeps its position: 0.25 bit per value
