@@ -6,11 +6,13 @@ import os
 import shutil
 import subprocess
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import faiss
 import numpy as np
 import pytest
+from filelock import FileLock
 from hypothesis import settings
 from threadpoolctl import threadpool_limits
 
@@ -110,14 +112,32 @@ def small_training(monkeypatch):
     monkeypatch.setattr("vprscale.compared.faisscodes.TRAIN_ROWS", SMALL_TRAINING)
 
 
+def made_once(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], None]) -> Path:
+    """The folder ``name`` of this run, filled by ``make`` once for every xdist worker: the first to
+    ask makes it while the others wait. For session fixtures, whose contents are the same whoever
+    makes them (same seeds, same code), and which no test changes."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # the run's, not a worker's
+    folder, made = root / name, root / f"{name}.made"
+    with FileLock(root / f"{name}.lock"):
+        if not made.exists():
+            shutil.rmtree(folder, ignore_errors=True)  # what a worker that died making it left
+            folder.mkdir()
+            make(folder)
+            made.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def sources(tmp_path_factory) -> dict[str, Path]:
     """Synthetic Deep1B as fvecs chunks and fbin, and a small FAS npz (seed 3)."""
-    root = tmp_path_factory.mktemp("sources")
-    deep = SyntheticDeep1B(DEEP_ROWS, seed=3)
-    write_fvecs(deep, root / "base", rows_per_file=30_000)
-    write_fbin(deep, root / "base.fbin")
-    write_fas_npz(SyntheticFAS(3, SMALL_FAS).traverse(), root / "fas.npz")
+    def make(root: Path) -> None:
+        deep = SyntheticDeep1B(DEEP_ROWS, seed=3)
+        write_fvecs(deep, root / "base", rows_per_file=30_000)
+        write_fbin(deep, root / "base.fbin")
+        write_fas_npz(SyntheticFAS(3, SMALL_FAS).traverse(), root / "fas.npz")
+
+    root = made_once(tmp_path_factory, "sources", make)
     return {"fvecs": root / "base", "fbin": root / "base.fbin", "fas": root / "fas.npz", "root": root}
 
 
@@ -142,11 +162,12 @@ def tiny_store(tmp_path_factory, sources) -> Path:
     """The tiny recipe built once from the fbin and npz sources."""
     from vprscale.dataset.build import BuildRequest, build
 
-    root = tmp_path_factory.mktemp("built")
-    recipe = write_recipe(root / "tiny.toml")
-    build(BuildRequest(scale=str(recipe), out=root / "out", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
-                       workers=2, quiet=True))
-    return root / "out" / "tiny.zarr"
+    def make(root: Path) -> None:
+        recipe = write_recipe(root / "tiny.toml")
+        build(BuildRequest(scale=str(recipe), out=root / "out", deep1b=str(sources["fbin"]), fas=str(sources["fas"]),
+                           workers=2, quiet=True))
+
+    return made_once(tmp_path_factory, "built", make) / "out" / "tiny.zarr"
 
 
 @pytest.fixture(scope="session")
@@ -155,11 +176,12 @@ def fas_fit_20k(tmp_path_factory) -> Path:
     synthetic traverse, made once by a real 20K build (a cold fit is most of a 20K build's time)."""
     from vprscale.dataset.build import BuildRequest, build
 
-    cache = tmp_path_factory.mktemp("fitted-cache")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("VPRSCALE_CACHE", str(cache))
-        build(BuildRequest(scale="20K", out=tmp_path_factory.mktemp("fit-build"), workers=2, quiet=True))
-    return cache / "fas-fit"
+    def make(root: Path) -> None:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("VPRSCALE_CACHE", str(root / "cache"))
+            build(BuildRequest(scale="20K", out=root / "build", workers=2, quiet=True))
+
+    return made_once(tmp_path_factory, "fitted", make) / "cache" / "fas-fit"
 
 
 def seed_fas_fit(cache: Path, fitted: Path) -> None:
@@ -181,9 +203,10 @@ def tiny_index(tiny_store, tmp_path_factory) -> Path:
     """A d = 12 CoarseHash index of the tiny store."""
     from vprscale.jobs.indexing import build_index
 
-    out = tmp_path_factory.mktemp("index") / "tiny.index"
-    build_index(tiny_store, d=12, out=out, quiet=True)
-    return out
+    def make(root: Path) -> None:
+        build_index(tiny_store, d=12, out=root / "tiny.index", quiet=True)
+
+    return made_once(tmp_path_factory, "index", make) / "tiny.index"
 
 
 @pytest.fixture
