@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -29,17 +30,45 @@ settings.load_profile("vprscale")
 
 # With -n, xdist hands out whole modules (--dist loadscope) in collection order
 # (--no-loadscope-reorder, pyproject's addopts): the costliest first, so that a long module does not
-# start when the other worker has nothing left to run. A module costs its tests, each end-to-end
-# (slow) test counted as SLOW_WEIGHT of them; xdist's own order counts tests alone, and handed out
-# a module of two fault-injection tests (two minutes) last.
+# start when the other worker has nothing left to run (xdist's own order counts tests alone, and
+# handed out a module of two two-minute fault-injection tests last). A module costs the seconds
+# its tests took in the run that wrote DURATIONS (``--store-durations``); a test that run did not
+# see counts as the median test, or as SLOW_WEIGHT of them if it is marked slow.
+DURATIONS = Path(__file__).with_name("durations.json")
 SLOW_WEIGHT = 30
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--store-durations", action="store_true",
+                     help=f"write each test's seconds (setup, call, teardown) to {DURATIONS.name}, for the order")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    cost: Counter[str] = Counter()
+    took = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    typical = float(np.median(list(took.values()))) if took else 1.0
+    cost: Counter[Path] = Counter()
     for item in items:
-        cost[item.path] += SLOW_WEIGHT if item.get_closest_marker("slow") else 1
+        cost[item.path] += took.get(item.nodeid, typical * (SLOW_WEIGHT if item.get_closest_marker("slow") else 1))
     items.sort(key=lambda item: -cost[item.path])  # stable: a module's own order kept
+
+
+_durations: Counter[str] = Counter()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    _durations[report.nodeid] += report.duration  # with -n, the controller hears every worker's reports
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """With ``--store-durations``, this run's seconds over the stored ones (a quick run keeps the slow
+    tests' seconds), without the tests of modules that are gone."""
+    if not session.config.getoption("store_durations") or hasattr(session.config, "workerinput"):
+        return
+    took = {**(json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}),
+            **{k: round(v, 1) for k, v in _durations.items()}}
+    root = DURATIONS.parent.parent
+    DURATIONS.write_text(json.dumps({k: v for k, v in sorted(took.items()) if (root / k.split("::")[0]).is_file()},
+                                    indent=0) + "\n")
 
 
 def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
