@@ -19,8 +19,9 @@ from vprscale.jobs.pipeline import load_pipeline, run_pipeline, stage_command
 from .conftest import seed_fas_fit
 
 ROOT = Path(__file__).resolve().parents[1]
-# the stages' 20K builds find the FAS fit cached (conftest.fas_fitted): these tests are about the pipeline
-pytestmark = pytest.mark.usefixtures("fas_fitted")
+# a test whose stages build 20K stores finds the FAS fit cached (conftest.fas_fitted): these tests are
+# about the pipeline; the others build nothing, and do not wait for the fit
+builds_20k = pytest.mark.usefixtures("fas_fitted")
 
 
 def _write(path: Path, text: str) -> Path:
@@ -108,6 +109,7 @@ def quickstart_run(tmp_path_factory, fas_fit_20k):
 
 
 @pytest.mark.slow
+@builds_20k
 def test_quickstart_runs_end_to_end(quickstart_run):
     tmp, _, summary = quickstart_run
     assert summary["status"] == "ok"
@@ -158,6 +160,7 @@ def _plan(path: Path, pythonpath: Path | None = None, *flags: str) -> tuple[dict
 
 
 @pytest.mark.slow
+@builds_20k
 @pytest.mark.parametrize(("module", "reruns"), [
     ("evaluation/report.py", {"report"}),  # the report's code: the report alone
     ("cli/report.py", {"report"}),  # the report command: the report alone
@@ -183,6 +186,7 @@ def test_a_changed_module_reruns_only_the_stages_that_run_it(quickstart_run, tmp
 
 
 @pytest.mark.slow
+@builds_20k
 def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp_path):
     tmp, path, summary = quickstart_run
     figure = next(Path(f) for f in summary["figures"] if f.endswith("fig3_recall.png"))
@@ -204,6 +208,7 @@ def test_a_deleted_output_reruns_its_stage_and_what_reads_it(quickstart_run, tmp
 
 
 @pytest.mark.slow
+@builds_20k
 def test_a_pipelines_report_states_each_stages_code_and_its_time(quickstart_run, monkeypatch, capsys):
     """The report of a pipeline lists every stage it reads, the code each ran and whether that is
     this vprscale's code; its time table is the pipeline's record (stages.json beside it)."""
@@ -246,6 +251,7 @@ def test_a_pipelines_report_states_each_stages_code_and_its_time(quickstart_run,
 
 
 @pytest.mark.slow
+@builds_20k
 def test_dry_run_estimates_each_stage_and_the_run_from_measured_figures(quickstart_run, capsys):
     """``--dry-run --force`` gives each stage its last run's time and the run's total; ``--save-costs``
     writes those figures beside the pipeline, and a dry run into an empty directory reads them."""
@@ -281,6 +287,7 @@ def _stamp(started: str) -> str:
 
 
 @pytest.mark.slow
+@builds_20k
 def test_rerun_does_no_work_and_a_changed_stage_reruns_with_dependants(quickstart_run):
     tmp, path, _ = quickstart_run
     again = run_pipeline(path)
@@ -386,6 +393,7 @@ def test_an_input_digest_is_computed_once_while_the_file_is_untouched(tmp_path, 
 
 
 @pytest.mark.slow
+@builds_20k
 def test_an_encode_stage_feeds_the_evaluation_and_is_skipped_when_up_to_date(tmp_path):
     """``kind = "encode"`` stores FAISS encodings beside the store; the evaluation that lists it
     in ``encodings`` reads them (its eval.json says so); a second run does nothing."""
