@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+
+# Two xdist workers share two cores, and each runs OpenMP regions (FAISS, its BLAS): an OpenMP
+# thread left idle spins before it sleeps, on a core the other worker needs. Set before FAISS loads
+# OpenMP; the commands the tests start inherit it. (Scheduling only: no result depends on it.)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import shutil
 import subprocess
 from collections import Counter
