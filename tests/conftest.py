@@ -38,7 +38,7 @@ settings.load_profile("vprscale")
 # start when the other worker has nothing left to run (xdist's own order counts tests alone, and
 # handed out a module of two two-minute fault-injection tests last). A module costs the seconds
 # its tests took in the run that wrote DURATIONS (``--store-durations``); a test that run did not
-# see counts as the median test, or as SLOW_WEIGHT of them if it is marked slow.
+# see counts as the median test of its kind (slow or not; without a file, a slow one as SLOW_WEIGHT).
 DURATIONS = Path(__file__).with_name("durations.json")
 SLOW_WEIGHT = 30
 
@@ -50,10 +50,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     took = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
-    typical = float(np.median(list(took.values()))) if took else 1.0
+    slow = {item.nodeid: item.get_closest_marker("slow") is not None for item in items}
+    known = {kind: [took[k] for k, s in slow.items() if s == kind and k in took] for kind in (False, True)}
+    typical = {False: float(np.median(known[False])) if known[False] else 1.0}
+    typical[True] = float(np.median(known[True])) if known[True] else typical[False] * SLOW_WEIGHT
     cost: Counter[Path] = Counter()
     for item in items:
-        cost[item.path] += took.get(item.nodeid, typical * (SLOW_WEIGHT if item.get_closest_marker("slow") else 1))
+        cost[item.path] += took.get(item.nodeid, typical[slow[item.nodeid]])
     items.sort(key=lambda item: -cost[item.path])  # stable: a module's own order kept
 
 
