@@ -48,8 +48,12 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                      help=f"write each test's seconds (setup, call, teardown) to {DURATIONS.name}, for the order")
 
 
+def _stored_durations() -> dict[str, float]:
+    return json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    took = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    took = _stored_durations()
     slow = {item.nodeid: item.get_closest_marker("slow") is not None for item in items}
     known = {kind: [took[k] for k, s in slow.items() if s == kind and k in took] for kind in (False, True)}
     typical = {False: float(np.median(known[False])) if known[False] else 1.0}
@@ -72,8 +76,7 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     tests' seconds), without the tests of modules that are gone."""
     if not session.config.getoption("store_durations") or hasattr(session.config, "workerinput"):
         return
-    took = {**(json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}),
-            **{k: round(v, 1) for k, v in _durations.items()}}
+    took = {**_stored_durations(), **{k: round(v, 1) for k, v in _durations.items()}}
     root = DURATIONS.parent.parent
     DURATIONS.write_text(json.dumps({k: v for k, v in sorted(took.items()) if (root / k.split("::")[0]).is_file()},
                                     indent=0) + "\n")
