@@ -4,6 +4,7 @@ kernel module compiles them again."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -26,15 +27,33 @@ print(json.dumps({"path": s.cache_path, "hits": sum(s.cache_hits.values()), "mis
 """
 
 
+# the same kernel wanted by a process that says where its compile lock is, then waits for a line
+WAITING = """
+import json, sys, numpy as np
+from vprscale.core.kernelcache import compile_lock
+from vprscale.method import kmeans1d
+print(compile_lock(kmeans1d._segment_cost.py_func), flush=True)
+sys.stdin.readline()
+kmeans1d._segment_cost(np.arange(4.0), np.arange(4.0), np.arange(4.0), 0, 3)
+s = kmeans1d._segment_cost.stats
+print(json.dumps({"hits": sum(s.cache_hits.values()), "misses": sum(s.cache_misses.values())}))
+"""
+
+
+def _env(install: Path, cache: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env.update(PYTHONPATH=str(install), XDG_CACHE_HOME=str(cache))
+    return env
+
+
 def _install(where: Path) -> Path:
     shutil.copytree(PACKAGE, where / "vprscale", ignore=shutil.ignore_patterns("__pycache__"))
     return where
 
 
 def _probe(install: Path, cache: Path) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
-    env.update(PYTHONPATH=str(install), XDG_CACHE_HOME=str(cache))
-    done = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, cwd=install)
+    done = subprocess.run([sys.executable, "-c", PROBE], env=_env(install, cache), capture_output=True, text=True,
+                          cwd=install)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout)
 
@@ -62,3 +81,27 @@ def test_another_install_of_the_same_code_loads_the_kernels_and_a_changed_kernel
     assert (changed["hits"], changed["misses"]) == (0, 1) and changed["path"] != first["path"]
     assert not stale.exists() and recent.is_dir()
     assert _probe(a, cache)["hits"] == 1  # the first state's kernels are still there
+
+
+def test_processes_that_want_the_same_kernel_compile_it_once(tmp_path):
+    """Two processes that miss the cache together: one compiles, the other waits for it and loads
+    what it cached. The lock is held here until both want the kernel, so that they overlap."""
+    install, cache = _install(tmp_path / "a"), tmp_path / "cache"
+    procs = [subprocess.Popen([sys.executable, "-c", WAITING], env=_env(install, cache), cwd=install, text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+             for _ in range(2)]
+    locks = {p.stdout.readline().strip() for p in procs}
+    assert len(locks) == 1 and Path(next(iter(locks))).is_relative_to(cache)
+    lock = os.open(next(iter(locks)), os.O_RDWR | os.O_CREAT)
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    for p in procs:
+        p.stdin.write("go\n")
+        p.stdin.flush()
+    time.sleep(1.0)  # both now wait for the lock (without it, both would compile now)
+    os.close(lock)
+    stats = []
+    for p in procs:
+        out, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+        stats.append(json.loads(out))
+    assert sorted((s["hits"], s["misses"]) for s in stats) == [(0, 1), (1, 0)]

@@ -12,24 +12,43 @@ the numba release, ``<cache>`` ``$NUMBA_CACHE_DIR`` if set, else numba's user ca
 kernel module compiles them all again, in a new folder. Folders unused for ``KEEP_DAYS`` are
 removed when a new one is made. Where the folder cannot be written, numba's own places serve;
 ``$NUMBA_CACHE_LOCATOR_CLASSES`` overrides all of this, as numba documents.
+
+A kernel is compiled once per machine, not once per process: processes started together (Dask
+workers, the stages of a pipeline, test workers) each miss the cache and would each compile the
+same kernels, tens of seconds of CPU apiece. A process about to compile a kernel holds a lock
+file beside its cache entry (``flock``: released by the kernel, whether its compilation ended or
+failed, or by the end of the process however it ends); another process that needs the same
+kernel waits, then finds it cached and loads it. Locks are taken under numba's own compiler lock,
+one thread of a process at a time, and in the order kernels call each other (a kernel's lock
+before its callees'), so two processes never wait on each other. A wait longer than
+``WAIT_S`` compiles anyway.
 """
 
 from __future__ import annotations
 
+import fcntl
+import functools
 import hashlib
+import logging
 import os
 import re
 import shutil
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 
 import numba
-from numba.core import caching, config
+from numba.core import caching, config, sigutils
+from numba.core.compiler_lock import global_compiler_lock
+from numba.core.dispatcher import Dispatcher
 from numba.misc.appdirs import AppDirs
 
+log = logging.getLogger(__name__)
 PACKAGE = Path(__file__).resolve().parents[1]
 KEEP_DAYS = 30
+WAIT_S = 600.0  # the longest a process waits for another's compilation of a kernel
 _IMPORTS_NUMBA = re.compile(rb"^(import|from) numba\b", re.M)
 
 
@@ -109,9 +128,71 @@ class _StateLocator(caching._CacheLocator):
         return self
 
 
+def compile_lock(py_func) -> Path | None:
+    """The lock file a process holds while it compiles the kernel ``py_func`` (None if it is not
+    vprscale's or the state's folder cannot be written)."""
+    if not (getattr(py_func, "__module__", "") or "").startswith("vprscale."):
+        return None
+    folder = state_folder()
+    if folder is None:
+        return None
+    return folder / py_func.__module__ / f"{py_func.__qualname__}-{py_func.__code__.co_firstlineno}.lock"
+
+
+@contextmanager
+def _held(path: Path, kernel: str) -> Iterator[None]:
+    """``path`` locked for this process (``flock``), waited for up to ``WAIT_S`` (saying so,
+    since the wait is a compilation's, seconds to a minute); past that, or where the file cannot
+    be made, the lock is not taken."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        yield
+        return
+    try:
+        deadline = time.monotonic() + WAIT_S
+        waited = False
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if not waited:
+                    log.info("  waiting for another process compiling the numba kernel %s", kernel)
+                    waited = True
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(0.05)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def _compile_once(compile: Callable) -> Callable:
+    """numba's ``Dispatcher.compile``, which, for a signature of a vprscale kernel this process
+    has not compiled or loaded yet, first holds the kernel's :func:`compile_lock`: numba then
+    looks in the cache again, and finds what another process compiled while this one waited."""
+
+    @functools.wraps(compile)
+    def compile_locked(self: Dispatcher, sig):
+        if tuple(sigutils.normalize_signature(sig)[0]) in self.overloads:
+            return compile(self, sig)
+        lock = compile_lock(self.py_func)
+        if lock is None:
+            return compile(self, sig)
+        with global_compiler_lock, _held(lock, self.py_func.__qualname__):
+            return compile(self, sig)
+
+    compile_locked.vprscale_compile_once = True
+    return compile_locked
+
+
 def share_kernels() -> None:
-    """Cache vprscale's kernels by state (:class:`_StateLocator`, numba's first choice): called by
-    every module that defines kernels, before it defines them (numba picks a kernel's cache
-    folder when it is decorated)."""
+    """Cache vprscale's kernels by state (:class:`_StateLocator`, numba's first choice) and
+    compile each once per machine (:func:`_compile_once`): called by every module that defines
+    kernels, before it defines them (numba picks a kernel's cache folder when it is decorated)."""
     if _StateLocator not in caching.CacheImpl._locator_classes:
         caching.CacheImpl._locator_classes.insert(0, _StateLocator)
+    if not getattr(Dispatcher.compile, "vprscale_compile_once", False):
+        Dispatcher.compile = _compile_once(Dispatcher.compile)
