@@ -143,7 +143,7 @@ def compile_lock(py_func) -> Path | None:
 def _held(path: Path, kernel: str) -> Iterator[None]:
     """``path`` locked for this process (``flock``), waited for up to ``WAIT_S`` (saying so,
     since the wait is a compilation's, seconds to a minute); past that, or where the file cannot
-    be made, the lock is not taken."""
+    be made or locked, the lock is not taken."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
@@ -164,6 +164,8 @@ def _held(path: Path, kernel: str) -> Iterator[None]:
                 if time.monotonic() > deadline:
                     break
                 time.sleep(0.05)
+            except OSError:  # a file system without locks
+                break
         yield
     finally:
         os.close(fd)  # releases the lock
