@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 import os
 
-# Two xdist workers share two cores, and each runs OpenMP regions (FAISS, its BLAS): an OpenMP
-# thread left idle spins before it sleeps, on a core the other worker needs. Set before FAISS loads
+# The xdist workers share two cores, and each runs OpenMP regions (FAISS, its BLAS): an OpenMP
+# thread left idle spins before it sleeps, on a core another worker needs. Set before FAISS loads
 # OpenMP; the commands the tests start inherit it. (Scheduling only: no result depends on it.)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import shutil
@@ -35,7 +35,7 @@ settings.load_profile("vprscale")
 
 # With -n, xdist hands out whole modules (--dist loadscope) in collection order
 # (--no-loadscope-reorder, pyproject's addopts): the costliest first, so that a long module does not
-# start when the other worker has nothing left to run (xdist's own order counts tests alone, and
+# start when the other workers have nothing left to run (xdist's own order counts tests alone, and
 # handed out a module of two two-minute fault-injection tests last). A module costs the seconds
 # its tests took in the run that wrote DURATIONS (``--store-durations``); a test that run did not
 # see counts as the median test of its kind (slow or not; without a file, a slow one as SLOW_WEIGHT).
