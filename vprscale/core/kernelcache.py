@@ -96,6 +96,11 @@ def _prune(root: Path, keep: Path) -> None:
             continue
 
 
+def _ours(py_func) -> bool:
+    """Whether ``py_func`` is one of vprscale's kernels (others keep numba's own ways)."""
+    return (getattr(py_func, "__module__", "") or "").startswith("vprscale.")
+
+
 class _StateLocator(caching._CacheLocator):
     """numba's cache locator for vprscale's kernels: the module's folder in this state's folder,
     stamped with the state (a kernel is valid while no kernel module changed)."""
@@ -115,7 +120,7 @@ class _StateLocator(caching._CacheLocator):
 
     @classmethod
     def from_function(cls, py_func, py_file):
-        if not (getattr(py_func, "__module__", "") or "").startswith("vprscale."):
+        if not _ours(py_func):
             return None
         folder = state_folder()
         if folder is None:
@@ -131,7 +136,7 @@ class _StateLocator(caching._CacheLocator):
 def compile_lock(py_func) -> Path | None:
     """The lock file a process holds while it compiles the kernel ``py_func`` (None if it is not
     vprscale's or the state's folder cannot be written)."""
-    if not (getattr(py_func, "__module__", "") or "").startswith("vprscale."):
+    if not _ours(py_func):
         return None
     folder = state_folder()
     if folder is None:

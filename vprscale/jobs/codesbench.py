@@ -57,14 +57,18 @@ FRAME_K = 16  # places a frame retrieves in the frame-search comparison (an eval
 SEARCHED_FRAMES = 256  # query frames of the frame-search comparison
 
 
+def _timed(fn: Callable[[], object], calls: int = 1) -> float:
+    """CPU seconds of the calling thread over ``calls`` calls of ``fn``."""
+    t0 = time.thread_time()
+    for _ in range(calls):
+        fn()
+    return time.thread_time() - t0
+
+
 def _cpu_ns(fn: Callable[[], object], n: int, repeats: int) -> tuple[float, float, float]:
     """(median, min, max) CPU ns of the calling thread per item over ``repeats`` calls."""
     fn()  # compile and warm outside the timing
-    took = []
-    for _ in range(repeats):
-        t0 = time.thread_time()
-        fn()
-        took.append((time.thread_time() - t0) / n * 1e9)
+    took = [_timed(fn) / n * 1e9 for _ in range(repeats)]
     return float(np.median(took)), min(took), max(took)
 
 
@@ -99,17 +103,10 @@ def _faiss_distance_computer(codes: FaissCodes, query: np.ndarray, repeats: int)
     refined = faiss.IndexRefine(proposer, codes.searched)
     refined.k_factor = proposed
     faiss.omp_set_num_threads(1)
-
-    def timed(fn: Callable[[], object], calls: int) -> float:
-        t0 = time.thread_time()
-        for _ in range(calls):
-            fn()
-        return time.thread_time() - t0
-
     refine, alone = (lambda: refined.search(y, 1)), (lambda: proposer.search(y, proposed))
-    calls = max(1, math.ceil(PAIR_S / max(timed(refine, 1), 1e-6)))  # the first call also warms
+    calls = max(1, math.ceil(PAIR_S / max(_timed(refine), 1e-6)))  # the first call also warms
     per_id = len(y) * proposed * calls
-    diffs = [(timed(refine, calls) - timed(alone, calls)) / per_id * 1e9 for _ in range(repeats)]
+    diffs = [(_timed(refine, calls) - _timed(alone, calls)) / per_id * 1e9 for _ in range(repeats)]
     return float(np.median(diffs)), min(diffs), max(diffs)
 
 
