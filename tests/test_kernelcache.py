@@ -105,3 +105,123 @@ def test_processes_that_want_the_same_kernel_compile_it_once(tmp_path):
         assert p.returncode == 0, err
         stats.append(json.loads(out))
     assert sorted((s["hits"], s["misses"]) for s in stats) == [(0, 1), (1, 0)]
+
+
+def test_a_cache_folder_that_is_a_link_or_writable_by_others_is_neither_trusted_nor_pruned(tmp_path):
+    """numba unpickles what its cache holds: a kernel cache another user could have written is not
+    read, and a prune never follows a link out of the cache (its target's old folders stay)."""
+    install, cache = _install(tmp_path / "a"), tmp_path / "cache"
+    target = tmp_path / "elsewhere"
+    old = target / "a-user's-folder"
+    old.mkdir(parents=True)
+    os.utime(old, (time.time() - (KEEP_DAYS + 5) * 86400,) * 2)
+    (cache / "numba").mkdir(parents=True)
+    (cache / "numba" / "vprscale").symlink_to(target)
+    linked = _probe(install, cache)
+    assert old.is_dir() and [p.name for p in target.iterdir()] == [old.name]  # nothing made or removed there
+    assert not Path(linked["path"]).is_relative_to(cache) and linked["misses"] == 1
+    assert not Path(linked["path"]).exists()  # the process's own folder went with it
+
+    (cache / "numba" / "vprscale").unlink()
+    shared = cache / "numba" / "vprscale"
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)  # as a folder anybody can write would be: a planted index would run code
+    assert not Path(_probe(install, cache)["path"]).is_relative_to(shared) and not any(shared.iterdir())
+    shared.chmod(0o700)
+    first = _probe(install, cache)
+    assert Path(first["path"]).is_relative_to(shared) and _probe(install, cache)["hits"] == 1
+
+
+def test_a_damaged_kernel_cache_is_compiled_again_not_a_crash(tmp_path):
+    """A cache entry cut short (a disk that filled while numba wrote it) is said, compiled and cached again."""
+    install, cache = _install(tmp_path / "a"), tmp_path / "cache"
+    assert _probe(install, cache)["misses"] == 1
+    entries = list((cache / "numba" / "vprscale").rglob("*kmeans1d*/*_segment_cost*.nb*"))
+    entries += list((cache / "numba" / "vprscale").rglob("*_segment_cost*.nb*"))
+    assert entries
+    for damaged in {p for p in entries if p.suffix in (".nbi", ".nbc")}:
+        damaged.write_bytes(damaged.read_bytes()[:20])
+    done = subprocess.run([sys.executable, "-c", PROBE], env=_env(install, cache), capture_output=True, text=True,
+                          cwd=install)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["misses"] == 1
+    assert _probe(install, cache)["hits"] == 1  # cached again, whole
+
+
+HOLDER = """
+import fcntl, os, sys
+fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
+fcntl.flock(fd, fcntl.LOCK_EX)
+os.ftruncate(fd, 0)
+os.write(fd, str(os.getpid()).encode())
+print("held", flush=True)
+sys.stdin.readline()
+"""
+
+
+def test_a_stopped_compiler_holds_nobody_up(tmp_path):
+    """A process stopped while it holds a kernel's lock (Ctrl-Z, a suspended batch job): another
+    process that wants the kernel compiles it instead of waiting for the stopped one."""
+    import signal
+
+    install, cache = _install(tmp_path / "a"), tmp_path / "cache"
+    waiting = subprocess.Popen([sys.executable, "-c", WAITING], env=_env(install, cache), cwd=install, text=True,
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    lock = waiting.stdout.readline().strip()
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, lock], text=True, stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        holder.send_signal(signal.SIGSTOP)
+        waiting.stdin.write("go\n")
+        waiting.stdin.flush()
+        out, err = waiting.communicate(timeout=300)  # far below the 600 s a running holder is waited for
+        assert waiting.returncode == 0, err
+        assert json.loads(out)["misses"] == 1
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+# a command-line process's signal handling, the kernel wanted by a worker thread (a Dask task)
+THREADED = """
+import signal, sys, threading, numpy as np
+from vprscale.core.errors import Interrupted
+from vprscale.method import kmeans1d
+def stop(signum, frame):
+    raise Interrupted(signum)
+signal.signal(signal.SIGTERM, stop)
+worker = threading.Thread(target=kmeans1d._segment_cost, args=(np.arange(4.0), np.arange(4.0), np.arange(4.0), 0, 3))
+print("go", flush=True)
+worker.start()
+try:
+    worker.join()
+except Interrupted:
+    sys.exit(143)
+"""
+
+
+def test_a_process_waiting_for_a_kernel_ends_on_sigterm(tmp_path):
+    """SIGTERM (a batch scheduler's time limit) ends a process whose worker thread waits for a
+    kernel another process compiles, not after the wait's 600 s."""
+    import signal
+
+    install, cache = _install(tmp_path / "a"), tmp_path / "cache"
+    probe = subprocess.Popen([sys.executable, "-c", WAITING], env=_env(install, cache), cwd=install, text=True,
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    lock = probe.stdout.readline().strip()
+    probe.kill()
+    probe.wait()
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT)
+    fcntl.flock(fd, fcntl.LOCK_EX)  # held by this (running) test process
+    try:
+        env = _env(install, cache)
+        proc = subprocess.Popen([sys.executable, "-c", THREADED], env=env, cwd=install, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout.readline().strip() == "go"
+        time.sleep(3.0)  # the worker thread now waits for the lock
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=120)
+        assert proc.returncode == 143
+    finally:
+        os.close(fd)

@@ -5,7 +5,10 @@ The CLI turns an input error into a one-line message and exit status 2; so too a
 cluster that failed under a job (its work is kept for the re-run); everything else is a bug.
 """
 
+import threading
+
 CLUSTER = ("distributed", "tornado")  # the Dask cluster's client and its networking
+STOPPING = threading.Event()  # set once a signal asked the process to stop: waits in any thread end with it
 
 
 class InputError(ValueError):
@@ -34,6 +37,7 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         super().__init__(signum)
         self.signum = signum
+        STOPPING.set()
 
 
 def raised_by(exc: BaseException, packages: tuple[str, ...]) -> bool:

@@ -10,8 +10,11 @@ hold the old code of a callee that changed. Here every vprscale kernel is cached
 the numba release, ``<cache>`` ``$NUMBA_CACHE_DIR`` if set, else numba's user cache folder
 (``~/.cache/numba``). An install of the same code finds its kernels compiled; any change to a
 kernel module compiles them all again, in a new folder. Folders unused for ``KEEP_DAYS`` are
-removed when a new one is made. Where the folder cannot be written, numba's own places serve;
-``$NUMBA_CACHE_LOCATOR_CLASSES`` overrides all of this, as numba documents.
+removed when a new one is made (never through a link). numba unpickles what the cache holds, so
+``<cache>/vprscale`` must be a folder only this user can write (:mod:`vprscale.core.private`);
+where it is not, a process caches its kernels in a folder of its own, shared with nobody, and an
+entry that cannot be read back is compiled again. ``$NUMBA_CACHE_LOCATOR_CLASSES`` overrides all
+of this, as numba documents.
 
 A kernel is compiled once per machine, not once per process: processes started together (Dask
 workers, the stages of a pipeline, test workers) each miss the cache and would each compile the
@@ -21,11 +24,13 @@ failed, or by the end of the process however it ends); another process that need
 kernel waits, then finds it cached and loads it. Locks are taken under numba's own compiler lock,
 one thread of a process at a time, and in the order kernels call each other (a kernel's lock
 before its callees'), so two processes never wait on each other. A wait longer than
-``WAIT_S`` compiles anyway.
+``WAIT_S``, or for a process that is stopped, compiles anyway; a signal that stops the process
+ends its waits in every thread.
 """
 
 from __future__ import annotations
 
+import atexit
 import fcntl
 import functools
 import hashlib
@@ -33,6 +38,9 @@ import logging
 import os
 import re
 import shutil
+import signal
+import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -44,6 +52,9 @@ from numba.core import caching, config, sigutils
 from numba.core.compiler_lock import global_compiler_lock
 from numba.core.dispatcher import Dispatcher
 from numba.misc.appdirs import AppDirs
+
+from vprscale.core.errors import STOPPING, Interrupted
+from vprscale.core.private import entries, private_folder
 
 log = logging.getLogger(__name__)
 PACKAGE = Path(__file__).resolve().parents[1]
@@ -70,12 +81,19 @@ def state() -> str:
 
 @cache
 def state_folder() -> Path | None:
-    """This state's folder (made, and marked used, once per process), or None if it cannot be written."""
-    root = Path(config.CACHE_DIR or AppDirs(appname="numba", appauthor=False).user_cache_dir) / "vprscale"
+    """This state's folder (made, and marked used, once per process), or None if it cannot be
+    written. It lies in ``<cache>/vprscale``, a folder only this user can write
+    (:func:`~vprscale.core.private.private_folder`), since numba unpickles what it finds there;
+    where that folder is a link, another user's or writable by others, the kernels are cached in
+    a folder of this process's own, removed when it ends (compiled, not shared)."""
+    cache_dir = Path(config.CACHE_DIR or AppDirs(appname="numba", appauthor=False).user_cache_dir)
+    root = private_folder(cache_dir / "vprscale", "numba kernels are compiled by this process for itself")
+    if root is None:
+        return _own_folder()
     folder = root / state()
     try:
         made = not folder.is_dir()
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(exist_ok=True)
         os.utime(folder)
     except OSError:
         return None
@@ -84,13 +102,24 @@ def state_folder() -> Path | None:
     return folder
 
 
+def _own_folder() -> Path | None:
+    """A kernel cache for this process alone (mode 0700), removed at its end."""
+    try:
+        folder = Path(tempfile.mkdtemp(prefix="vprscale-kernels-"))
+    except OSError:
+        return None
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    return folder
+
+
 def _prune(root: Path, keep: Path) -> None:
     """Remove the folders of other states unused for ``KEEP_DAYS`` (another process may still
-    load from one: it then compiles, as on a first run)."""
+    load from one: it then compiles, as on a first run). Only real folders of ``root`` are
+    looked at; a link is never followed, so nothing outside the cache is removed."""
     old = time.time() - KEEP_DAYS * 86400
-    for folder in root.iterdir():
+    for folder in entries(root):
         try:
-            if folder != keep and folder.is_dir() and folder.stat().st_mtime < old:
+            if folder != keep and folder.lstat().st_mtime < old:
                 shutil.rmtree(folder, ignore_errors=True)
         except OSError:
             continue
@@ -146,26 +175,36 @@ def compile_lock(py_func) -> Path | None:
 
 @contextmanager
 def _held(path: Path, kernel: str) -> Iterator[None]:
-    """``path`` locked for this process (``flock``), waited for up to ``WAIT_S`` (saying so,
-    since the wait is a compilation's, seconds to a minute); past that, or where the file cannot
-    be made or locked, the lock is not taken."""
+    """``path`` locked for this process (``flock``, the holder's pid written in it), waited for up
+    to ``WAIT_S`` (saying so, since the wait is a compilation's, seconds to a minute). The wait ends
+    early, and the lock is not taken, where the holder is stopped (Ctrl-Z, a suspended batch job:
+    it would hold the lock for as long as it stays stopped) or the file cannot be made or locked;
+    it ends with :class:`Interrupted` once a signal asked this process to stop, whichever thread
+    waits, or when the main thread has ended."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     except OSError:
         yield
         return
     try:
         deadline = time.monotonic() + WAIT_S
-        waited = False
+        waited = 0
         while True:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, str(os.getpid()).encode(), 0)
                 break
             except BlockingIOError:
+                if STOPPING.is_set() or not threading.main_thread().is_alive():
+                    raise Interrupted(signal.SIGTERM) from None
                 if not waited:
                     log.info("  waiting for another process compiling the numba kernel %s", kernel)
-                    waited = True
+                if waited % 20 == 0 and _stopped(fd):  # once a second
+                    log.info("  the process compiling the numba kernel %s is stopped: compiling it here", kernel)
+                    break
+                waited += 1
                 if time.monotonic() > deadline:
                     break
                 time.sleep(0.05)
@@ -174,6 +213,38 @@ def _held(path: Path, kernel: str) -> Iterator[None]:
         yield
     finally:
         os.close(fd)  # releases the lock
+
+
+def _stopped(fd: int) -> bool:
+    """Whether the process whose pid the lock file ``fd`` holds is stopped (state T or t)."""
+    try:
+        pid = int(os.pread(fd, 32, 0) or b"0")
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rpartition(b")")[2].split()[0] in (b"T", b"t")
+    except (OSError, ValueError, IndexError):
+        return False
+
+
+def _load_or_none(load: Callable) -> Callable:
+    """numba's ``Cache.load_overload``, which, for a vprscale kernel whose cache entry cannot be
+    read (a disk that filled while numba wrote it, a file cut short), says so, removes the entry's
+    index and returns None: numba compiles the kernel and caches it again."""
+
+    @functools.wraps(load)
+    def load_checked(self: caching.Cache, sig, target_context):
+        try:
+            return load(self, sig, target_context)
+        except Exception as exc:  # noqa: BLE001 - numba unpickles: any error means a damaged entry
+            if not _ours(self._py_func):
+                raise
+            index = Path(self._cache_file._index_path)
+            log.warning("the cached numba kernel %s cannot be read (%s: %s): compiling it again",
+                        self._py_func.__qualname__, type(exc).__name__, str(exc).splitlines()[0][:120] if str(exc) else "")
+            index.unlink(missing_ok=True)
+            return None
+
+    load_checked.vprscale_checked = True
+    return load_checked
 
 
 def _compile_once(compile: Callable) -> Callable:
@@ -196,10 +267,13 @@ def _compile_once(compile: Callable) -> Callable:
 
 
 def share_kernels() -> None:
-    """Cache vprscale's kernels by state (:class:`_StateLocator`, numba's first choice) and
-    compile each once per machine (:func:`_compile_once`): called by every module that defines
+    """Cache vprscale's kernels by state (:class:`_StateLocator`, numba's first choice), compile
+    each once per machine (:func:`_compile_once`) and compile again what the cache cannot give
+    back (:func:`_load_or_none`): called by every module that defines
     kernels, before it defines them (numba picks a kernel's cache folder when it is decorated)."""
     if _StateLocator not in caching.CacheImpl._locator_classes:
         caching.CacheImpl._locator_classes.insert(0, _StateLocator)
     if not getattr(Dispatcher.compile, "vprscale_compile_once", False):
         Dispatcher.compile = _compile_once(Dispatcher.compile)
+    if not getattr(caching.Cache.load_overload, "vprscale_checked", False):
+        caching.Cache.load_overload = _load_or_none(caching.Cache.load_overload)

@@ -1,0 +1,78 @@
+"""Folders only this user can write: where a process may keep what it later trusts.
+
+vprscale keeps two caches it reads back without checking every byte: numba's compiled kernels
+(whose index files numba unpickles, so whoever can write them runs code in the next process)
+and the query engine's decoded arrays (which a kernel indexes without bounds checks). Both live
+under folders a user names (``$NUMBA_CACHE_DIR``, ``$VPRSCALE_CACHE``), which may be shared,
+world-writable or links to somewhere else. :func:`private_folder` makes such a folder, or
+accepts it as it is, only when it is a real directory (not a symbolic link), owned by this
+user, writable by nobody else, in a parent that nobody else can rename it out of; anything
+else is refused, and the caller works without the cache.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def _safe(info: os.stat_result) -> bool:
+    """A directory of this user's, not a link, that neither its group nor others can write."""
+    return (stat.S_ISDIR(info.st_mode) and info.st_uid == os.geteuid()
+            and not info.st_mode & (stat.S_IWGRP | stat.S_IWOTH))
+
+
+def _safe_parent(info: os.stat_result) -> bool:
+    """A parent from which nobody else can remove or rename an entry of ours: writable by this
+    user alone, or with the sticky bit (``/tmp``), or owned by root and writable by root alone."""
+    if not stat.S_ISDIR(info.st_mode):
+        return False
+    others_write = info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+    return bool(not others_write and info.st_uid in (os.geteuid(), 0)) or bool(info.st_mode & stat.S_ISVTX)
+
+
+def private_folder(path: Path, what: str) -> Path | None:
+    """``path`` as a folder only this user can write, made (mode 0700) if it is absent; None, with
+    one warning naming it and why, if it exists and is not (a link, another user's, writable by
+    others) or cannot be made. ``what`` says in the warning what goes without it."""
+    path = Path(os.path.abspath(path))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not _safe_parent(os.stat(path.parent)):
+            return _refused(path, what, f"its parent {path.parent} can be written by other users")
+        try:
+            path.mkdir(mode=0o700)
+        except FileExistsError:
+            pass
+        info = os.lstat(path)
+    except OSError as exc:
+        return _refused(path, what, exc.strerror or type(exc).__name__)
+    if stat.S_ISLNK(info.st_mode):
+        return _refused(path, what, "it is a symbolic link")
+    if not _safe(info):
+        owner = "another user's" if info.st_uid != os.geteuid() else "writable by other users"
+        return _refused(path, what, owner if stat.S_ISDIR(info.st_mode) else "not a directory")
+    return path
+
+
+def _refused(path: Path, what: str, why: str) -> None:
+    log.warning("%s is not used (%s): %s", path, why, what)
+    return None
+
+
+def entries(folder: Path) -> list[Path]:
+    """The folders directly in ``folder`` that are real directories (links and files left out),
+    for a prune that must never follow a link out of the folder."""
+    found = []
+    try:
+        with os.scandir(folder) as it:
+            for entry in it:
+                if entry.is_dir(follow_symlinks=False):
+                    found.append(Path(entry.path))
+    except OSError:
+        pass
+    return found
