@@ -238,8 +238,9 @@ def _load_or_none(load: Callable) -> Callable:
             if not _ours(self._py_func):
                 raise
             index = Path(self._cache_file._index_path)
-            log.warning("the cached numba kernel %s cannot be read (%s: %s): compiling it again",
-                        self._py_func.__qualname__, type(exc).__name__, str(exc).splitlines()[0][:120] if str(exc) else "")
+            why = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+            log.warning("the cached numba kernel %s cannot be read (%s): compiling it again",
+                        self._py_func.__qualname__, why)
             index.unlink(missing_ok=True)
             return None
 
