@@ -373,10 +373,30 @@ def test_a_large_index_is_decoded_once_into_a_checked_cache_and_mapped(tiny_inde
     (index / "manifest.json").write_text(json.dumps(manifest, indent=2))  # re-published: another manifest
     same(read_index(index))
     assert "decoding" in caplog.text and len(list(cache.parent.iterdir())) == 1  # replaced, not beside
+    caplog.clear()
+    (cache / "manifest.json").unlink()  # then ids altered: without its manifest the folder is not trusted
+    ids.write_bytes(ids.read_bytes()[:-8] + b"\xff" * 8)
+    same(read_index(index))
+    assert "decoding" in caplog.text
     (tmp_path / "a-file").write_text("")
     monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "a-file" / "cache"))  # cannot be made, even by root
     same(read_index(index))
-    assert "cannot be written" in caplog.text
+    assert "in memory" in caplog.text
+    # an engines folder that is a link, or that others can write, is not used: nothing written through it
+    caplog.clear()
+    target, linked = tmp_path / "elsewhere", tmp_path / "linked-cache"
+    target.mkdir()
+    linked.mkdir()
+    (linked / "engines").symlink_to(target)
+    monkeypatch.setenv("VPRSCALE_CACHE", str(linked))
+    same(read_index(index))
+    assert "symbolic link" in caplog.text and not any(target.iterdir())
+    shared = tmp_path / "shared-cache" / "engines"
+    shared.mkdir(parents=True)
+    shared.chmod(0o777)
+    monkeypatch.setenv("VPRSCALE_CACHE", str(shared.parent))
+    same(read_index(index))
+    assert "writable by other users" in caplog.text and not any(shared.iterdir())
 
 
 def test_bench_format_builds_no_plain_arrays_past_its_bound(tiny_store, tiny_index, monkeypatch):

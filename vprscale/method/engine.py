@@ -11,7 +11,7 @@ An index directory keeps its lists and codes as Parquet tables that any reader o
 - a small index (up to :data:`IN_MEMORY_PLACES` places) in memory, on every load (a
   fraction of a second);
 - a larger one into a local cache folder (``$VPRSCALE_CACHE/engines/``, one per index
-  location), checksummed by its own manifest and memory-mapped by later loads for as long
+  location; used only if no other user can write it), checksummed by its own manifest and memory-mapped by later loads for as long
   as the index's manifest is the one it was decoded from; a re-published index is decoded
   again, never read stale. Where the cache cannot be written the arrays are decoded in
   memory.
@@ -37,6 +37,7 @@ import numpy as np
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import NAME, check_manifest, write_manifest
 from vprscale.core.objects import cache_root
+from vprscale.core.private import private_folder
 from vprscale.method.invlists import InvertedLists
 from vprscale.method.kernels import plane_words, planes_into
 from vprscale.method.succinct import (
@@ -221,13 +222,15 @@ def engine_arrays(index: Path, n_ref: int, d: int, k: int, fill: Fill, in_memory
     if in_memory or (in_memory is None and n_ref <= IN_MEMORY_PLACES):
         return decoded_in_memory(n_ref, d, k, fill)
     source = hashlib.sha256((index / NAME).read_bytes()).hexdigest()
-    folder = (root or cache_root()) / "engines" / hashlib.sha256(str(index.resolve()).encode()).hexdigest()[:16]
+    engines = private_folder((root or cache_root()) / "engines", f"decoding {index} in memory")
+    if engines is None:
+        return decoded_in_memory(n_ref, d, k, fill)
+    folder = engines / hashlib.sha256(str(index.resolve()).encode()).hexdigest()[:16]
     cached = _cached(folder, source, n_ref, d, k)
     if cached is not None:
         return cached
     try:
-        folder.parent.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".partial", dir=folder.parent))
+        work = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".partial", dir=engines))
     except OSError as exc:
         log.warning(f"the engine cache {folder.parent} cannot be written ({exc.strerror}): decoding {index} in memory")
         return decoded_in_memory(n_ref, d, k, fill)
@@ -247,12 +250,14 @@ def engine_arrays(index: Path, n_ref: int, d: int, k: int, fill: Fill, in_memory
 
 
 def _cached(folder: Path, source: str, n_ref: int, d: int, k: int) -> tuple[np.ndarray, InvertedLists] | None:
-    """The cache folder's arrays if they were decoded from this very manifest and check out, else None."""
+    """The cache folder's arrays if they were decoded from this very manifest and check out against
+    their own manifest (which must be there: a folder without one was not left by vprscale whole),
+    else None."""
     try:
         record = json.loads((folder / ENGINE).read_text())
         if record.get("manifest_sha256") != source:
             return None
-        check_manifest(folder)
+        check_manifest(folder, remake="it is decoded again")
         return open_engine(folder, record["layout"], n_ref, d, k)
     except (OSError, ValueError, KeyError, TypeError, InputError):  # absent, damaged or stale: decoded again
         return None
