@@ -171,3 +171,68 @@ def test_a_stored_encoding_without_its_manifest_or_with_changed_codes_is_refused
     fails(capsys, evaluate, "no manifest.json", "vprscale encode")
     fails(capsys, ["verify", str(encoding)], "no manifest.json")
     assert not (tmp_path / "e").exists()
+
+
+def _forged(tiny_index: Path, tmp_path: Path, edit) -> Path:
+    """A copy of the tiny index with ``edit(folder)`` applied and its manifest written again: a
+    forgery that every checksum passes, which only the tables' own checks can catch."""
+    from vprscale.core.manifest import write_manifest
+
+    forged = tmp_path / "forged.index"
+    shutil.copytree(tiny_index, forged)
+    (forged / "manifest.json").unlink()
+    edit(forged)
+    write_manifest(forged)
+    return forged
+
+
+def _meta(key: str, change):
+    def edit(folder: Path) -> None:
+        meta = json.loads((folder / "index.json").read_text())
+        meta[key] = change(meta[key])
+        (folder / "index.json").write_text(json.dumps(meta))
+    return edit
+
+
+def _table(name: str, column: str, change):
+    def edit(folder: Path) -> None:
+        table = pq.read_table(folder / name)
+        values = table.column(column).to_numpy().copy()
+        change(values)
+        field = table.schema.field(column)
+        table = table.set_column(table.schema.get_field_index(column), column, pa.array(values, field.type))
+        pq.write_table(table, folder / name)
+    return edit
+
+
+def _last(values: np.ndarray, value) -> None:
+    values[-1] = value
+
+
+def _duplicate(values: np.ndarray) -> None:
+    values[-1] = values[0]  # the last list's last id: now also the first list's first
+
+
+@pytest.mark.parametrize("edit, words", [
+    (_meta("d", lambda d: d + 3), "index.json"),
+    (_meta("d", lambda d: d - 1), "index.json"),
+    (_meta("n_ref", lambda n: n + 1000), "index"),
+    (_meta("n_ref", lambda n: n - 1), "index"),
+    (_meta("k", lambda k: 0), "k is 0"),
+    (_meta("d", lambda d: 99), "64 bits"),
+    (_table("lists.parquet", "ref_id", lambda v: _last(v, 52_500 + 7)), "ref_id outside"),
+    (_table("lists.parquet", "ref_id", _duplicate), "index"),
+    (_table("codes.parquet", "hash", lambda v: _last(v, 1 << 40)), "above K^d"),
+    (_table("buckets.parquet", "hash", lambda v: _last(v, 0)), "ascending"),
+], ids=["d-above", "d-below", "n_ref-above", "n_ref-below", "k-zero", "d-huge", "id-out-of-range", "id-twice",
+        "code-out-of-range", "buckets-unsorted"])
+def test_a_forged_index_whose_tables_disagree_with_its_index_json_is_refused(tiny_store, tiny_index, tmp_path,
+                                                                            capsys, edit, words):
+    """Tables and index.json that disagree (a lie about d, k or n_ref, an id out of range or in two
+    lists, a code of more than d digits) are refused in one line by every reader, never evaluated
+    with another recall or crashed on inside a kernel."""
+    forged = _forged(tiny_index, tmp_path, edit)
+    fails(capsys, ["occupancy", str(forged)], words)
+    fails(capsys, ["eval", str(tiny_store), str(forged), "--L", "5", "--z", "97", "--noise", "qm1", "--repeats",
+                   "1", "--out", str(tmp_path / "e"), "-q"])
+    assert not (tmp_path / "e").exists()

@@ -11,10 +11,10 @@ An index directory keeps its lists and codes as Parquet tables that any reader o
 - a small index (up to :data:`IN_MEMORY_PLACES` places) in memory, on every load (a
   fraction of a second);
 - a larger one into a local cache folder (``$VPRSCALE_CACHE/engines/``, one per index
-  location; used only if no other user can write it), checksummed by its own manifest and memory-mapped by later loads for as long
-  as the index's manifest is the one it was decoded from; a re-published index is decoded
-  again, never read stale. Where the cache cannot be written the arrays are decoded in
-  memory.
+  location; used only if no other user can write it), checksummed by its own manifest and
+  memory-mapped by later loads for as long as the index's manifest is the one it was decoded
+  from; a re-published index is decoded again, never read stale. Where the cache cannot be
+  written the arrays are decoded in memory.
 
 This module owns the cache folder's format (``engine.json``, the four files, a manifest).
 """

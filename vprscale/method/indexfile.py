@@ -166,14 +166,63 @@ class _Tables:
                                                                         "buckets": BUCKET_GROUP}}
 
 
+class TableCheck:
+    """The checks an index's tables pass as they are decoded, against the ``n_ref``, ``d`` and ``k``
+    of its ``index.json``: what costs nothing beside the decoding, which visits every code and id
+    anyway. A forged or damaged table (a code of more than d digits, an id out of range or twice,
+    lists out of order) is one error naming it, before a kernel indexes anything by it."""
+
+    def __init__(self, n_ref: int, d: int, k: int) -> None:
+        self.n_ref, self.top = n_ref, k**d - 1  # the largest address, as a Python int (2^64 − 1 at most)
+        self.n_codes = self.n_ids = 0
+        self.last = -1  # the last occupied address seen
+        self.seen = np.zeros(n_ref, bool)
+
+    def codes(self, h: np.ndarray) -> None:
+        self.n_codes += len(h)
+        if self.n_codes > self.n_ref:
+            raise ValueError(f"codes.parquet holds more than index.json's {self.n_ref:,} places")
+        if len(h) and int(h.max()) > self.top:
+            raise ValueError(f"codes.parquet holds an address above K^d − 1 = {self.top:,}")
+
+    def lists(self, addresses: np.ndarray, sizes: np.ndarray, ids: np.ndarray) -> None:
+        """A run of lists (addresses ascending, sizes, ids ascending within each list)."""
+        if not len(addresses):
+            return
+        if int(addresses[0]) <= self.last or (len(addresses) > 1 and (addresses[1:] <= addresses[:-1]).any()):
+            raise ValueError("buckets.parquet's addresses are not strictly ascending")
+        if int(addresses[-1]) > self.top:
+            raise ValueError(f"buckets.parquet holds an address above K^d − 1 = {self.top:,}")
+        if (sizes < 1).any():
+            raise ValueError("buckets.parquet holds an empty list")
+        if len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= self.n_ref):
+            raise ValueError(f"lists.parquet holds a ref_id outside 0 … {self.n_ref - 1:,}")
+        step = np.diff(ids)
+        step[np.cumsum(sizes)[:-1] - 1] = 1  # a list's first id may be below the last list's last
+        if (step <= 0).any():
+            raise ValueError("lists.parquet's ids are not strictly ascending within a list")
+        self.seen[ids] = True
+        self.last = int(addresses[-1])
+        self.n_ids += len(ids)
+
+    def close(self) -> None:
+        """Every place has its code and sits in one list: n_ref ids below n_ref, all seen, are each once."""
+        if self.n_codes != self.n_ref or self.n_ids != self.n_ref or not self.seen.all():
+            raise ValueError(f"the index's tables hold {self.n_codes:,} codes and {self.n_ids:,} ids "
+                             f"({int(self.seen.sum()):,} distinct), not index.json's {self.n_ref:,} of each")
+
+
 def fill_from_tables(path: Path) -> Callable[[EngineWriter], None]:
     """What decodes the tables of the index ``path`` into an :class:`EngineWriter`: its codes,
-    then its lists (each list's best moved to its front, the engine's order), streamed."""
+    then its lists (each list's best moved to its front, the engine's order), streamed and
+    checked (:class:`TableCheck`) on the way."""
 
     def fill(writer: EngineWriter) -> None:
+        check = TableCheck(writer.n_ref, writer.d, writer.k)
         a = 0
         for batch in pq.ParquetFile(path / "codes.parquet").iter_batches(DECODE_ROWS, columns=["hash"]):
             h = batch.column(0).to_numpy()
+            check.codes(h)
             writer.codes(a, h)
             a += len(h)
         ids = pq.ParquetFile(path / "lists.parquet").iter_batches(DECODE_ROWS, columns=["ref_id", "best"])
@@ -189,20 +238,27 @@ def fill_from_tables(path: Path) -> Callable[[EngineWriter], None]:
                 held_best = np.concatenate([held_best, more.column(1).to_numpy(zero_copy_only=False)])
             starts = np.r_[0, np.cumsum(sizes, dtype=np.int64)]
             order, best = held_ids[:need], held_best[:need]
+            check.lists(addresses, sizes.astype(np.int64), order)
             if len(sizes) and not (np.add.reduceat(best.astype(np.int64), starts[:-1]) == 1).all():
                 raise ValueError("lists.parquet's best column does not mark one single best a list")
             best_first(order, starts, order[best])
             writer.lists(addresses, sizes, order)
             held_ids, held_best = held_ids[need:], held_best[need:]
+        if next(ids, None) is not None or len(held_ids):
+            raise ValueError("lists.parquet holds more rows than buckets.parquet's sizes")
+        check.close()
 
     return fill
 
 
-
 def _best_first_run(order: np.ndarray, sizes: np.ndarray, best: np.ndarray) -> np.ndarray:
-    """``order`` (ids ascending per list) with each list's single best moved to its front."""
-    order = np.array(order, np.int64)
-    best_first(order, np.r_[0, np.cumsum(sizes)].astype(np.int64), np.asarray(best, np.int64))
+    """``order`` (ids ascending per list) with each list's single best moved to its front (a best
+    that is not in its list is an error: the kernel would search past the list for it)."""
+    order, starts = np.array(order, np.int64), np.r_[0, np.cumsum(sizes)].astype(np.int64)
+    best = np.asarray(best, np.int64)
+    if len(best) and not (np.add.reduceat(order == np.repeat(best, sizes), starts[:-1]) == 1).all():
+        raise ValueError("a list's single best is not one of its ids")
+    best_first(order, starts, best)
     return order
 
 
@@ -333,18 +389,29 @@ def upgrade(old: Path, out: Path, quiet: bool = False) -> dict[str, Any]:
         raise InputError(f"{old}: a format-{fmt} index file is missing or damaged "
                          f"({str(exc).splitlines()[0][:200]}); re-run vprscale index") from None
     codes, occupied, lists = source
-    writer = _Tables(out, n_ref, d, k)
+    writer, check = _Tables(out, n_ref, d, k), TableCheck(n_ref, d, k)
     chunk = 1 << 24
-    progress = None if quiet else ChunkProgress("upgrade: codes", -(-n_ref // chunk))
-    for a in range(0, n_ref, chunk):
-        writer.codes(a, codes(a, min(n_ref, a + chunk)))
-        if progress:
-            progress.update(1)
-    progress = None if quiet else ChunkProgress("upgrade: lists", -(-occupied // UPGRADE_LISTS))
-    for a in range(0, occupied, UPGRADE_LISTS):
-        writer.lists(*lists(a, min(occupied, a + UPGRADE_LISTS)))
-        if progress:
-            progress.update(1)
+    try:
+        progress = None if quiet else ChunkProgress("upgrade: codes", -(-n_ref // chunk))
+        for a in range(0, n_ref, chunk):
+            h = np.asarray(codes(a, min(n_ref, a + chunk)), np.uint64)
+            check.codes(h)
+            writer.codes(a, h)
+            if progress:
+                progress.update(1)
+        progress = None if quiet else ChunkProgress("upgrade: lists", -(-occupied // UPGRADE_LISTS))
+        for a in range(0, occupied, UPGRADE_LISTS):
+            addresses, sizes, ids = lists(a, min(occupied, a + UPGRADE_LISTS))
+            ascending = np.array(ids, np.int64)
+            ascending_with_best(ascending, np.r_[0, np.cumsum(sizes)].astype(np.int64))
+            check.lists(np.asarray(addresses, np.uint64), np.asarray(sizes, np.int64), ascending)
+            writer.lists(addresses, sizes, ids)
+            if progress:
+                progress.update(1)
+        check.close()
+    except (ValueError, IndexError) as exc:
+        raise InputError(f"{old}: the format-{fmt} index's arrays do not agree with its index.json "
+                         f"({str(exc).splitlines()[0][:200]}); re-run vprscale index") from None
     layout = writer.close()
     (out / "model").mkdir(exist_ok=True)
     for name in MODEL:
@@ -392,6 +459,7 @@ def read_lists(path: str | Path) -> tuple[np.ndarray, InvertedLists, dict[str, A
     (``vprscale occupancy``), without importing the estimator."""
     path = Path(path)
     meta = load_index_meta(path)
+    _model(path, meta, mmap="r")
     try:
         codes, lists = engine_arrays(path, int(meta["n_ref"]), int(meta["d"]), int(meta["k"]), fill_from_tables(path))
     except (OSError, ValueError, EOFError, KeyError, pa.ArrowException) as exc:  # a damaged table
@@ -407,13 +475,26 @@ def read_arrays(path: str | Path) -> tuple[CoarseHasher, np.ndarray, InvertedLis
     return read_model(Path(path), meta), codes, lists, meta
 
 
+def _model(path: Path, meta: dict[str, Any], mmap: str | None = None) -> dict[str, np.ndarray]:
+    """The model's arrays (``mmap="r"``: mapped, only their headers read), of the shapes that
+    ``index.json``'s ``d``, ``k`` and ``dim`` give them, else an error naming the file."""
+    try:
+        model = {name: np.load(path / "model" / f"{name}.npy", mmap_mode=mmap) for name in MODEL}
+    except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file (no manifest)
+        raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
+                         "re-run vprscale index") from None
+    d, k, dim = int(meta["d"]), int(meta["k"]), int(meta["dim"])
+    want = {"mean": (dim,), "components": (d, dim), "centres": (d, k), "explained_variance": (d,)}
+    for name, shape in want.items():
+        if model[name].shape != shape or model[name].dtype.kind != "f":
+            raise InputError(f"{path}: model/{name}.npy is {model[name].dtype} {model[name].shape}, where index.json "
+                             f"(d = {d}, k = {k}, dim = {dim}) says float {shape}; re-run vprscale index")
+    return model
+
+
 def read_model(path: Path, meta: dict[str, Any]) -> CoarseHasher:
     """The fitted CoarseHasher of the index directory ``path`` (whose ``index.json`` is ``meta``)."""
     from vprscale.method.coarsehash import CoarseHasher
 
-    try:
-        model = {name: np.load(path / "model" / f"{name}.npy") for name in MODEL}
-    except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file (no manifest)
-        raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
-                         "re-run vprscale index") from None
+    model = _model(path, meta)
     return CoarseHasher.from_fitted(int(meta["k"]), int(meta.get("bins", 1 << 14)), int(meta["n_ref"]), **model)

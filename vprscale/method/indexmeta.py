@@ -49,7 +49,21 @@ def read_index_meta(p: Path) -> dict[str, Any]:
         raise InputError(f"{meta_file}: not valid JSON ({exc})") from None
     if not isinstance(meta, dict) or not meta.get("complete") or meta.get("kind") != KIND:
         raise InputError(f"{p}: the index is incomplete or of another kind")
+    _parameters(meta_file, meta)
     return meta
+
+
+def _parameters(meta_file: Path, meta: dict[str, Any]) -> None:
+    """``d``, ``k``, ``n_ref`` and ``dim`` as the engine can hold them (every later check of the
+    tables and the model is against these): integers, K ≥ 2, K^d addresses in 64 bits."""
+    for key, low in (("d", 1), ("k", 2), ("n_ref", 1), ("dim", 1)):
+        value = meta.get(key)
+        if type(value) is not int or value < low:
+            raise InputError(f"{meta_file}: {key} is {value!r}, not an integer of at least {low}")
+    if meta["k"] ** meta["d"] > 1 << 64:
+        raise InputError(f"{meta_file}: k^d = {meta['k']}^{meta['d']} addresses do not fit 64 bits")
+    if meta["n_ref"] > 1 << 40:
+        raise InputError(f"{meta_file}: n_ref {meta['n_ref']:,} is beyond any index vprscale writes")
 
 
 def checked(p: Path, meta: dict[str, Any], full: bool = False) -> dict[str, Any]:
