@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -420,6 +421,23 @@ def test_a_name_is_text_on_a_terminal(evaluated, tmp_path, capsys):
     assert main(["results", str(folder), "--where", "L = 1"]) == 0
     out = capsys.readouterr().out
     assert "\x1b" not in out and "\x07" not in out and "\\x1b]0;owned\\x07\\x1b[2J" in out
+    assert main(["sql", str(folder), "SELECT DISTINCT method FROM results", "--csv"]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\x07" not in out and "\\x1b]0;owned\\x07\\x1b[2J" in out
+
+
+def test_a_name_in_an_error_message_is_text(tmp_path, capsys):
+    """An error that names what a file holds (an HDF5 file's datasets) shows their control characters."""
+    import h5py
+
+    with h5py.File(tmp_path / "f.hdf5", "w") as f:
+        f["\x1b]0;owned\x07\x1b[2J"] = np.zeros((10, 4), np.float32)
+    np.save(tmp_path / "gt.npy", np.arange(10))
+    capsys.readouterr()
+    assert main(["build", "--ref", f"{tmp_path / 'f.hdf5'}:train", "--query", f"q={tmp_path / 'f.hdf5'}:train",
+                 "--gt", str(tmp_path / "gt.npy"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and "\x07" not in err and "\\x1b]0;owned" in err
 
 
 @pytest.mark.slow

@@ -41,6 +41,7 @@ from vprscale.cli.examples import epilog
 from vprscale.core.deadline import EXIT_MORE, BudgetSpent
 from vprscale.core.errors import CLUSTER, InputError, Interrupted, JobFailed, raised_by
 from vprscale.core.objects import storage_failure
+from vprscale.core.plaintext import terminal
 from vprscale.core.provenance import set_command
 
 COMMANDS = (fetch, synth, build, index, encode, eval, report, results, methods, verify, run, bench, sql, localise,
@@ -84,7 +85,11 @@ def parser() -> argparse.ArgumentParser:
 
 class _Stderr(logging.StreamHandler):
     """A handler writing to whatever ``sys.stderr`` is when a record is emitted (a test's capture,
-    a pipeline's redirection), never to a stream that has since been closed."""
+    a pipeline's redirection), never to a stream that has since been closed; a message is text,
+    its control characters shown (a name from a file cannot move the cursor or retitle the terminal)."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return terminal(super().format(record))
 
     @property
     def stream(self):
@@ -158,14 +163,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:
         return _closed_pipe()
     except InputError as exc:
-        print(f"vprscale {args.command}: error: {exc}", file=sys.stderr)
+        print(f"vprscale {args.command}: error: {terminal(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except BudgetSpent as exc:  # not a failure: the job stopped at a checkpoint, as vprscale run --budget asked
-        print(f"vprscale {args.command}: stopped at a checkpoint, the time budget spent ({exc}); the same command "
-              "continues from it", file=sys.stderr)
+        print(f"vprscale {args.command}: stopped at a checkpoint, the time budget spent ({terminal(exc)}); the same "
+              "command continues from it", file=sys.stderr)
         return EXIT_MORE
     except JobFailed as exc:
-        print(f"vprscale {args.command}: failed: {exc}", file=sys.stderr)
+        print(f"vprscale {args.command}: failed: {terminal(exc)}", file=sys.stderr)
         return EXIT_FAILURE
     except OSError as exc:
         if storage_failure(exc):
@@ -175,11 +180,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not disk_full(exc, args):  # the system's failure, not the input's: one line, exit 1, work kept
             if level <= logging.DEBUG:
                 traceback.print_exception(exc, file=sys.stderr)
-            print(f"vprscale {args.command}: failed: {exc}; finished work is kept and resumed by the same command",
-                  file=sys.stderr)
+            print(f"vprscale {args.command}: failed: {terminal(exc)}; finished work is kept and resumed by the same "
+                  "command", file=sys.stderr)
             return EXIT_FAILURE
         # Outputs are published whole, so nothing half-written is visible; checkpoints stay for the re-run.
-        where = f" writing {exc.filename}" if exc.filename else ""
+        where = f" writing {terminal(exc.filename)}" if exc.filename else ""
         print(f"vprscale {args.command}: error: the disk is full{where}; free space and run the same command "
               "again (finished work is kept and resumed)", file=sys.stderr)
         return EXIT_USAGE
@@ -203,7 +208,7 @@ def _terminated(signum: int, frame: object) -> None:
 def _storage_failed(args: argparse.Namespace, exc: BaseException) -> int:
     """Object storage failed under a job (an endpoint gone, a connection dropped past the client's
     retries): one line and exit 2, as a dropped download is; what was marked done stays for the re-run."""
-    what = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+    what = terminal(str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)
     print(f"vprscale {args.command}: error: the storage failed: {what}; finished work is kept: run the same "
           "command again to resume", file=sys.stderr)
     return EXIT_USAGE
@@ -212,7 +217,7 @@ def _storage_failed(args: argparse.Namespace, exc: BaseException) -> int:
 def _cluster_failed(args: argparse.Namespace, exc: BaseException) -> int:
     """The Dask cluster failed under a job (its scheduler or a worker gone): one line and exit 2, as
     a storage that failed; what was marked done stays for the re-run."""
-    what = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+    what = terminal(str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)
     print(f"vprscale {args.command}: error: the Dask cluster failed: {what}; finished work is kept: run the same "
           "command again to resume", file=sys.stderr)
     return EXIT_USAGE
@@ -221,7 +226,7 @@ def _cluster_failed(args: argparse.Namespace, exc: BaseException) -> int:
 def _bug(args: argparse.Namespace, exc: BaseException, level: int) -> int:
     if level <= logging.DEBUG:
         traceback.print_exception(exc, file=sys.stderr)
-    what = str(exc).splitlines()[0][:300] if str(exc) else ""
+    what = terminal(str(exc).splitlines()[0][:300] if str(exc) else "")
     print(f"vprscale {args.command}: internal error: {type(exc).__name__}{': ' + what if what else ''} (a bug in "
           "vprscale; --verbose shows the traceback)", file=sys.stderr)
     return EXIT_FAILURE

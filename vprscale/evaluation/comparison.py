@@ -33,6 +33,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator
 
 from vprscale.compared.faisscodes import code_family
 from vprscale.compared.pooled import is_pooled
+from vprscale.core.plaintext import markdown
 from vprscale.evaluation.accounting import time_cell
 from vprscale.evaluation.results import noise_order
 
@@ -192,8 +193,8 @@ def _families(points: pd.DataFrame) -> list[str]:
 
 def _recall_bars(ax, g: pd.DataFrame, x: str, colour: Any) -> None:
     if "recall_lo" in g and g.recall_lo.notna().any():
-        ax.errorbar(g[x], 100 * g.recall, yerr=[100 * (g.recall - g.recall_lo), 100 * (g.recall_hi - g.recall)],
-                    fmt="none", ecolor=colour, lw=0.7, alpha=0.7)
+        below, above = (g.recall - g.recall_lo).clip(lower=0), (g.recall_hi - g.recall).clip(lower=0)  # older bounds
+        ax.errorbar(g[x], 100 * g.recall, yerr=[100 * below, 100 * above], fmt="none", ecolor=colour, lw=0.7, alpha=0.7)
 
 
 def _recall_axis(ax, title: str, xlabel: str, first: bool) -> None:
@@ -341,15 +342,17 @@ def _words(points: pd.DataFrame, scales: list[str]) -> list[str]:
                 if ours.empty or theirs.empty:
                     continue
                 o, t = _best(ours), _best(theirs)
+                name = markdown(t.method.removeprefix("faiss:"))  # a plug-in's name is text, never markup
                 gap = 100 * (o.recall - t.recall)
-                verdict = ("CoarseHash finds more" if gap > 1 else f"{t.method.removeprefix('faiss:')} finds more"
+                verdict = ("CoarseHash finds more" if gap > 1 else f"{name} finds more"
                            if gap < -1 else "recall is level")
                 faster = t.us_per_query / max(o.us_per_query, 1e-9)
                 same_run = getattr(o, "run", None) == getattr(t, "run", None)
                 smaller = t.bytes_per_place / o.bytes_per_place
                 lines.append(
-                    f"- {scale}, {noise.upper()}, L = {L}: {verdict} ({100 * o.recall:.1f} % for CoarseHash "
-                    f"{o['mode']} against {100 * t.recall:.1f} % for {t.method.removeprefix('faiss:')} {t['mode']}, "
+                    f"- {markdown(scale)}, {markdown(noise.upper())}, L = {L}: {verdict} ({100 * o.recall:.1f} % "
+                    f"for CoarseHash {markdown(o['mode'])} against {100 * t.recall:.1f} % for {name} "
+                    f"{markdown(t['mode'])}, "
                     f"the best compared method); CoarseHash answers in {o.us_per_query:,.1f} µs against "
                     f"{t.us_per_query:,.1f} µs ("
                     + (f"{_times(faster)} {'faster' if faster >= 1 else 'slower'}" if same_run else "different runs")

@@ -73,7 +73,7 @@ def wilson(p: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     z2 = Z95**2
     centre = (p + z2 / (2 * n)) / (1 + z2 / n)
     half = Z95 * np.sqrt(np.maximum(p * (1 - p), 0) / n + z2 / (4 * n * n)) / (1 + z2 / n)
-    return np.clip(centre - half, 0, 1), np.clip(centre + half, 0, 1)
+    return np.clip(centre - half, 0, p), np.clip(centre + half, p, 1)  # around p, whatever the rounding at 0 and 1
 
 
 def pr_curve(score: np.ndarray, correct: np.ndarray, weights: np.ndarray | None = None,

@@ -85,7 +85,7 @@ def format_table(table, fmt: str, max_rows: int | None = None, max_width: int | 
 
         buf = io.BytesIO()
         pacsv.write_csv(_flat(table), buf)
-        return buf.getvalue().decode()
+        return terminal(buf.getvalue().decode())  # a value's escape sequence shown, never run
     if fmt == "json":
         return "".join(json.dumps(row, default=str) + "\n" for row in table.to_pylist())
     n_rows, cols = table.num_rows, list(table.column_names)
