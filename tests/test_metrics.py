@@ -1,6 +1,7 @@
 """The evaluation's metrics (vprscale.evaluation.metrics) against hand-worked cases."""
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -89,3 +90,11 @@ def test_average_precision_is_scikit_learn_s_and_precision_at_full_recall_delta_
     worst = score[correct].max()
     assert np.isclose(out["precision_at_r100"][0], correct[score <= worst].mean())
     assert np.isclose(out["ap"][5], 1.0) and out["precision_at_r100"][5] == 1.0  # within 5 frames every match is right
+
+
+@pytest.mark.parametrize("n", [1, 7, 5901, 123_457])
+def test_a_wilson_interval_holds_its_recall_at_0_and_1(n):
+    """A perfect (or null) method's interval ends at its recall: floating point put the upper bound
+    of 1.0 over 5,901 queries at 0.9999999999999999, and the report's error bars went negative."""
+    lo, hi = wilson(np.array([0.0, 1.0]), n)
+    assert lo[0] == 0.0 and hi[1] == 1.0 and hi[0] > 0 and lo[1] < 1
