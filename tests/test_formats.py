@@ -178,3 +178,44 @@ def test_a_relative_path_is_read_from_any_working_directory(rows, tmp_path, monk
     (tmp_path / "elsewhere").mkdir()
     monkeypatch.chdir(tmp_path / "elsewhere")
     np.testing.assert_array_equal(src.read(0, N), rows)
+
+
+def _external_storage(f, secret: Path) -> None:
+    f.create_dataset("train", shape=(2, 8), dtype="u1", external=[(str(secret), 0, 16)])
+
+
+def _virtual(f, secret: Path) -> None:
+    with h5py.File(secret.with_suffix(".hdf5"), "w") as other:
+        other["rows"] = np.ones((4, 8), np.float32)
+    layout = h5py.VirtualLayout(shape=(4, 8), dtype=np.float32)
+    layout[:] = h5py.VirtualSource(str(secret.with_suffix(".hdf5")), "rows", shape=(4, 8))
+    f.create_virtual_dataset("train", layout)
+
+
+def _external_link(f, secret: Path) -> None:
+    with h5py.File(secret.with_suffix(".hdf5"), "w") as other:
+        other.create_group("g")["rows"] = np.ones((4, 8), np.float32)
+    f["train"] = h5py.ExternalLink(str(secret.with_suffix(".hdf5")), "/g/rows")
+
+
+def _linked_group(f, secret: Path) -> None:
+    with h5py.File(secret.with_suffix(".hdf5"), "w") as other:
+        other.create_group("g")["train"] = np.ones((4, 8), np.float32)
+    f["group"] = h5py.ExternalLink(str(secret.with_suffix(".hdf5")), "/g")
+
+
+@pytest.mark.parametrize("plant, key, words", [
+    (_external_storage, "train", "external raw files"),
+    (_virtual, "train", "virtual dataset"),
+    (_external_link, "train", "external link"),
+    (_linked_group, "group/train", "external link"),
+])
+def test_an_hdf5_file_reads_nothing_outside_itself(tmp_path, plant, key, words):
+    """External storage, a virtual dataset or an external link would make the named file read
+    another (an environment, a key, any file the user can read) into a store: each is refused."""
+    secret = tmp_path / "secret"
+    secret.write_bytes(b"AWS_SECRET_ACCESS_KEY=abcdefgh")
+    with h5py.File(tmp_path / "x.hdf5", "w") as f:
+        plant(f, secret)
+    with pytest.raises(InputError, match=words):
+        open_rows(f"{tmp_path / 'x.hdf5'}:{key}")

@@ -28,6 +28,31 @@ def _h5py():
     return h5py
 
 
+def _within(f: Any, key: str, name: str) -> None:
+    """Every link on the way to ``key`` stays in the file: an external link would read another
+    file (any the user can read) as if it were this one's."""
+    h5py, node = _h5py(), f
+    for part in [p for p in key.split("/") if p]:
+        if not isinstance(node, h5py.Group) or part not in node:
+            return  # not there: the caller says what the file holds
+        link = node.get(part, getlink=True)
+        if isinstance(link, h5py.ExternalLink):
+            raise InputError(f"{name}: {part!r} is an external link (to {link.filename}:{link.path}); vprscale reads "
+                             "only what the named file holds: give that file itself")
+        node = node[part]
+
+
+def _stored_within(dataset: Any, name: str) -> None:
+    """The dataset's bytes are in the file: not external storage (raw files named in the HDF5
+    header, any path on the reading machine) and not a virtual dataset (mapped from other files)."""
+    if dataset.is_virtual:
+        raise InputError(f"{name}: a virtual dataset (its rows are mapped from other files); vprscale reads only "
+                         "what the named file holds: copy the rows into a plain dataset (h5py: f2[k] = f1[k][:])")
+    if dataset.id.get_create_plist().get_external_count():
+        raise InputError(f"{name}: stored in external raw files named by the HDF5 file; vprscale reads only what the "
+                         "named file holds: copy the rows into a plain dataset (h5py: f2[k] = f1[k][:])")
+
+
 class Hdf5Source(RowSource):
     """The 2-D dataset ``key`` of the HDF5 file at ``path`` (a local path or a URL)."""
 
@@ -41,9 +66,12 @@ class Hdf5Source(RowSource):
         h5py = _h5py()
         try:
             with self._open() as f:
+                _within(f, key, self.name)
                 if key not in f or not isinstance(f[key], h5py.Dataset):
-                    datasets = sorted(k for k in f if isinstance(f[k], h5py.Dataset))
+                    datasets = sorted(k for k in f if isinstance(f.get(k, getlink=True), h5py.HardLink)
+                                      and isinstance(f[k], h5py.Dataset))
                     raise InputError(f"{self.name}: no dataset {key!r} in the file (it holds {', '.join(datasets)})")
+                _stored_within(f[key], self.name)
                 shape, dtype = f[key].shape, f[key].dtype
         except OSError as exc:
             raise InputError(f"{where}: not a readable HDF5 file ({str(exc).splitlines()[0][:160]})") from None
