@@ -4,6 +4,7 @@ whose workers share no directory with the client or each other."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shutil
@@ -582,17 +583,21 @@ def test_no_command_removes_objects_it_did_not_write(s3, sources, tiny_store, ti
         "eval": (["eval", str(tiny_store), str(tiny_index), *grid, "--out"], f"s3://{BUCKET}/mine"),
         "report": (["report", str(evaluation), "-q", "--out"], f"s3://{BUCKET}/mine"),
     }
-    for name, (argv, prefix) in commands.items():
+    manifests = {"none": None, "another tool's": b'{"version": 2, "entries": ["results.csv"]}',
+                 "vprscale's, not listing them": b'{"format": 1, "files": {}}'}
+    for (name, (argv, prefix)), (kind, manifest) in itertools.product(commands.items(), manifests.items()):
         theirs = {f"{prefix}/results.csv": b"method,recall\nmine,0.9\n", f"{prefix}/notes/a.txt": b"keep me"}
+        if manifest is not None:  # a manifest.json makes nothing vprscale's that it does not list
+            theirs[f"{prefix}/manifest.json"] = manifest
         for url, data in theirs.items():
             Remote(url).write_bytes(data)
         capsys.readouterr()
         argv = [*argv, prefix] if argv[-1] == "--out" else argv
-        assert main([*argv, *force]) == 2, name
+        assert main([*argv, *force]) == 2, (name, kind)
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "not a vprscale output" in err[0] and "results.csv" in err[0], (name, err)
-        assert Remote(prefix).files() == {"results.csv": len(theirs[f"{prefix}/results.csv"]), "notes/a.txt": 7}, name
-        assert all(Remote(url).read_bytes() == data for url, data in theirs.items()), name
+        assert len(err) == 1 and "not a vprscale output" in err[0] and "results.csv" in err[0], (name, kind, err)
+        assert Remote(prefix).files() == {url.removeprefix(prefix + "/"): len(data) for url, data in theirs.items()}
+        assert all(Remote(url).read_bytes() == data for url, data in theirs.items()), (name, kind)
         Remote(prefix).remove()
 
 

@@ -28,7 +28,7 @@ from typing import Any
 from filelock import FileLock, Timeout
 
 from vprscale.core.errors import InputError
-from vprscale.core.manifest import NAME, write_manifest
+from vprscale.core.manifest import FORMAT, NAME, write_manifest
 from vprscale.core.objects import BOOKKEEPING, Remote, cache_root, check_bucket, storage_errors
 
 NAME_BYTES = 255  # the longest file name POSIX filesystems take
@@ -266,7 +266,9 @@ class ObjectOutput:
 
     def recover(self) -> bool:
         """Remove bookkeeping a job killed after its manifest left behind. Publishing here has no
-        later steps, so there is never a publish to finish: False."""
+        later steps, so there is never a publish to finish: False. A prefix holding objects
+        vprscale did not write is refused first (:func:`refuse_foreign`): nothing of it is touched."""
+        refuse_foreign(self.final)
         if (self.final / NAME).exists():
             for name in BOOKKEEPING:
                 (self.final / name.rstrip("/")).remove()
@@ -284,6 +286,7 @@ class ObjectOutput:
             self._done = set((self.final / ".done").files())
             self.work.mkdir(parents=True, exist_ok=True)
             return True
+        refuse_foreign(self.final)  # before anything is moved aside or removed
         if (self.final / NAME).exists():
             keep_remote_beside(self.final)
         clear_remote_output(self.final)
@@ -310,14 +313,34 @@ class ObjectOutput:
 
 
 def refuse_foreign(path: Remote) -> None:
-    """Refuse, in one line, an output prefix that holds objects no vprscale job wrote (no manifest,
-    no job key beside them): they are someone's data, and vprscale replaces only its own outputs
-    (a local output folder is refused alike)."""
+    """Refuse, in one line, an output prefix that holds objects no vprscale job wrote (neither listed
+    by a vprscale manifest nor a job's work in progress beside its key): they are someone's data,
+    and vprscale replaces only its own outputs (a local output folder is refused alike). Another
+    tool's ``manifest.json`` makes nothing vprscale's."""
     found = path.files()
-    if found and NAME not in found and ".job.json" not in found:
-        some = ", ".join(sorted(found)[:3]) + (", …" if len(found) > 3 else "")
-        raise InputError(f"{path}: holds {len(found):,} objects that are not a vprscale output ({some}); "
+    if not found:
+        return
+    foreign = list(found) if NAME not in found else _unlisted(path, list(found))
+    if NAME not in found and ".job.json" in found:
+        foreign = []  # a vprscale job's work in progress: its own files
+    if foreign:
+        some = ", ".join(sorted(foreign)[:3]) + (", …" if len(foreign) > 3 else "")
+        raise InputError(f"{path}: holds {len(foreign):,} objects that are not a vprscale output ({some}); "
                          "vprscale removes none of them: give another --out, or remove them yourself")
+
+
+def _unlisted(path: Remote, found: list[str]) -> list[str]:
+    """The objects under ``path`` that its manifest does not list: all of them if the manifest is
+    not a vprscale one (another tool's ``manifest.json``), none if it lists every object there."""
+    try:
+        manifest = json.loads((path / NAME).read_text())
+        listed = manifest["files"] if manifest.get("format") == FORMAT else None
+    except (ValueError, KeyError, TypeError, AttributeError):
+        listed = None
+    if not isinstance(listed, dict):
+        return found
+    return [name for name in found if name != NAME and name not in listed
+            and not any(name == b.rstrip("/") or name.startswith(b) for b in BOOKKEEPING)]
 
 
 def clear_remote_output(path: Remote) -> None:
