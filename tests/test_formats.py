@@ -219,3 +219,44 @@ def test_an_hdf5_file_reads_nothing_outside_itself(tmp_path, plant, key, words):
         plant(f, secret)
     with pytest.raises(InputError, match=words):
         open_rows(f"{tmp_path / 'x.hdf5'}:{key}")
+
+
+def _fvecs_chunks(x: np.ndarray, where: Path) -> Path:
+    where.mkdir()
+    for i, part in enumerate(np.array_split(x, 3)):
+        _vecs(where / f"base_{i:02d}", part, "<f4")
+    return where
+
+
+@pytest.mark.parametrize("damage, words", [
+    ("dangling link", "a symbolic link to nothing"),
+    ("link loop", "a loop of links"),
+    ("folder", "not a file"),
+    ("gap", "chunk base_01 is missing"),
+])
+def test_a_chunk_folder_with_a_chunk_missing_is_refused_not_read_short(rows, tmp_path, damage, words):
+    """A chunk that cannot be read, or a gap in the chunks' numbering, would shift every later row
+    (and every truth id pointing past it) onto another row: refused, naming the chunk."""
+    folder = _fvecs_chunks(rows, tmp_path / "fvecs")
+    assert open_rows(str(folder)).n_rows == N
+    middle = folder / "base_01"
+    middle.unlink()
+    if damage == "dangling link":
+        middle.symlink_to(tmp_path / "nowhere")
+    elif damage == "link loop":
+        middle.symlink_to(middle)
+    elif damage == "folder":
+        middle.mkdir()
+    with pytest.raises(InputError, match=words):
+        open_rows(str(folder))
+
+
+@pytest.mark.parametrize("form, gone, words", [
+    ("npy shards", "emb_4.npy", "chunk emb_4.npy is missing"),
+    ("parquet fixed dir", "part-1.parquet", "chunk part-1.parquet is missing"),
+])
+def test_shards_with_a_gap_in_their_numbering_are_refused(rows, tmp_path, form, gone, words):
+    spec = _write(form, rows, tmp_path / "f")
+    (tmp_path / "f" / gone).unlink()
+    with pytest.raises(InputError, match=words):
+        open_rows(spec)

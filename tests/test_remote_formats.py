@@ -74,8 +74,8 @@ def test_shards_and_parquet_files_under_an_s3_prefix_are_one_table(rows, s3):  #
     client = boto3.client("s3", endpoint_url=s3["AWS_ENDPOINT_URL"])
     parts = np.split(rows, [1_000, 1_001, 2_500])  # one shard of a single row
     for i, part in enumerate(parts):  # names whose numbers sort as numbers: 2 before 10
-        client.put_object(Bucket=BUCKET, Key=f"shards/emb_{[0, 2, 10, 11][i]}.npy", Body=_npy(part))
-        client.put_object(Bucket=BUCKET, Key=f"tables/part-{[0, 2, 10, 11][i]}.parquet", Body=_parquet(part))
+        client.put_object(Bucket=BUCKET, Key=f"shards/emb_{[8, 9, 10, 11][i]}.npy", Body=_npy(part))
+        client.put_object(Bucket=BUCKET, Key=f"tables/part-{[8, 9, 10, 11][i]}.parquet", Body=_parquet(part))
     client.put_object(Bucket=BUCKET, Key="shards/README.txt", Body=b"not a shard")
     for url in (f"s3://{BUCKET}/shards", f"s3://{BUCKET}/tables:emb"):
         src = open_rows(url)

@@ -19,6 +19,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.binfile import BinSource, bin_type
+from vprscale.dataset.sources.chunks import local_chunks
 from vprscale.dataset.sources.fetched import check_fetched
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 from vprscale.dataset.sources.fvecs import read_vecs, record_bytes, vecs_type
@@ -31,9 +32,7 @@ class FvecsSource(RowSource):
         self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         self.name = str(self.path)
         if self.path.is_dir():
-            files = sorted(p for p in self.path.iterdir() if p.is_file() and not p.name.startswith("."))
-            if not files:
-                raise InputError(f"{self.path}: directory holds no fvecs files")
+            files = local_chunks(self.path, what="fvecs files")
         elif self.path.is_file():
             files = [self.path]
         else:

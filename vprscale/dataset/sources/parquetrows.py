@@ -18,9 +18,9 @@ import pyarrow.parquet as pq
 from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url, public
 from vprscale.dataset.sources.base import RowSource, part_spans
+from vprscale.dataset.sources.chunks import local_chunks
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 from vprscale.dataset.sources.remote import remote_file, remote_fingerprint, remote_objects
-from vprscale.dataset.sources.shards import natural_order
 
 
 def _list_columns(schema: pa.Schema) -> list[str]:
@@ -108,11 +108,7 @@ class ParquetRowsSource(RowSource):
 def _local_files(path: Path) -> list[Path | str]:
     """A Parquet file, or every ``.parquet`` file of a directory in name order (numbers as numbers)."""
     if path.is_dir():
-        files = sorted((p for p in path.iterdir() if p.suffix == ".parquet" and not p.name.startswith(".")),
-                       key=natural_order)
-        if not files:
-            raise InputError(f"{path}: the directory holds no .parquet files")
-        return list(files)
+        return list(local_chunks(path, ".parquet", ".parquet files"))
     if path.is_file():
         return [path]
     raise InputError(f"{path}: no such file or directory")

@@ -26,8 +26,8 @@ from vprscale.core.progress import ChunkProgress
 from vprscale.core.ranged import probe, read_range
 from vprscale.dataset.sources.base import RowSource, part_spans
 from vprscale.dataset.sources.binfile import HEADER, bin_type, check_header
+from vprscale.dataset.sources.chunks import check_numbering, natural_order
 from vprscale.dataset.sources.fvecs import read_vecs, record_bytes, vecs_type
-from vprscale.dataset.sources.shards import natural_order
 
 HTTP = re.compile(r"^https?://", re.IGNORECASE)
 PART = 64 << 20  # bytes a request of a whole-file fetch asks for
@@ -307,4 +307,5 @@ def remote_objects(url: str, suffix: str = "") -> list[str]:
     if not names:
         kind = f"{suffix} object" if suffix else "fvecs object"
         raise InputError(f"{public(url)}: no {kind} there, nor chunk objects under it")
+    check_numbering(public(url), names)
     return [f"{remote.url}/{n}" for n in names]

@@ -5,7 +5,6 @@ pipelines (clip-retrieval, embedding-reader, autofaiss) write, ``img_emb_0.npy``
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 from typing import Any
 
@@ -13,12 +12,8 @@ import numpy as np
 
 from vprscale.core.errors import InputError
 from vprscale.dataset.sources.base import RowSource, part_spans
+from vprscale.dataset.sources.chunks import local_chunks
 from vprscale.dataset.sources.fingerprint import file_fingerprint
-
-
-def natural_order(path: Path | str) -> list:
-    """Name order with numbers compared as numbers (``emb_2`` before ``emb_10``), as shard writers number them."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", Path(path).name)]
 
 
 def open_npy(path: Path) -> np.ndarray:
@@ -43,10 +38,7 @@ class NpyShardsSource(RowSource):
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path).absolute()  # tasks may run in another directory (a cluster's workers)
         self.name = str(self.path)
-        self.files = sorted((p for p in self.path.iterdir() if p.suffix == ".npy" and not p.name.startswith(".")),
-                            key=natural_order)
-        if not self.files:
-            raise InputError(f"{self.path}: the directory holds no .npy shards")
+        self.files = local_chunks(self.path, ".npy", ".npy shards")
         counts = []
         for f in self.files:
             a = open_npy(f)
