@@ -118,6 +118,16 @@ def test_ground_truth_from_ibin_and_ivecs_is_the_first_neighbour(tmp_path):
         np.testing.assert_array_equal(read_labels(tmp_path / name, 50, "--gt"), ids[:, 0])
     with pytest.raises(InputError, match=r"gt.ibin: .*50 values for 40 query rows|gt.ibin: 50 --gt values"):
         read_labels(tmp_path / "gt.ibin", 40, "--gt")
+    # records of differing k whose sizes still add up to whole records of the first k: refused, not shifted
+    with open(tmp_path / "mixed.ivecs", "wb") as f:
+        for k, rows in ((10, ids[:2]), (4, ids[2:5, :4]), (6, ids[5:6, :6])):  # 3 × 20 + 28 bytes: 2 records
+            for row in rows:
+                np.r_[k, row].astype("<i4").tofile(f)
+        for row in ids[7:]:
+            np.r_[10, row].astype("<i4").tofile(f)
+    assert (tmp_path / "mixed.ivecs").stat().st_size % 44 == 0
+    with pytest.raises(InputError, match=r"mixed.ivecs: offset 88: a record of k = 4, the first holds 10"):
+        read_labels(tmp_path / "mixed.ivecs", 50, "--gt")
 
 
 @pytest.mark.parametrize(("form", "damage", "message"), [

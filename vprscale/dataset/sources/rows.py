@@ -108,8 +108,13 @@ def neighbour_ids(path: Path) -> np.ndarray:
             raise InputError(f"{path}: header says n = {n}, k = {k}: a file of {8 + 4 * n * k:,} bytes (ids) or "
                              f"{8 + 8 * n * k:,} (ids and distances), but it has {size:,}")
         return np.memmap(path, "<i4", mode="r", offset=8, shape=(n, k))
-    source = FvecsSource(path)  # an ivecs file's records checked as any vecs file's
+    source = FvecsSource(path)  # the size checked against the first record's k, as any vecs file's
     rec = np.memmap(path, "<i4", mode="r", shape=(source.n_rows, source.dim + 1))
+    bad = np.flatnonzero(rec[:, 0] != source.dim)  # every record's k: records of another k shift all after them
+    if bad.size:
+        at, k = int(bad[0]) * 4 * (source.dim + 1), int(rec[bad[0], 0])
+        raise InputError(f"{path}: offset {at:,}: a record of k = {k}, the first holds {source.dim}; every record of "
+                         "an .ivecs ground truth must hold as many ids")
     return rec[:, 1:]
 
 
