@@ -10,7 +10,8 @@ ranges, or lies about lengths, is an error naming the URL), an answer cut short 
 from where it stopped, and one that trickles in slower than ``MIN_RATE`` is cut off and retried
 (a per-read timeout alone lets a server that sends a byte a second hold a job forever). Every
 answer must carry the validator (ETag, else Last-Modified) the file had when it was first asked
-for, so the bytes of two versions of a file are never stitched together. What a URL carries
+for, so the bytes of two versions of a file are never stitched together; a server that names no
+version is refused, since nothing could tell two versions apart. What a URL carries
 besides its address (a user name, a password, a signed query string) is never logged or
 recorded (:func:`public`), and its credentials are never sent to another origin that a
 redirect names.
@@ -149,6 +150,10 @@ def probe(url: str) -> tuple[int, str]:
         raise InputError(f"{public(url)}: no answer ({exc}); check the URL and the network") from None
     if not total.isdigit():
         raise InputError(f"{public(url)}: the server does not say the file's size (Content-Range {total!r})")
+    if not version:
+        raise InputError(f"{public(url)}: the server names no version of the file (no ETag, no Last-Modified), so "
+                         "bytes read at different times could come from two versions of it, undetected; serve it "
+                         "from a server that does (any web server or object store), or copy the file here first")
     return int(total), version
 
 
