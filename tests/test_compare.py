@@ -243,6 +243,16 @@ def test_flat_codes_run_on_the_flat_noise_levels_only(tiny_store, tiny_index, tm
     (["--compare", "Banana"], "--compare Banana: not a FAISS index_factory string"),
     (["--compare", "PQ4", "--compare", "PQ4"], "--compare: PQ4 given twice"),
     (["--compare", "PQ4", "--d", "8,10"], "--compare: compares with one index at a time"),
+    # what FAISS builds and then crashes on (a segfault, an assertion, an allocation), refused first
+    (["--compare", "IVF0,PQ3"], "--compare IVF0,PQ3: an inverted file of 0 lists"),
+    (["--compare", "HNSW0"], "--compare HNSW0: an HNSW graph of M = 0"),
+    (["--compare", "HNSW1"], "--compare HNSW1: an HNSW graph of M = 1"),
+    (["--compare", "IVF999999999,PQ3"], "--compare IVF999999999,PQ3: 999,999,999 is more than"),
+    (["--compare", "IVF100000,PQ3"], "--compare IVF100000,PQ3: 100,000 inverted lists for 52,500"),
+    (["--compare", "OPQ0,PQ3"], "--compare OPQ0,PQ3: an OPQ rotation for 0 sub-spaces"),
+    (["--compare", "PCA0,PQ3"], "--compare PCA0,PQ3: a transform to 0 dimensions"),
+    (["--compare", "LSH0"], "--compare LSH0: a code of 0 bytes"),
+    (["--compare", "seq:PQ3+rerank99999999999999"], "+rerank99999999999999: re-ranks at least one"),
 ])
 def test_bad_compare_input_is_one_line_and_exit_2(tiny_store, tiny_index, tmp_path, capsys, argv, message):
     out = tmp_path / "e"

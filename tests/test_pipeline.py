@@ -56,6 +56,10 @@ BASE = 'name = "t"\nout = "{out}"\n'
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "encode"\nstore = "a"\n'
      'compare = ["seq:PQ3"]\n', "stage 'e': key 'compare': --compare seq:PQ3: a pooled sequence descriptor is encoded "
      "by its evaluation"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "a"\n'
+     'compare = ["HNSW0"]\n', "stage 'e': key 'compare': --compare HNSW0: an HNSW graph of M = 0"),
+    ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "a"\n'
+     'compare = ["seq:PQ3+rerank99999999999999"]\n', "+rerank99999999999999: re-ranks at least one"),
 ])
 def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
     out = tmp_path / "out"

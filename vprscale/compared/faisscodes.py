@@ -246,6 +246,48 @@ def _faiss_reason(err: Exception) -> str:
 ADDITIVE = ("RQ", "LSQ", "PRQ", "PLSQ")  # FAISS's additive quantisers, by their factory names
 
 
+MAX_FACTORY_NUMBER = 1 << 22  # the largest count a factory string may ask for (lists, neighbours, bits …)
+
+
+def _check_sizes(factory: str) -> None:
+    """Refuse a count no comparison needs before FAISS allocates for it (``IVF999999999`` asks for
+    a billion centroids and fails inside FAISS's allocator)."""
+    for number in re.findall(r"\d+", factory):
+        if int(number) > MAX_FACTORY_NUMBER:
+            raise InputError(f"--compare {factory}: {int(number):,} is more than any compared code uses "
+                             f"(at most {MAX_FACTORY_NUMBER:,} lists, neighbours or bits)")
+
+
+def _check_built(factory: str, index: Any) -> None:
+    """Refuse what FAISS builds but crashes on later (a native assertion or a segfault, no
+    exception): no inverted lists, an HNSW graph of M < 2, a transform to 0
+    dimensions or an OPQ of 0 sub-spaces, a code of 0 bytes."""
+    index = faiss.downcast_index(index)
+    if isinstance(index, faiss.IndexPreTransform):
+        for i in range(index.chain.size()):
+            transform = faiss.downcast_VectorTransform(index.chain.at(i))
+            if isinstance(transform, faiss.OPQMatrix) and transform.M < 1:
+                raise InputError(f"--compare {factory}: an OPQ rotation for {transform.M} sub-spaces; it needs at "
+                                 "least 1 (OPQ3,PQ3: as many as the product quantiser's)")
+            if transform.d_out < 1:
+                raise InputError(f"--compare {factory}: a transform to {transform.d_out} dimensions "
+                                 f"({type(transform).__name__}); it needs at least 1")
+    inner = _innermost(index)
+    ivf = faiss.try_extract_index_ivf(inner)
+    if ivf is not None and ivf.nlist < 1:
+        raise InputError(f"--compare {factory}: an inverted file of {ivf.nlist} lists; it needs at least 1")
+    if isinstance(inner, faiss.IndexHNSW):
+        try:
+            m = inner.hnsw.nb_neighbors(0) // 2  # the bottom layer holds 2M links a node
+        except RuntimeError:  # M = 1: FAISS made no layer at all
+            m = 1
+        if m < 2:
+            raise InputError(f"--compare {factory}: an HNSW graph of M = {m} links a node; it needs at least 2 "
+                             "(HNSW32 is the usual)")
+    elif index.sa_code_size() < 1:
+        raise InputError(f"--compare {factory}: a code of 0 bytes a place; it needs at least one bit a place")
+
+
 def code_family(factory: str) -> str:
     """The family of a FAISS factory string, by the component that holds the codes (the last;
     an ``IVF…_HNSW`` coarse quantiser does not make an IVF code a graph): ``graph`` (HNSW),
@@ -282,6 +324,7 @@ class FaissCodes:
 
     def __init__(self, factory: str, dim: int, k: int, nprobe: int = DEFAULT_NPROBE, threads: int = 1,
                  windows: bool = True) -> None:
+        _check_sizes(factory)
         try:
             index = faiss.index_factory(dim, factory)
             if not isinstance(_innermost(index), faiss.IndexHNSWFlat):  # a graph holds rows, not codes
@@ -289,6 +332,9 @@ class FaissCodes:
         except (RuntimeError, TypeError) as err:
             raise InputError(f"--compare {factory}: not a FAISS index_factory string with standalone codes for "
                              f"{dim}-d rows ({_faiss_reason(err)})") from None
+        except MemoryError:
+            raise InputError(f"--compare {factory}: FAISS cannot allocate this index here") from None
+        _check_built(factory, index)
         if index.metric_type != faiss.METRIC_L2:
             raise InputError(f"--compare {factory}: the index does not search by L2 distance")
         inner = _innermost(index)

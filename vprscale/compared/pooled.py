@@ -62,6 +62,9 @@ class PooledSpec:
         return f"{self.prefix}:{self.factory}{tail}"
 
 
+MAX_RERANK = 100_000  # candidates a query's window score re-ranks at most
+
+
 def parse_pooled(spec: str) -> PooledSpec:
     """``seq:FACTORY``, ``seq-gem3:FACTORY``, either with ``+rerank`` or ``+rerankN`` (N ≥ 1)."""
     found = _SPEC.match(spec)
@@ -69,8 +72,9 @@ def parse_pooled(spec: str) -> PooledSpec:
         raise InputError(f"--compare {spec}: a pooled sequence descriptor is seq:FACTORY or seq-gem3:FACTORY, "
                          "optionally followed by +rerank or +rerankN (for example seq:PQ3, seq-gem3:Flat+rerank)")
     prefix, factory, rerank, n = found.groups()
-    if rerank is not None and n and int(n) < 1:
-        raise InputError(f"--compare {spec}: +rerank{n}: re-ranks at least one candidate")
+    if rerank is not None and n and not 1 <= int(n) <= MAX_RERANK:
+        raise InputError(f"--compare {spec}: +rerank{n}: re-ranks at least one candidate and at most "
+                         f"{MAX_RERANK:,} (each is scored over its whole window)")
     return PooledSpec(prefix, factory, None if rerank is None else int(n or DEFAULT_RERANK))
 
 
