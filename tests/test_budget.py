@@ -130,7 +130,7 @@ def test_a_stage_that_cannot_stop_midway_starts_only_where_its_estimate_fits():
     assert may_start(index, 1000.0, False) is None
     assert may_start(index, 10.0, True) is None  # first in a call: the only way it ever runs
     assert may_start(Pending("e", "eval", None), 1.0, False) is None  # nothing to judge it by: it starts
-    assert may_start(build, 0.0, True) == "the budget is spent"
+    assert may_start(build, 0.0, True) is None  # first in a call, nothing left: it still starts (and progresses)
     check([build, index], 1000)  # a build longer than the budget stops at checkpoints
     with pytest.raises(InputError, match="stage 'i' cannot stop midway and is estimated at 17 min, longer than the "
                                          "whole budget"):
@@ -297,3 +297,25 @@ def test_a_budget_no_call_could_keep_is_refused_before_any_stage_runs(tmp_path, 
         assert main(["run", str(path), "--budget", "5m", *argv]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "data" / ".20K.zarr.partial").exists() and not (tmp_path / "data" / "20K.zarr").exists()
+
+
+def test_every_call_progresses_however_short_its_budget(tmp_path, monkeypatch):
+    """``run --budget 1s``: a process whose deadline passed before its first checkpoint (its start
+    alone took longer) still finishes one unit of work, then stops at the next; so a job requeued
+    on the same short budget advances on every call and ends, where it would stop at the same
+    checkpoint for ever. A pipeline call likewise starts its first stage, however little is left."""
+    monkeypatch.setenv(deadline_mod.ENV, repr(time.time() - 60))  # spent before the job began
+    bounds = [(i, i + 1) for i in range(8)]
+    calls = 0
+    while True:
+        monkeypatch.setattr(deadline_mod, "_progressed", False)  # a new process
+        try:
+            total = passes.reduce_pass(tmp_path, "sum", bounds, lambda a, b: a, lambda s, r: s + r, 0, group=2,
+                                       quiet=True)
+            break
+        except BudgetSpent:
+            calls += 1
+            assert calls < 8, "a call made no progress"
+    assert total == sum(range(8)) and calls == 3  # two chunks a call: four calls in all
+    assert may_start(Pending("index", "index", 1200.0), left=-5.0, first=True) is None
+    assert may_start(Pending("index", "index", 1200.0), left=-5.0, first=False) == "the budget is spent"

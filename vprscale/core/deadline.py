@@ -35,9 +35,23 @@ def deadline() -> float | None:
     return value
 
 
+_progressed = False  # whether this process finished a unit of work since it started (see check)
+
+
+def progressed() -> None:
+    """Say that a unit of work (a group of chunks, a step) is finished and kept on disk."""
+    global _progressed
+    _progressed = True
+
+
 def check(next_seconds: float, where: str) -> None:
     """Stop (raise :class:`BudgetSpent`) if work expected to take ``next_seconds`` would end past
-    the deadline; ``where`` says what was done so far, for the message."""
+    the deadline; ``where`` says what was done so far, for the message.
+
+    A process stops only once it has finished a unit of work (:func:`progressed`): a call that
+    stopped at its first checkpoint would stop there again on every call, and a requeued job
+    would never end (a budget shorter than a process's start). So every call progresses, by one
+    unit past its deadline at most."""
     end = deadline()
-    if end is not None and time.time() + next_seconds > end:
+    if end is not None and _progressed and time.time() + next_seconds > end:
         raise BudgetSpent(where)

@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 import dask
 
 from vprscale.core import deadline
-from vprscale.core.progress import ChunkProgress
+from vprscale.core.progress import ChunkProgress, run_tasks
 
 S = TypeVar("S")
 
@@ -53,7 +53,21 @@ def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Call
         with tmp.open("wb") as f:
             pickle.dump((done, state), f, protocol=pickle.HIGHEST_PROTOCOL)
         tmp.replace(ckpt)
+        deadline.progressed()
         if progress:
             progress.update(len(results))
         last = time.perf_counter() - started
     return state
+
+
+def run_groups(tasks: list[Any], name: str, group: int = 16) -> None:
+    """Run Dask tasks that each keep what they make (a chunk written and marked done), a group at a
+    time: under a deadline a group starts only if the last one's time still fits before it, as
+    :func:`reduce_pass`'s do, so a stage of such tasks stops at a checkpoint too."""
+    last = 0.0
+    for g in range(0, len(tasks), group):
+        deadline.check(last, f"{name}: {g:,} of {len(tasks):,} tasks done")
+        started = time.perf_counter()
+        run_tasks(tasks[g : g + group], name)
+        deadline.progressed()
+        last = time.perf_counter() - started

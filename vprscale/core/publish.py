@@ -27,6 +27,7 @@ from typing import Any
 
 from filelock import FileLock, Timeout
 
+from vprscale.core import deadline
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import FORMAT, NAME, write_manifest
 from vprscale.core.objects import BOOKKEEPING, Remote, cache_root, check_bucket, storage_errors
@@ -181,6 +182,7 @@ class PartialOutput:
         tmp = self._markers / f".{unit}.tmp"
         tmp.write_text("")
         tmp.replace(self._markers / unit)
+        deadline.progressed()
 
     def publish(self) -> None:
         """Seal the finished work copy, then move it to the final path, replacing an older output last.
@@ -301,6 +303,7 @@ class ObjectOutput:
     def mark(self, unit: str) -> None:
         (self.final / ".done" / unit).write_bytes(b"")
         self._done.add(unit)
+        deadline.progressed()
 
     def write_text(self, name: str, text: str) -> None:
         (self.final / name).write_text(text)

@@ -33,8 +33,8 @@ from vprscale.core.cluster import cluster_peak_rss, dask_client
 from vprscale.core.errors import InputError
 from vprscale.core.manifest import NAME as MANIFEST
 from vprscale.core.objects import Remote, location, zarr_url
-from vprscale.core.passes import reduce_pass
-from vprscale.core.progress import Timings, run_tasks
+from vprscale.core.passes import reduce_pass, run_groups
+from vprscale.core.progress import Timings
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import Output, check_writable, exclusive, output_for
 from vprscale.core.throughput import throughput
@@ -377,7 +377,7 @@ def _write_full(group: zarr.Group, writer: ChunkWriter, partial: Output, timings
              for c, (a, b) in enumerate(chunk_bounds(max(lay.n_ref, lay.n_query), recipe.shard_rows))
              if not partial.done(f"chunk-{c}")]
     with timings.stage(f"write {len(tasks)} chunks (homogenise, project, rescale, noise)"):
-        run_tasks(tasks, "write chunks")
+        run_groups(tasks, "write chunks")
 
 
 def _write_and_mark(writer: ChunkWriter, a: int, b: int, partial: Output, unit: str) -> None:

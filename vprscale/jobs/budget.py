@@ -63,9 +63,11 @@ def check(stages: list[Pending], budget: float) -> None:
 def may_start(stage: Pending, left: float, first: bool) -> str | None:
     """Why ``stage`` does not start now with ``left`` seconds of the budget (None: it starts).
     ``first``: nothing has started in this call yet."""
+    if first:
+        return None  # every call starts a stage, however little is left: else none could ever progress
     if left <= 0:
         return "the budget is spent"
-    if stage.checkpoints or first or stage.seconds is None or stage.seconds <= left:
+    if stage.checkpoints or stage.seconds is None or stage.seconds <= left:
         return None  # never measured: nothing to judge by, so progress rather than a call that does nothing
     return (f"'{stage.name}' cannot stop midway and is estimated at {words(stage.seconds)}, more than the "
             f"{words(left)} left")
