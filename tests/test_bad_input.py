@@ -6,8 +6,11 @@ import io
 import json
 import shutil
 import zipfile
+from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from vprscale.cli import main
@@ -184,3 +187,42 @@ def test_an_output_name_too_long_for_its_companions_is_one_line(tiny_store, tiny
                  ["report", str(tiny_index / "eval"), "--out", str(tmp_path / name)]):
         _fails(capsys, argv, "the output's name is 250 bytes; at most 241 leave room")
     assert list(tmp_path.iterdir()) == []
+
+
+def _null_first(folder: Path) -> str:
+    x = np.random.default_rng(0).standard_normal((100, 8)).astype(np.float32)
+    rows = [None] + [list(r) for r in x[1:]]
+    pq.write_table(pa.table({"emb": pa.array(rows, pa.list_(pa.float32()))}), folder / "null.parquet")
+    return f"{folder / 'null.parquet'}:emb"
+
+
+def _later_file_without_the_column(folder: Path) -> str:
+    x = np.random.default_rng(0).standard_normal((100, 8)).astype(np.float32)
+    (folder / "parts").mkdir()
+    for i, name in enumerate(("emb", "other")):
+        rows = pa.array([list(r) for r in x[50 * i : 50 * (i + 1)]], pa.list_(pa.float32()))
+        pq.write_table(pa.table({name: rows}), folder / "parts" / f"part-{i}.parquet")
+    return f"{folder / 'parts'}:emb"
+
+
+def _link_loop(folder: Path) -> str:
+    (folder / "loop.npy").symlink_to(folder / "loop.npy")
+    return str(folder / "loop.npy")
+
+
+@pytest.mark.parametrize("make, words", [
+    (_null_first, "null.parquet:emb: row 0 is null"),
+    (_later_file_without_the_column, "part-1.parquet: no column 'emb', which the files before it hold"),
+    (_link_loop, "--ref"),
+])
+def test_a_bad_reference_file_is_bad_input_not_a_bug(tmp_path, capsys, make, words):
+    """Each of these was reported as vprscale's own failure (exit 1, "internal error"): a Parquet
+    file whose first row is null, a Parquet folder whose later file lacks the column, a reference
+    that is a loop of symbolic links. Each is the input's fault: one line naming it, exit 2."""
+    x = np.random.default_rng(1).standard_normal((100, 8)).astype(np.float32)
+    np.save(tmp_path / "q.npy", x)
+    np.save(tmp_path / "gt.npy", np.arange(100))
+    ref = make(tmp_path)
+    last = _fails(capsys, ["build", "--ref", ref, "--query", f"q={tmp_path / 'q.npy'}", "--gt",
+                          str(tmp_path / "gt.npy"), "--out", str(tmp_path / "o")], words)
+    assert "internal error" not in last and not (tmp_path / "o" / "own.zarr").exists()

@@ -134,9 +134,17 @@ def local_output(spec: str) -> Path:
     return local_copy(Remote(spec))
 
 
-def _owner(path: Path) -> Path | None:
+def _resolved(path: Path, flag: str) -> Path:
+    """``path`` with its symbolic links followed, or an error naming the flag where they loop."""
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError):  # Python 3.11-3.12 say a loop with RuntimeError, 3.13 with OSError
+        raise InputError(f"--{flag} {path}: a loop of symbolic links, which leads to no file") from None
+
+
+def _owner(path: Path, flag: str) -> Path | None:
     """The vprscale store or index that ``path`` lies inside (symlinks followed), if any."""
-    for parent in path.resolve().parents:
+    for parent in _resolved(path, flag).parents:
         if (parent / "index.json").is_file() or (parent / "zarr.json").is_file():
             return parent
     return None
@@ -147,13 +155,13 @@ def _check_not_over_inputs(args: argparse.Namespace) -> None:
     store or index the command does not own (paths resolved, symlinks followed)."""
     inputs = _flag_paths(args, getattr(args, "input_flags", ()))
     for out_flag, out in _flag_paths(args, OUTPUT_FLAGS):
-        target = out.resolve()
+        target = _resolved(out, out_flag)
         for in_flag, src in inputs:
-            where = src.resolve()
+            where = _resolved(src, in_flag)
             if target == where or where in target.parents:
                 raise InputError(f"--{out_flag} {out}: would write {'over' if target == where else 'into'} the "
                                  f"input {src} (--{in_flag})")
-        owner = _owner(out)
+        owner = _owner(out, out_flag)
         own_eval = (args.command == "eval" and out_flag == "out" and getattr(args, "index", None)
                     and target == (Path(args.index) / "eval").resolve())
         if owner is not None and not own_eval:

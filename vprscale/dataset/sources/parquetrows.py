@@ -59,9 +59,14 @@ class ParquetRowsSource(RowSource):
                 value = schema.field(column).type.value_type
                 if not (pa.types.is_floating(value) or pa.types.is_integer(value)):
                     raise InputError(f"{self.path}:{column}: lists of {value}, not of numbers")
-            elif meta.schema.to_arrow_schema().field(column).type != schema.field(column).type:
-                raise InputError(f"{shown}: column {column!r} is {meta.schema.to_arrow_schema().field(column).type}, "
-                                 f"the files before it {schema.field(column).type}")
+            else:
+                here = meta.schema.to_arrow_schema()
+                if column not in here.names:
+                    raise InputError(f"{shown}: no column {column!r}, which the files before it hold (columns: "
+                                     f"{', '.join(here.names) or 'none'})")
+                if here.field(column).type != schema.field(column).type:
+                    raise InputError(f"{shown}: column {column!r} is {here.field(column).type}, the files before it "
+                                     f"{schema.field(column).type}")
             groups += [(i, g, meta.row_group(g).num_rows) for g in range(meta.num_row_groups)]
         self.column = column
         self.name = f"{self.path}:{column}"
@@ -75,9 +80,16 @@ class ParquetRowsSource(RowSource):
         else:
             first = next((k for k, (a, b) in enumerate(zip(self.starts[:-1], self.starts[1:], strict=True)) if b > a),
                          None)
-            self.dim = 0 if first is None else len(self._group(first)[0])
+            self.dim = 0 if first is None else self._first_length(first)
         if self.n_rows and self.dim == 0:
             raise InputError(f"{self.name}: row 0 holds no values")
+
+    def _first_length(self, k: int) -> int:
+        """The length of the first row of row group ``k`` (the width every row must have)."""
+        lists = self._group(k)
+        if lists.is_null()[0].as_py():
+            raise InputError(f"{self.name}: row {int(self.starts[k])} is null")
+        return len(lists[0])
 
     def _group(self, k: int) -> pa.ListArray:
         i, g = self.groups[k]
