@@ -202,6 +202,17 @@ def test_a_compressed_member_is_checked_before_it_is_unpacked(tmp_path, monkeypa
     with pytest.raises(InputError, match="arr_2 must be 10 integer ground-truth indices, got shape"):
         open_fas(tmp_path / "long.npz")
     assert not loaded
+    monkeypatch.undo()
+    monkeypatch.setenv("VPRSCALE_CACHE", str(tmp_path / "cache"))
+    # the descriptors are fine, another member is not: refused from the headers, arr_0 not unpacked
+    big = np.zeros((200_000, 128), "f4")  # 100 MB unpacked
+    for name, change, words in (("narrow", {"arr_1": np.zeros((10, 64), "f4")}, "arr_0 has 128 columns but arr_1"),
+                                ("poses", {"arr_4": np.zeros((9, 3))}, "arr_4 must hold 10 positions")):
+        np.savez_compressed(tmp_path / f"{name}.npz", **{**base, "arr_0": big, "arr_3": np.zeros((200_000, 3)),
+                                                        **change})
+        with pytest.raises(InputError, match=words):
+            open_fas(tmp_path / f"{name}.npz")
+        assert not list((tmp_path / "cache").rglob("*.npy")) and not list((tmp_path / "cache").rglob("*.tmp"))
 
 
 def test_fas_missing_array_and_not_a_zip(tmp_path):

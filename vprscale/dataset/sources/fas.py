@@ -105,6 +105,29 @@ def _member_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, shown: str) -> tu
     return shape, np.dtype(dtype)
 
 
+ARRAYS = ("arr_0", "arr_1", "arr_2", "arr_3", "arr_4")  # the members read (arr_5, arr_6 are unused)
+
+
+def _check_headers(shown: str, headers: dict[str, tuple[tuple, np.dtype]]) -> None:
+    """Every member's shape and the descriptors' dtype, from the headers alone (``(shape, dtype)``
+    by member): checked before a byte of any member is unpacked (the descriptors unpack to
+    gigabytes; a header may claim billions)."""
+    shapes = {key: shape for key, (shape, _) in headers.items()}
+    for key in ("arr_0", "arr_1"):
+        shape, dtype = headers[key]
+        if len(shape) != 2 or dtype != np.dtype("<f4"):
+            raise InputError(f"{shown}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
+    (n_ref, width), (n_query, width_q) = shapes["arr_0"], shapes["arr_1"]
+    if width != width_q:
+        raise InputError(f"{shown}: arr_0 has {width} columns but arr_1 has {width_q}")
+    if shapes["arr_2"] != (n_query,):
+        raise InputError(f"{shown}: arr_2 must be {n_query} integer ground-truth indices, got shape {shapes['arr_2']}")
+    for key, rows in (("arr_3", n_ref), ("arr_4", n_query)):
+        shape = shapes[key]
+        if len(shape) != 2 or shape[0] != rows or shape[1] not in (2, 3):
+            raise InputError(f"{shown}: {key} must hold {rows} positions (n × 2 or n × 3), got shape {shape}")
+
+
 def open_fas(path: str | os.PathLike, quiet: bool = False) -> Traverse:
     """Open and validate an FAS100K ``.npz`` (shapes, dtypes, ``0 ≤ gt < len(ref)``), a local file
     or a URL (fetched once into the cache: the FAS PCA reads it whole several times)."""
@@ -132,6 +155,7 @@ def _open_npz(p: Path, fp: dict[str, Any], shown: str, origin: str | None = None
         for key in ("arr_0", "arr_1", "arr_2", "arr_3", "arr_4"):
             if key not in members:
                 raise InputError(f"{shown}: missing array {key}")
+        _check_headers(shown, {k: _member_header(zf, members[k], shown) for k in ARRAYS})
 
         def descriptors(key: str) -> NpyMemberSource:
             info = members[key]
@@ -139,9 +163,6 @@ def _open_npz(p: Path, fp: dict[str, Any], shown: str, origin: str | None = None
                 offset, shape, fortran, dtype = _member_layout(zf, fh, info)
                 target = p
             else:
-                shape, dtype = _member_header(zf, info, shown)
-                if len(shape) != 2 or dtype != np.dtype("<f4"):  # checked before a byte of it is unpacked
-                    raise InputError(f"{shown}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
                 target = cache_root() / f"{fp['sha256_head_tail'][:16]}-{fp['bytes']}" / f"{key}.npy"
                 if not target.is_file() or target.stat().st_size != info.file_size:  # missing, or cut short
                     target.parent.mkdir(parents=True, exist_ok=True)
@@ -161,33 +182,21 @@ def _open_npz(p: Path, fp: dict[str, Any], shown: str, origin: str | None = None
                 with open(target, "rb") as cf:
                     shape, fortran, dtype = _npy_header(cf)
                     offset = cf.tell()
-            if len(shape) != 2 or np.dtype(dtype) != np.dtype("<f4"):
-                raise InputError(f"{shown}: {key} must be a 2-D float32 array, got shape {shape} dtype {dtype}")
             return NpyMemberSource(target, offset, shape, fortran, f"{shown}:{key}", {**fp, "member": key}, origin)
 
         ref, query = descriptors("arr_0"), descriptors("arr_1")
         small = {}
-        for k, rows in (("arr_2", query.n_rows), ("arr_3", ref.n_rows), ("arr_4", query.n_rows)):
-            shape, _ = _member_header(zf, members[k], shown)
-            if k == "arr_2" and shape != (rows,):  # checked before it is loaded: a header may claim billions
-                raise InputError(f"{shown}: arr_2 must be {rows} integer ground-truth indices, got shape {shape}")
-            if k != "arr_2" and (len(shape) != 2 or shape[0] != rows or shape[1] not in (2, 3)):
-                raise InputError(f"{shown}: {k} must hold {rows} positions (n × 2 or n × 3), got shape {shape}")
+        for k in ("arr_2", "arr_3", "arr_4"):
             try:
                 small[k] = np.load(zf.open(members[k]), allow_pickle=False)
             except ValueError as exc:  # a pickled (object) array, or not an .npy member at all
                 raise InputError(f"{shown}: {k} is not a plain numeric array ({str(exc).splitlines()[0]})") from None
-    if ref.dim != query.dim:
-        raise InputError(f"{shown}: arr_0 has {ref.dim} columns but arr_1 has {query.dim}")
-    gt, ref_pos, query_pos = small["arr_2"], small["arr_3"], small["arr_4"]
-    if gt.ndim != 1 or gt.shape[0] != query.n_rows or not np.issubdtype(gt.dtype, np.integer):
+    gt, ref_pos, query_pos = small["arr_2"], small["arr_3"], small["arr_4"]  # shapes checked from the headers
+    if not np.issubdtype(gt.dtype, np.integer):
         raise InputError(f"{shown}: arr_2 must be {query.n_rows} integer ground-truth indices, "
                          f"got shape {gt.shape} dtype {gt.dtype}")
     bad = np.flatnonzero((gt < 0) | (gt >= ref.n_rows))
     if bad.size:
         raise InputError(f"{shown}: arr_2 row {int(bad[0])}: ground truth {int(gt[bad[0]])} "
                          f"outside [0, {ref.n_rows})")
-    for key, pos, n in (("arr_3", ref_pos, ref.n_rows), ("arr_4", query_pos, query.n_rows)):
-        if pos.ndim != 2 or pos.shape[0] != n:
-            raise InputError(f"{shown}: {key} must hold {n} positions (n × 2 or n × 3), got shape {pos.shape}")
     return Traverse(ref, query, gt.astype(np.int64), ref_pos, query_pos)
