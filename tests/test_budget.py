@@ -319,3 +319,26 @@ def test_every_call_progresses_however_short_its_budget(tmp_path, monkeypatch):
     assert total == sum(range(8)) and calls == 3  # two chunks a call: four calls in all
     assert may_start(Pending("index", "index", 1200.0), left=-5.0, first=True) is None
     assert may_start(Pending("index", "index", 1200.0), left=-5.0, first=False) == "the budget is spent"
+
+
+def test_a_checkpoint_another_user_could_have_written_is_not_loaded(tmp_path, caplog):
+    """A pass's checkpoint is a pickle: one writable by others (or planted by them) would run their
+    code when loaded. It is written for this user alone, and one that is not is ignored: the pass
+    starts over, with the same result."""
+    import os
+    import pickle
+
+    bounds = [(i, i + 1) for i in range(6)]
+    assert passes.reduce_pass(tmp_path, "sum", bounds, lambda a, b: a, lambda s, r: s + r, 0, quiet=True) == 15
+    ckpt = tmp_path / "sum.pass"
+    assert ckpt.stat().st_mode & 0o777 == 0o600
+    planted = tmp_path / "planted"
+
+    class Plant:
+        def __reduce__(self):
+            return (open, (str(planted), "w"))
+
+    ckpt.write_bytes(pickle.dumps((3, Plant())))
+    os.chmod(ckpt, 0o666)  # as a file anybody could have written
+    assert passes.reduce_pass(tmp_path, "sum", bounds, lambda a, b: a, lambda s, r: s + r, 0, quiet=True) == 15
+    assert not planted.exists() and "not loaded" in caplog.text

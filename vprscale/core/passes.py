@@ -11,6 +11,8 @@ the pass was interrupted or scheduled.
 
 from __future__ import annotations
 
+import logging
+import os
 import pickle
 import time
 from collections.abc import Callable
@@ -20,9 +22,11 @@ from typing import Any, TypeVar
 import dask
 
 from vprscale.core import deadline
+from vprscale.core.private import owned
 from vprscale.core.progress import ChunkProgress, run_tasks
 
 S = TypeVar("S")
+log = logging.getLogger(__name__)
 
 
 def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Callable[[int, int], Any],
@@ -36,9 +40,11 @@ def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Call
     """
     ckpt = work / f"{checkpoint or name}.pass"
     done = 0
-    if ckpt.is_file():
+    if ckpt.is_file() and owned(ckpt):  # a pickle: loaded only where nobody else could have written it
         with ckpt.open("rb") as f:
             done, state = pickle.load(f)
+    elif ckpt.is_file():
+        log.warning("%s: a checkpoint another user could have written; not loaded, the pass starts over", ckpt)
     progress = None if quiet else ChunkProgress(name, len(bounds), done)
     run = dask.delayed(task, pure=True)  # the task object (small matrices, a reader) is hashed once
     last = 0.0  # the last group's wall time: what the next one is expected to take
@@ -50,7 +56,8 @@ def reduce_pass(work: Path, name: str, bounds: list[tuple[int, int]], task: Call
             state = fold(state, r)
         done = min(len(bounds), g + group)
         tmp = ckpt.with_suffix(".tmp")
-        with tmp.open("wb") as f:
+        tmp.unlink(missing_ok=True)
+        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as f:  # this user's alone
             pickle.dump((done, state), f, protocol=pickle.HIGHEST_PROTOCOL)
         tmp.replace(ckpt)
         deadline.progressed()

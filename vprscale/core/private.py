@@ -76,3 +76,16 @@ def entries(folder: Path) -> list[Path]:
     except OSError:
         pass
     return found
+
+
+def owned(path: Path) -> bool:
+    """Whether the file ``path`` is this user's, writable by nobody else, in a folder of this
+    user's that not everybody can write: what a process may unpickle (a checkpoint it wrote with
+    mode 0600), since whoever could write it could have planted code in it."""
+    try:
+        file, folder = os.lstat(path), os.stat(Path(path).parent)
+    except OSError:
+        return False
+    return (stat.S_ISREG(file.st_mode) and file.st_uid == os.geteuid()
+            and not file.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+            and folder.st_uid == os.geteuid() and not folder.st_mode & stat.S_IWOTH)
