@@ -220,6 +220,9 @@ def test_results_show_method_parameters_and_recall(evaluated):
     header = done.stdout.splitlines()[0].split()
     assert header[:9] == ["scale", "noise", "method", "family", "params", "mode", "L", "part", "radius"]
     assert "recall" in header and "recall_at_20" in header and "/" not in done.stdout.splitlines()[2]
+    # the two recalls' meanings, said under the table: a radius is not a candidate count
+    legend = done.stdout.splitlines()[-1]
+    assert "recall: the match within radius frames" in legend and "recall_at_20: Recall@N" in legend
 
 
 def test_every_command_has_help_with_defaults_and_an_example():

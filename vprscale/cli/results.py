@@ -117,4 +117,17 @@ def run(args: argparse.Namespace) -> int:
     width = shutil.get_terminal_size().columns if args.format == "table" and sys.stdout.isatty() else None
     shown = _shown(table, args.all_columns, args.queries, args.metres) if args.format == "table" else table
     write_table(shown, args.format, sys.stdout, max_width=width)
+    if args.format == "table" and not args.all_columns:
+        legend = [text for column, text in _legend(args.metres).items() if column in shown.column_names]
+        if legend:
+            print("; ".join(legend))
     return 0
+
+
+def _legend(metres: bool) -> dict[str, str]:
+    """What each recall column of the table means, said under it: ``recall`` is the match within a
+    radius of the truth, ``recall_at_20`` Recall@N (any of N candidates), two different things that
+    a bare "R@20" would confuse."""
+    within = "radius_m metres" if metres else "radius frames"
+    return {"recall": f"recall: the match within {within} of the truth (recall_lo, recall_hi: its 95 % interval)",
+            "recall_at_20": f"recall_at_20: Recall@N, any of the N = 20 best candidates within {within}"}

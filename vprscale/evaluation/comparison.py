@@ -74,7 +74,7 @@ def shared_legend(fig, axes) -> None:
 
 
 def _points(res: pd.DataFrame) -> pd.DataFrame:
-    """One row per (scale, noise, method, mode, L, params): R@20 over all queries with its
+    """One row per (scale, noise, method, mode, L, params): recall within 20 frames over all queries with its
     interval, bytes, µs and queries per second per core, at scales where a method was compared."""
     sub = res[(res.part == "all") & (res.radius == RADIUS) & res.method.ne("baseline")]
     if "bytes_per_place" not in sub:
@@ -422,8 +422,8 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
             "each method's Pareto front: the "
             "operating points no other point of the method beats on both recall and throughput.", "",
             *(line for name in figures for line in (f"![{name}]({name}.png)", "")), *_words(points, scales), "",
-            table(["scale", "noise", "L", "method (mode)", "family", "B/place", "µs/query", "R@20 % (95 % interval)",
-                   "queries"], rows), ""]
+            table(["scale", "noise", "L", "method (mode)", "family", "B/place", "µs/query",
+                   "within 20 frames % (95 % interval)", "queries"], rows), ""]
 
 
 def _scale_key(scales: list[str]):

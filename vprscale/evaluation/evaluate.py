@@ -561,7 +561,7 @@ def _summary_table(rows: list[dict]) -> str:
              "-" if r["d"] is None else r["d"], r["L"], r["part"]) for r in rows]  # names as text on a terminal
     width = max([len("params"), *(len(k[2]) for k in keys)])
     lines = [f"{'noise':<5} {'method':<20} {'params':<{width}} {'mode':<8} {'d':>3} {'L':>4} {'part':<7} {'n':>6} "
-             f"{'R@0':>6} {'R@5':>6} {'R@20':>6} {'N_r':>7} {'B/place':>8} {'µs/q':>10} {'ops/q':>11}"]
+             f"{'≤0 fr':>6} {'≤5 fr':>6} {'≤20 fr':>6} {'N_r':>7} {'B/place':>8} {'µs/q':>10} {'ops/q':>11}"]
     by_key: dict[tuple, dict[int, dict]] = {}
     for key, r in zip(keys, rows, strict=True):
         by_key.setdefault(key, {})[r["radius"]] = r
@@ -571,4 +571,5 @@ def _summary_table(rows: list[dict]) -> str:
                      f"{r0['n_queries']:>6} {radii[0]['recall']:>6.3f} {radii[5]['recall']:>6.3f} "
                      f"{radii[20]['recall']:>6.3f} {r0['nr_mean']:>7.1f} {r0['bytes_per_place']:>8.2f} "
                      f"{r0['us_per_query']:>10.2f} {r0['ops_per_query']:>11.0f}")
+    lines.append("≤r fr: share of queries whose match lies within r frames of the truth (not Recall@N)")
     return "\n".join(lines)

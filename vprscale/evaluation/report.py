@@ -455,7 +455,8 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
             rows.append([scale, noise.upper(), L, _label(method, mode), _family(g, method), int(g.n_queries.iloc[0]),
                          *(_pct(r.get(x)) for x in (0, 5, 10, 20))])
     md += ["## Recall (%) at radii 0 / 5 / 10 / 20 frames (all queries)", "",
-           _md_table(["scale", "noise", "L", "method", "family", "queries", "R@0", "R@5", "R@10", "R@20"], rows), ""]
+           _md_table(["scale", "noise", "L", "method", "family", "queries", "≤0 frames", "≤5 frames", "≤10 frames",
+                      "≤20 frames"], rows), ""]
     md += _stratification_note(res, scales)
     rows = []
     for scale in scales:

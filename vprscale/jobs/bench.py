@@ -154,7 +154,7 @@ def bench_eval(store: str, index: str, args: list[str], workers: int) -> str:
     for _, row in res.iterrows():
         lines.append(f"  {row.noise} {row.method:<10} {str(row['mode']):<8} L={row.L:<4} d={row.d:<3} "
                      f"{row.us_per_query:10.2f} µs/query{_frame_part(row.us_per_frame)}  N_r {row.nr_mean:7.1f}  "
-                     f"R@20 {100 * row.recall:5.1f} %  ({row.n_queries} queries)")
+                     f"within 20 frames {100 * row.recall:5.1f} %  ({row.n_queries} queries)")
     for (noise, L), g in res.groupby(["noise", "L"]):
         m = g[(g.method == "coarsehash") & (g["mode"].isna() | (g["mode"] == "paper"))]
         b = g[g.method == "baseline"]
