@@ -459,3 +459,17 @@ def test_a_large_result_streams_as_csv_and_json_and_is_refused_as_a_table(evalua
     assert main(["sql", str(evaluated), query.replace("150000", "250000")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "250,000 rows" in err and "--csv" in err
+
+
+def test_one_shot_sql_and_where_show_the_engines_hint_and_caret(evaluated):
+    """A mistyped column in one-shot SQL or in ``results --where`` gets what DuckDB's shell shows:
+    the candidate bindings, the statement's line and a caret under the name; exit 2."""
+    for argv, name in ((["sql", str(evaluated), "SELECT sise FROM buckets"], "sise"),
+                       (["results", str(evaluated), "--where", "radious = 20"], "radious")):
+        done = _vprscale(*argv)
+        assert done.returncode == 2 and "Traceback" not in done.stderr
+        err = done.stderr.splitlines()
+        assert err[0].startswith(f"vprscale {argv[0]}: error: query: Binder Error: Referenced column")
+        assert any(x.startswith("Candidate bindings:") for x in err), done.stderr
+        at = next(i for i, x in enumerate(err) if x.startswith("LINE 1:"))
+        assert err[at + 1].strip() == "^" * len(name) and err[at + 1].index("^") == err[at].index(name)

@@ -39,7 +39,7 @@ from vprscale.cli import (
 from vprscale.cli.common import EXIT_FAILURE, EXIT_USAGE, HelpFormatter, check_outputs, disk_full, shared_flags
 from vprscale.cli.examples import epilog
 from vprscale.core.deadline import EXIT_MORE, BudgetSpent
-from vprscale.core.errors import CLUSTER, InputError, Interrupted, JobFailed, raised_by
+from vprscale.core.errors import CLUSTER, InputError, Interrupted, JobFailed, QueryError, raised_by
 from vprscale.core.objects import storage_failure
 from vprscale.core.plaintext import terminal
 from vprscale.core.provenance import set_command
@@ -164,6 +164,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _closed_pipe()
     except InputError as exc:
         print(f"vprscale {args.command}: error: {terminal(exc)}", file=sys.stderr)
+        if isinstance(exc, QueryError) and exc.detail:  # the SQL engine's hint, the statement's line and a caret
+            print(terminal(exc.detail), file=sys.stderr)
         return EXIT_USAGE
     except BudgetSpent as exc:  # not a failure: the job stopped at a checkpoint, as vprscale run --budget asked
         print(f"vprscale {args.command}: stopped at a checkpoint, the time budget spent ({terminal(exc)}); the same "
