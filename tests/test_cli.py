@@ -5,6 +5,7 @@ help with defaults and examples, quiet and verbose, and a bug reported in one li
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import pty
 import re
@@ -473,3 +474,43 @@ def test_one_shot_sql_and_where_show_the_engines_hint_and_caret(evaluated):
         assert any(x.startswith("Candidate bindings:") for x in err), done.stderr
         at = next(i for i, x in enumerate(err) if x.startswith("LINE 1:"))
         assert err[at + 1].strip() == "^" * len(name) and err[at + 1].index("^") == err[at].index(name)
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["eval", "s.zarr", "i.index", "--noises", "qm1"], ["vprscale eval: error: unrecognized arguments: --noises qm1",
+                                                        "--noises: did you mean --noise?"]),
+    (["build", "--scael", "20K"], ["vprscale build: error:", "did you mean --scale?"]),
+    (["eval", "NOWHERE.zarr", "i.index"], ["NOWHERE.zarr: no such file or directory"]),
+    (["eval", "s.zarr", "i.index", "--compare", "seq-gem:PQ2"],
+     ["seq-gem: is no pooling", "seq:FACTORY", "seq-gem3:FACTORY"]),
+    (["build", "--ref", "r.npy", "--query", "q=q.npy", "--out", "o"], ["vprscale build: error: --gt missing"]),
+])
+def test_natural_mistakes_get_a_precise_line(tiny_store, tiny_index, tmp_path, monkeypatch, capsys, argv, words):
+    """A misspelt flag is named by the command's own usage with the flag it likely meant; a store
+    that is not there is said so; a pooling that does not exist names those that do; the error
+    names its command once."""
+    monkeypatch.chdir(tmp_path)
+    for name, real in (("s.zarr", tiny_store), ("i.index", tiny_index)):
+        (tmp_path / name).symlink_to(real)
+    with pytest.raises(SystemExit) if any("unrecognized" in w or "did you mean" in w for w in words) \
+            else contextlib.nullcontext():
+        assert main(argv) == 2
+    err = capsys.readouterr().err
+    for w in words:
+        assert w in err, err
+    assert "build: build:" not in err and "Traceback" not in err
+
+
+def test_a_scale_is_named_in_either_case(tmp_path, capsys):
+    assert main(["build", "--scale", "1m", "--out", str(tmp_path), "--dry-run"]) == 0
+    assert "1M.zarr" in capsys.readouterr().out
+
+
+def test_a_build_says_how_many_query_sets_it_stored():
+    """Two query sets of 6,000 rows are 2 query sets of 6,000 rows, not "6,000 query rows"."""
+    from vprscale.dataset.build import format_summary
+
+    summary = {"store": "data/mine.zarr", "layout": "full", "ref_rows": 60_000, "query_rows": 6_000, "query_sets": 2,
+               "stages_s": {}, "wall_s": 1.0, "peak_rss_bytes": 0, "bytes_on_disk": 0}
+    assert "60,000 ref rows, 2 query sets of 6,000 rows" in format_summary(summary)
+    assert "6,000 query rows" in format_summary({**summary, "query_sets": 1})

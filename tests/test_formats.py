@@ -270,3 +270,22 @@ def test_shards_with_a_gap_in_their_numbering_are_refused(rows, tmp_path, form, 
     (tmp_path / "f" / gone).unlink()
     with pytest.raises(InputError, match=words):
         open_rows(spec)
+
+
+def test_hdf5_ground_truth_and_an_hdf5_file_of_one_dataset(rows, tmp_path):
+    """ann-benchmarks keeps the truth beside the vectors (``neighbors``, n × k, nearest first): it
+    is read as ``--gt FILE.hdf5:neighbors``, its first column. A file of one 2-D dataset is read
+    without naming it, as a Parquet file of one list column is; one of several says which it holds."""
+    ids = np.random.default_rng(0).integers(0, 1000, size=(50, 10)).astype(np.int32)
+    with h5py.File(tmp_path / "ann.hdf5", "w") as f:
+        f["train"], f["test"], f["neighbors"] = rows, rows[:50], ids
+    np.testing.assert_array_equal(read_labels(f"{tmp_path / 'ann.hdf5'}:neighbors", 50, "--gt"), ids[:, 0])
+    with pytest.raises(InputError, match="ann.hdf5:train: an integer dataset of ids"):
+        read_labels(f"{tmp_path / 'ann.hdf5'}:train", 50, "--gt")
+    with pytest.raises(InputError, match="name the dataset of descriptors .* 2-D datasets: neighbors, test, train"):
+        open_rows(str(tmp_path / "ann.hdf5"))
+    with h5py.File(tmp_path / "one.hdf5", "w") as f:
+        f["emb"] = rows
+    src = open_rows(str(tmp_path / "one.hdf5"))
+    assert src.name.endswith("one.hdf5:emb") and src.n_rows == N
+    np.testing.assert_array_equal(src.read(0, 10), rows[:10])

@@ -11,6 +11,7 @@ changing ``vprscale sql`` re-runs no build (docs/architecture.md).
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
 import os
 import signal
@@ -83,6 +84,22 @@ def parser() -> argparse.ArgumentParser:
     return top
 
 
+def _parse(top: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """The command line parsed; a flag the command does not know is said by the command's own
+    usage, with the flag it most likely meant (``--noises``: did you mean ``--noise``?)."""
+    args, extra = top.parse_known_args(argv)
+    if extra:
+        command = next(a for a in top._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+        known = [o for a in command._actions for o in a.option_strings if o.startswith("--")]
+        hints = []
+        for flag in (e for e in extra if e.startswith("-")):
+            near = difflib.get_close_matches(flag.split("=", 1)[0], known, n=1, cutoff=0.75)
+            if near:
+                hints.append(f"{flag.split('=', 1)[0]}: did you mean {near[0]}?")
+        command.error(f"unrecognized arguments: {' '.join(extra)}" + (f" ({'; '.join(hints)})" if hints else ""))
+    return args
+
+
 class _Stderr(logging.StreamHandler):
     """A handler writing to whatever ``sys.stderr`` is when a record is emitted (a test's capture,
     a pipeline's redirection), never to a stream that has since been closed; a message is text,
@@ -140,7 +157,7 @@ def _closed_streams(args: argparse.Namespace) -> str | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = parser().parse_args(argv)
+    args = _parse(parser(), argv)
     closed = _closed_streams(args)
     if closed:
         print(f"vprscale {args.command}: error: {closed}", file=sys.stderr)

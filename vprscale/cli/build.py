@@ -93,7 +93,7 @@ def _build_own(args: argparse.Namespace) -> int:
     positions = bool(args.ref_pos and args.query_pos)  # the truth follows from them where --gt is not given
     missing = [f for f, v in (("--ref", args.ref), ("--query", args.query), ("--gt", args.gt or positions)) if not v]
     if missing:
-        raise InputError(f"build: {' and '.join(missing)} missing (your own descriptors need --ref, --query, and "
+        raise InputError(f"{' and '.join(missing)} missing (your own descriptors need --ref, --query, and "
                          "--gt or --ref-pos with --query-pos)")
     if args.dry_run:
         raise InputError("--dry-run: plans a recipe's build; your own descriptors are copied as they are")

@@ -39,8 +39,13 @@ _SPEC = re.compile(r"^(seq|seq-gem3):(.+?)(\+rerank(\d*))?$")
 
 
 def is_pooled(spec: str) -> bool:
-    """Whether a ``--compare`` string names a pooled sequence descriptor (``seq:…``, ``seq-gem3:…``)."""
-    return spec.split(":", 1)[0] in POOLINGS
+    """Whether a ``--compare`` string names a pooled sequence descriptor (``seq:…``, ``seq-gem3:…``);
+    a prefix that looks like one but is not (``seq-gem:``, ``seq-mean:``) is an error saying which are."""
+    prefix, colon, _ = spec.partition(":")
+    if colon and prefix not in POOLINGS and prefix.lower().startswith("seq"):
+        raise InputError(f"--compare {spec}: {prefix}: is no pooling; a pooled sequence descriptor is seq:FACTORY "
+                         "(the window's mean) or seq-gem3:FACTORY (GeM, p = 3), e.g. seq:PQ3, seq-gem3:PQ3")
+    return prefix in POOLINGS
 
 
 @dataclass(frozen=True)

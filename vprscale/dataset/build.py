@@ -41,7 +41,7 @@ from vprscale.core.throughput import throughput
 from vprscale.dataset import compact
 from vprscale.dataset.corpora import Corpus, check_corpus
 from vprscale.dataset.homogenise import window_mean
-from vprscale.dataset.layout import ChunkWriter, Layout, codecs, grid
+from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, Layout, codecs, grid
 from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
 from vprscale.dataset.recipe import MAX_CHUNK_ROWS, Recipe, load_recipe
 from vprscale.dataset.sources.base import RowSource
@@ -331,7 +331,8 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path | Re
     elapsed = time.perf_counter() - t_start
     input_rows = (recipe.deep1b_rows_read, traverse.ref.n_rows + traverse.query.n_rows)  # the corpus, FAS100K
     summary = {"store": str(final), "scale": recipe.scale, "layout": layout, "ref_rows": lay.n_ref,
-               "query_rows": lay.n_query, "resumed": resumed, "stages_s": timings.stages,
+               "query_rows": lay.n_query, "query_sets": len(NOISE_LEVELS), "resumed": resumed,
+               "stages_s": timings.stages,
                "wall_s": elapsed, "peak_rss_bytes": peak, "workers": req.workers, "input_rows": sum(input_rows),
                "input_bytes": 4 * (input_rows[0] * deep.dim + input_rows[1] * traverse.ref.dim),
                "provenance": provenance(inputs={k: provenance_key[k] for k in ("recipe", "sources")})}
@@ -401,7 +402,9 @@ def _save_transforms(group: zarr.Group, merge: MergeTransform, work: Path) -> No
 
 
 def format_summary(s: dict[str, Any]) -> str:
-    lines = [f"built {s['store']} ({s['layout']} layout): {s['ref_rows']:,} ref rows, {s['query_rows']:,} query rows"
+    sets = int(s.get("query_sets", 1))  # every query set has as many rows (a traverse in other conditions)
+    queries = f"{sets} query sets of {s['query_rows']:,} rows" if sets > 1 else f"{s['query_rows']:,} query rows"
+    lines = [f"built {s['store']} ({s['layout']} layout): {s['ref_rows']:,} ref rows, {queries}"
              + (" (resumed)" if s.get("resumed") else "")]
     for name, secs in s["stages_s"].items():
         lines.append(f"  {secs:8.1f} s  {name}")

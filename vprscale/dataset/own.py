@@ -233,7 +233,8 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
         layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(gt) - n_deep,
                   "noises": sorted(queries), **({"positions": int(positions[0].shape[1])} if positions else {})}
         summary = {"store": str(final), "scale": name, "layout": "full", "ref_rows": ref.n_rows,
-                   "query_rows": len(gt), "resumed": resumed, "stages_s": timings.stages,
+                   "query_rows": len(gt), "query_sets": len(queries), "resumed": resumed,
+                   "stages_s": timings.stages,
                    "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
                    "provenance": provenance(inputs={"sources": identity["sources"]})}
         group.attrs[ATTR] = {**json.loads(json.dumps(identity, default=str)), "complete": True, "layout": layout}

@@ -136,7 +136,8 @@ def recipe_path(scale: str) -> Path:
     """The file of a named scale (``20K``, ``1M``, …), or ``scale`` itself if it is a TOML path."""
     path = Path(scale)
     if not path.suffix == ".toml":
-        path = recipe_dir() / f"{scale}.toml"
+        named = {name.lower(): name for name in known_scales()}  # 1m, 20k: the same scales as 1M, 20K
+        path = recipe_dir() / f"{named.get(scale.lower(), scale)}.toml"
         if not path.is_file():
             raise InputError(f"--scale {scale}: unknown scale; known: {', '.join(known_scales())}")
     elif not path.is_file():

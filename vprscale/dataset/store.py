@@ -30,6 +30,8 @@ def open_complete_group(path: str | os.PathLike | Remote, kind: str = "dataset")
     marked complete."""
     p = path if isinstance(path, Remote) else location(path)
     if not (p / "zarr.json").is_file():
+        if not p.exists():
+            raise InputError(f"{p}: no such {'object or prefix' if isinstance(p, Remote) else 'file or directory'}")
         raise InputError(f"{p}: not a vprscale {kind} store (no zarr.json)")
     try:
         group = zarr.open_group(zarr_url(p), mode="r")

@@ -53,28 +53,55 @@ def _stored_within(dataset: Any, name: str) -> None:
                          "named file holds: copy the rows into a plain dataset (h5py: f2[k] = f1[k][:])")
 
 
-class Hdf5Source(RowSource):
-    """The 2-D dataset ``key`` of the HDF5 file at ``path`` (a local path or a URL)."""
+def _datasets(f: Any) -> list[str]:
+    """The datasets at the top of an open file (hard links only: what the file itself holds)."""
+    h5py = _h5py()
+    return sorted(k for k in f if isinstance(f.get(k, getlink=True), h5py.HardLink) and isinstance(f[k], h5py.Dataset))
 
-    def __init__(self, path: str | os.PathLike, key: str) -> None:
-        self.url = str(path) if is_url(str(path)) else None
-        self.path, self.key = None if self.url else Path(path).absolute(), key  # tasks may run elsewhere
-        where = public(self.url) if self.url else str(self.path)
-        self.name = f"{where}:{key}"
-        if self.path is not None and not self.path.is_file():
-            raise InputError(f"{self.path}: no such file")
-        h5py = _h5py()
+
+def _checked(f: Any, key: str | None, name: str, what: str) -> tuple[str, tuple, np.dtype]:
+    """``(key, shape, dtype)`` of the dataset ``key`` of the open file ``f`` (shown as ``name``),
+    held in the file itself; ``key`` None: the file's one 2-D dataset, as a Parquet file's one
+    list column is taken (an ann-benchmarks file holds several: they are named)."""
+    h5py = _h5py()
+    if key is None:
+        found = [k for k in _datasets(f) if len(f[k].shape) == 2]
+        if len(found) != 1:
+            raise InputError(f"{name}: name the dataset of {what} ({name}:DATASET); 2-D datasets: "
+                             f"{', '.join(found) or 'none'}")
+        key = found[0]
+    _within(f, key, f"{name}:{key}")
+    if key not in f or not isinstance(f[key], h5py.Dataset):
+        raise InputError(f"{name}:{key}: no dataset {key!r} in the file (it holds {', '.join(_datasets(f))})")
+    _stored_within(f[key], f"{name}:{key}")
+    return key, f[key].shape, f[key].dtype
+
+
+def _open_file(path: Path | None, url: str | None) -> Any:
+    return _h5py().File(remote_file(url) if url else path, "r")
+
+
+def _located(path: str | os.PathLike) -> tuple[Path | None, str | None, str]:
+    """``(local path, url, shown)`` of an HDF5 file named by path or URL (a local one must exist)."""
+    url = str(path) if is_url(str(path)) else None
+    local = None if url else Path(path).absolute()  # tasks may run elsewhere
+    if local is not None and not local.is_file():
+        raise InputError(f"{local}: no such file")
+    return local, url, public(url) if url else str(local)
+
+
+class Hdf5Source(RowSource):
+    """The 2-D dataset ``key`` of the HDF5 file at ``path`` (a local path or a URL); ``key`` None:
+    the file's one 2-D dataset."""
+
+    def __init__(self, path: str | os.PathLike, key: str | None) -> None:
+        self.path, self.url, where = _located(path)
         try:
             with self._open() as f:
-                _within(f, key, self.name)
-                if key not in f or not isinstance(f[key], h5py.Dataset):
-                    datasets = sorted(k for k in f if isinstance(f.get(k, getlink=True), h5py.HardLink)
-                                      and isinstance(f[k], h5py.Dataset))
-                    raise InputError(f"{self.name}: no dataset {key!r} in the file (it holds {', '.join(datasets)})")
-                _stored_within(f[key], self.name)
-                shape, dtype = f[key].shape, f[key].dtype
+                self.key, shape, dtype = _checked(f, key, where, "descriptors")
         except OSError as exc:
             raise InputError(f"{where}: not a readable HDF5 file ({str(exc).splitlines()[0][:160]})") from None
+        self.name = f"{where}:{self.key}"
         if len(shape) != 2 or dtype.kind not in "fiu" or shape[1] == 0:
             raise InputError(f"{self.name}: a 2-D dataset of descriptor rows expected, not {len(shape)}-D {dtype} "
                              f"{shape}")
@@ -82,7 +109,7 @@ class Hdf5Source(RowSource):
         self._file = remote_fingerprint(self.url) if self.url else file_fingerprint(self.path)
 
     def _open(self) -> Any:
-        return _h5py().File(remote_file(self.url) if self.url else self.path, "r")
+        return _open_file(self.path, self.url)
 
     def _read(self, start: int, stop: int) -> np.ndarray:
         with self._open() as f:
@@ -91,3 +118,18 @@ class Hdf5Source(RowSource):
     def fingerprint(self) -> dict[str, Any]:
         return {"format": "hdf5", "dataset": self.key, "rows": self.n_rows, "dim": self.dim,
                 "files": [self._file]}
+
+
+def read_ids(path: str | os.PathLike, key: str) -> np.ndarray:
+    """The integer dataset ``key`` of an HDF5 file, read whole: ground truth as ann-benchmarks keeps
+    it (``neighbors``, n × k, nearest first) or one id a row (n)."""
+    local, url, where = _located(path)
+    try:
+        with _open_file(local, url) as f:
+            key, shape, dtype = _checked(f, key, where, "ids")
+            if len(shape) not in (1, 2) or dtype.kind not in "iu" or (len(shape) == 2 and shape[1] == 0):
+                raise InputError(f"{where}:{key}: an integer dataset of ids (n, or n × k nearest first) expected, "
+                                 f"not {len(shape)}-D {dtype} {shape}")
+            return np.asarray(f[key][()])
+    except OSError as exc:
+        raise InputError(f"{where}: not a readable HDF5 file ({str(exc).splitlines()[0][:160]})") from None

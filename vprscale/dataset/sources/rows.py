@@ -16,12 +16,12 @@ from typing import Any
 import numpy as np
 
 from vprscale.core.errors import InputError
-from vprscale.core.objects import is_url, public
+from vprscale.core.objects import is_url
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.deep1b import FvecsSource, open_deep1b
 from vprscale.dataset.sources.fingerprint import file_fingerprint
 from vprscale.dataset.sources.hdf5 import SUFFIXES as HDF5_SUFFIXES
-from vprscale.dataset.sources.hdf5 import Hdf5Source
+from vprscale.dataset.sources.hdf5 import Hdf5Source, read_ids
 from vprscale.dataset.sources.parquetrows import ParquetRowsSource
 from vprscale.dataset.sources.remote import RemoteNpySource, prefix_suffixes
 from vprscale.dataset.sources.shards import NpyShardsSource, check_rows, open_npy
@@ -57,7 +57,7 @@ def open_rows(spec: str | os.PathLike) -> RowSource:
     if head and Path(head).suffix in HDF5_SUFFIXES:
         return Hdf5Source(head, key)
     if Path(text).suffix in HDF5_SUFFIXES:
-        raise InputError(f"{text}: name the dataset of descriptors ({text}:train, for example)")
+        return Hdf5Source(text, None)  # its one 2-D dataset, as a Parquet file's one list column
     for path, column in ((Path(head), key), (Path(text), None)) if head else ((Path(text), None),):
         if path.suffix == ".parquet" or path.is_dir() and any(path.glob("*.parquet")):
             return ParquetRowsSource(path, column or None)
@@ -76,7 +76,7 @@ def _open_url(text: str) -> RowSource:
     if Path(head.split("?", 1)[0]).suffix in HDF5_SUFFIXES:
         return Hdf5Source(head, key)
     if Path(text.split("?", 1)[0]).suffix in HDF5_SUFFIXES:
-        raise InputError(f"{public(text)}: name the dataset of descriptors ({public(text)}:train, for example)")
+        return Hdf5Source(text, None)
     keyed = "/" not in key and not key.isdigit()  # not a port, nor a path
     listed: dict[str, set[str]] = {}  # what a prefix holds, asked of the storage once
 
@@ -120,13 +120,18 @@ def neighbour_ids(path: Path) -> np.ndarray:
 
 def read_labels(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
     """``n`` labels (one per query row), read whole: a 1-D integer ``.npy`` array, or the nearest
-    neighbour (first column) of a ground-truth ``.ibin`` or ``.ivecs`` file."""
+    neighbour (first column) of a ground-truth ``.ibin`` or ``.ivecs`` file or of an HDF5 dataset
+    (``FILE.hdf5:neighbors``, ann-benchmarks' own)."""
     p = Path(path)
-    if p.suffix in (".ibin", ".ivecs"):
+    head, _, key = str(path).rpartition(":")
+    if head and Path(head).suffix in HDF5_SUFFIXES:
+        a = read_ids(head, key)
+        a = a[:, 0] if a.ndim == 2 else a
+    elif p.suffix in (".ibin", ".ivecs"):
         a = np.asarray(neighbour_ids(p)[:, 0])
     elif p.suffix != ".npy":
-        raise InputError(f"{p}: {what} must be an .npy array of integers (or an .ibin, .ivecs ground truth), "
-                         "one per query row")
+        raise InputError(f"{p}: {what} must be an .npy array of integers (or an .ibin, .ivecs or HDF5 "
+                         "FILE.hdf5:DATASET ground truth), one per query row")
     else:
         a = open_npy(p)
     if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
