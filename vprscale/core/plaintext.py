@@ -14,7 +14,8 @@ import re
 from typing import Any
 
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")  # C0 (but tab and newline), DEL, C1
-_MARKDOWN = str.maketrans({"&": "&amp;", "<": "&lt;", ">": "&gt;", "|": "\\|", "`": "\\`", "\n": " ", "\r": " "})
+_MARKDOWN = str.maketrans({"|": "\\|", "`": "\\`", "\n": " ", "\r": " "})
+_MARKUP = re.compile(r"<(?=[A-Za-z/!?])|&(?=#?[A-Za-z0-9]+;)")  # what would start a tag or an entity
 _SCRIPT = str.maketrans({"<": "\\u003c", ">": "\\u003e", "&": "\\u0026", "\u2028": "\\u2028", "\u2029": "\\u2029"})
 
 
@@ -24,8 +25,10 @@ def terminal(value: Any) -> str:
 
 
 def markdown(value: Any) -> str:
-    """``value`` as one Markdown table cell or inline text: no HTML, no cell break, no code span."""
-    return terminal(value).translate(_MARKDOWN)
+    """``value`` as one Markdown table cell or inline text: no HTML, no cell break, no code span.
+    A ``<`` or ``&`` that would start a tag or an entity is backslash-escaped, so the text reads
+    as itself in the raw Markdown too (``Babenko & Lempitsky``, not ``Babenko &amp; Lempitsky``)."""
+    return _MARKUP.sub(lambda m: "\\" + m.group(), terminal(value).translate(_MARKDOWN))
 
 
 def markdown_code(value: Any) -> str:

@@ -14,7 +14,9 @@ browser:
   figures read (every noise level is there: none is left out);
 - under each figure the table it draws, and a button that downloads it as CSV (the rows the
   filters leave), and the whole table likewise;
-- the provenance block of the report on top.
+- the provenance block of the report on top;
+- below, the whole of ``report.md``: every figure (embedded), table and line of it
+  (:mod:`vprscale.evaluation.mdhtml`), so the page alone is the report.
 
 Errors in the page are written into it (``#page-errors``), so a headless browser can tell a
 page that drew from one that failed. Colours and markers are the PNG figures' (one colour
@@ -34,6 +36,7 @@ from matplotlib.colors import to_hex
 
 from vprscale.core.plaintext import script_json
 from vprscale.evaluation.comparison import method_and_mode, series_colours, with_series
+from vprscale.evaluation.mdhtml import inline, render
 
 PAGE, SCRIPT = "report_page.html", "report_page.js"  # the page's template and script (package data)
 # The columns the page holds per recall row (those an evaluation has)
@@ -68,9 +71,11 @@ def _json(rows: pd.DataFrame) -> str:
     return script_json(records, separators=(",", ":"))
 
 
-def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[str], title: str, out: Path) -> Path:
+def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[str], title: str, out: Path,
+               report_md: str = "") -> Path:
     """Write ``out/report.html`` from the results ``res``, the rows in metres ``metres`` (empty
-    when no evaluation counted them) and the report's provenance lines."""
+    when no evaluation counted them), the report's provenance lines and the whole of ``report.md``
+    (``report_md``, its figures read from ``out``), which the page holds below its own figures."""
     from plotly.offline import get_plotlyjs
 
     here = resources.files(__package__)
@@ -80,11 +85,12 @@ def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[s
     figures = FIGURES + ((METRES_FIGURE,) if len(rows_m) else ())
     families = list(dict.fromkeys([*rows.series, *rows_m.series]))
     colours = {method_and_mode(f)[0]: to_hex(c) for f, c in series_colours(families).items()}
-    provenance = "".join(f"<li>{html.escape(line.removeprefix('- '))}</li>" for line in provenance_lines
+    provenance = "".join(f"<li>{inline(line.removeprefix('- '))}</li>" for line in provenance_lines
                          if line.startswith("- "))
     script = (script.replace("@COLOURS@", script_json(colours)).replace("@SYMBOLS@", script_json(SYMBOLS))
               .replace("@FIGURES@", script_json(figures)))
     values = {"TITLE": html.escape(title), "PROVENANCE": provenance, "SCRIPT": script, "ROWS": _json(rows),
+              "REPORT": render(report_md, out),
               "ROWSM": _json(rows_m),
               "PLOTLY": get_plotlyjs().replace("</script", "<\\/script")}
     page = re.sub(r"@([A-Z]+)@", lambda m: values[m.group(1)], template)  # one pass: inserted text is not rescanned

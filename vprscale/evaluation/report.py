@@ -425,7 +425,7 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None,
     compared += nn_section(load_nn(list(dict.fromkeys(res.run))), scales, out, save, _md_table)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared, record)
     (out / "report.md").write_text(text)
-    write_html(res, metres, _provenance_block(evals, record), REPORT_TITLE.removeprefix("# "), out)
+    write_html(res, metres, _provenance_block(evals, record), REPORT_TITLE.removeprefix("# "), out, text)
     if record is not None:
         stagerecord.write_record(out / stagerecord.FILE, record["pipeline"], record["stages"])
     small = res[res.radius.isin([0, 5, 10, 20])].drop(columns=["store", "index"], errors="ignore")

@@ -129,14 +129,14 @@
       var metres = f[2] === "radius_m", radiusFigure = f[2] === "radius" || metres;
       var rows = (metres ? ROWS_M : ROWS).filter(function (r) { return kept(r, !radiusFigure) && r[f[2]] !== null; });
       drawn[f[0]] = rows;
-      var layout = {margin: {t: 20}, hovermode: "closest", legend: {orientation: "h", y: -0.2},
+      var layout = {margin: {t: 20}, hovermode: "closest", legend: {orientation: "v", x: 1.02, y: 1},
                     xaxis: {title: {text: f[3]}, type: radiusFigure ? "linear" : "log", dtick: f[2] === "radius" ? 1 : undefined},
                     yaxis: {title: {text: "recall" + (radiusFigure ? "" : " within " + chosen("radius") + " frames") + " (%)"},
                             range: [0, 102]}};
       var drawnTraces = traces(rows, f[2], radiusFigure);
-      layout.showlegend = drawnTraces.length <= LEGEND_MAX;  // beyond, a legend is unreadable: hover names each line
+      layout.showlegend = true;  // beside the plot, scrolling where it holds more lines than fit
       layout.annotations = drawnTraces.length > LEGEND_MAX ? [{text: drawnTraces.length + " lines: choose a noise level, " +
-        "L or method above for a legend (hover names each line)", xref: "paper", yref: "paper", x: 0, y: 1.06,
+        "L or method above to see fewer (hover names each line)", xref: "paper", yref: "paper", x: 0, y: 1.06,
         showarrow: false, font: {size: 11, color: "#555"}, xanchor: "left"}] : [];
       Plotly.react(f[0], drawnTraces, layout, {responsive: true, displaylogo: false});
       table(f[0], rows, metres ? TABLE_M : TABLE);

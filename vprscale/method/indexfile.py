@@ -483,7 +483,8 @@ def _model(path: Path, meta: dict[str, Any], mmap: str | None = None) -> dict[st
     except (OSError, ValueError, EOFError) as exc:  # a missing or truncated file (no manifest)
         raise InputError(f"{path}: an index file is missing or damaged ({str(exc).splitlines()[0][:200]}); "
                          "re-run vprscale index") from None
-    d, k, dim = int(meta["d"]), int(meta["k"]), int(meta["dim"])
+    d, k = int(meta["d"]), int(meta["k"])
+    dim = int(meta["dim"]) if meta.get("dim") is not None else model["mean"].shape[-1]  # older: the model says
     want = {"mean": (dim,), "components": (d, dim), "centres": (d, k), "explained_variance": (d,)}
     for name, shape in want.items():
         if model[name].shape != shape or model[name].dtype.kind != "f":

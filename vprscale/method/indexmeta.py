@@ -54,10 +54,12 @@ def read_index_meta(p: Path) -> dict[str, Any]:
 
 
 def _parameters(meta_file: Path, meta: dict[str, Any]) -> None:
-    """``d``, ``k``, ``n_ref`` and ``dim`` as the engine can hold them (every later check of the
+    """``d``, ``k``, ``n_ref`` and ``dim`` (where given) as the engine can hold them (every later check of the
     tables and the model is against these): integers, K ≥ 2, K^d addresses in 64 bits."""
     for key, low in (("d", 1), ("k", 2), ("n_ref", 1), ("dim", 1)):
         value = meta.get(key)
+        if key == "dim" and value is None:  # an index of a vprscale before 0.4 does not say: its model does
+            continue
         if type(value) is not int or value < low:
             raise InputError(f"{meta_file}: {key} is {value!r}, not an integer of at least {low}")
     if meta["k"] ** meta["d"] > 1 << 64:
