@@ -198,6 +198,12 @@ def test_positions_count_every_reference_within_a_radius_in_metres(own_files, tm
     assert shown and all((tmp_path / "report" / name).is_file() for name in shown)
     assert "QM1" not in text and "QM2" not in text and "cannot be downloaded" not in text
     assert "## The paper's text figures beside ours" not in text
+    # nor a section it has nothing for (no baseline was evaluated), parts it does not have, a
+    # rescaling it never had, or an HTML entity
+    assert "vs baseline" not in text and "| Deep1B |" not in text and "| FAS |" not in text
+    assert "(no rescale)" not in text and "&amp;" not in text and "R@20 %)" not in text
+    for table in re.findall(r"(?m)(?:^\|.*\n)+", text):
+        assert len(table.splitlines()) > 2, table  # a header and its rows, never a header alone
 
 
 @pytest.mark.parametrize(("case", "message"), [

@@ -10,9 +10,12 @@ from typing import Any
 
 import matplotlib.pyplot as plt
 import pandas as pd
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from vprscale.evaluation.comparison import series_colours
 from vprscale.evaluation.nearest import DEPTHS, PUBLISHED
+
+PUBLISHED_MARKERS = ("s", "D", "p", "h")  # one hollow marker per published point
 
 
 def load_nn(runs: list[str]) -> pd.DataFrame:
@@ -39,20 +42,25 @@ def nn_section(nn: pd.DataFrame, scales: list[str], out: Path, save: Callable[[A
     return ["## Nearest-neighbour recall", "",
             "The share of Deep1B query rows whose exact nearest reference (brute force over every reference) is "
             "among a method's R best: CoarseHash's address lists expanded by Hamming distance, each FAISS code's "
-            "own search (docs/protocol.md, \"Nearest-neighbour recall\"). Bytes per place: what answers the "
-            "search (a FAISS code's entry; CoarseHash's codes and lists). µs: CPU per query on one core.", "",
-            table(["scale", "noise", "method", "family", "params", "B/place", "R@1", "R@10", "R@100", "µs/q",
+            "own search (docs/protocol.md, \"Nearest-neighbour recall\"). B/entry: bytes of one entry of what "
+            "answers this search (a FAISS code's code and id; CoarseHash's code and list entry), the field's "
+            "bytes per vector; not the comparison's B/place, which also counts what scoring windows keeps. "
+            "µs: CPU per query on one core.", "",
+            table(["scale", "noise", "method", "family", "params", "B/entry", "R@1", "R@10", "R@100", "µs/q",
                    "queries"], rows), "",
             "Published on the real Deep1B at a billion vectors, for scale (another dataset than the rows above; "
             "times per core = time × threads):", "",
             table(["method", "B/vector", "R@1", "threads", "µs/q per core", "source"], published), "",
-            "![nearest-neighbour recall against bytes per place](fig_nn.png)", ""]
+            "![nearest-neighbour recall against bytes per search entry](fig_nn.png)", ""]
 
 
 def _figure(nn: pd.DataFrame, out: Path, save: Callable[[Any, Path, str], None]) -> None:
-    """R@1 and R@100 against bytes per place, one panel per scale and noise; the published points hollow."""
+    """R@1 and R@100 against bytes per search entry, one panel per scale and noise; the published
+    points hollow, each its own marker named in the legend (labels beside points that lie close
+    together ran into each other), the legend outside the panels, plain numbers on the log axis."""
     keys = list(dict.fromkeys(zip(nn.scale, nn.noise, strict=True)))
-    fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys), 3.8), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys) + 3.2, 3.8), squeeze=False, sharey=True,
+                             layout="constrained")
     methods = list(dict.fromkeys(nn.method))
     colours = dict(zip(methods, series_colours([f"{m} (single)" for m in methods]).values(), strict=True))
     for ax, (scale, noise) in zip(axes[0], keys, strict=True):
@@ -63,14 +71,17 @@ def _figure(nn: pd.DataFrame, out: Path, save: Callable[[Any, Path, str], None])
             ax.plot(p.bytes_per_place, 100 * p.recall_at_1, "o", color=colours[p.method], label=f"{p.method} R@1")
             ax.plot(p.bytes_per_place, 100 * p.recall_at_100, "^", color=colours[p.method],
                     label=f"{p.method} R@100")
-        for i, p in enumerate(PUBLISHED):  # labels above and below in turn: the points lie close
-            ax.plot(p["bytes_per_place"], 100 * p["recall_at_1"], "s", mfc="none", color="black")
-            ax.annotate(p["method"].split(" (")[0], (p["bytes_per_place"], 100 * p["recall_at_1"]), fontsize=6,
-                        xytext=(4, 6 if i % 2 else -10), textcoords="offset points")
+        for p, marker in zip(PUBLISHED, PUBLISHED_MARKERS, strict=False):
+            ax.plot(p["bytes_per_place"], 100 * p["recall_at_1"], marker, mfc="none", color="black",
+                    label=f"{p['method']}, R@1 (published)")
         ax.set_xscale("log")
-        ax.set_xlabel("bytes per place")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())  # 2, 3, … 9 × 10^k printed over each other
+        ax.set_xlabel("bytes per search entry")
         ax.set_title(f"{scale} {noise.upper()}")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("1-NN recall (%)")
-    axes[0][-1].legend(fontsize=6, loc="center left", bbox_to_anchor=(1.02, 0.5))
+    handles, labels = axes[0][-1].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=6, loc="outside right center")
     save(fig, out, "fig_nn")

@@ -326,6 +326,12 @@ def _md_table(header: list[str], rows: list[list[Any]]) -> str:
     return "\n".join(lines)
 
 
+def _store_label(store: dict[str, Any]) -> str:
+    """A store's scale, and "(no rescale)" for a recipe's store built without the variance
+    rescaling (your own data is never rescaled, and says nothing of it)."""
+    return store["scale"] + (" (no rescale)" if store.get("rescale") is False else "")
+
+
 REPORT_TITLE = "# vprscale report"
 
 
@@ -414,7 +420,7 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None,
     fig_recall(res, scales, mains, out, figures)
     has_sweep = fig_dsweep(res, out, figures)
     fig_single(res, scales, mains, out, figures)
-    has_storage = fig_storage([i for i in indexes if i["store"].get("rescale", True)], out, figures)
+    has_storage = fig_storage([i for i in indexes if i["store"].get("rescale") is not False], out, figures)
     has_balance = fig_balance(indexes, out, figures)
     save = lambda fig, o, name: _save(fig, o, name, figures)  # noqa: E731
     compared = compare_section(res, scales, out, save, _md_table)
@@ -459,17 +465,20 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
                       "≤20 frames"], rows), ""]
     md += _stratification_note(res, scales)
     rows = []
+    named = {"deep1b": "Deep1B", "fas": "FAS"}
+    shown = [p for p in ("deep1b", "fas") if p in set(res.part)] + sorted(set(res.part) - {"all", "deep1b", "fas"})
     for scale in scales:
         sub = res[(res.scale == scale) & (res.radius == 20) & (res.L > 1) & (res.d == mains[scale])
                   & (res.method == "coarsehash")]
         for (noise, mode, L), g in sub.groupby(["noise", "mode", "L"]):
             parts = g.set_index("part")
-            rows.append([scale, noise.upper(), L, mode, *(_pct(parts.recall.get(p)) for p in ("all", "deep1b", "fas")),
+            rows.append([scale, noise.upper(), L, mode, *(_pct(parts.recall.get(p)) for p in ("all", *shown)),
                          f"{parts.nr_mean.get('all'):.1f}", f"{parts.nr_median.get('all'):.0f}",
                          f"{parts.nr_p95.get('all'):.0f}"])
-    md += ["## Per part, and candidate counts N_r (R@20 %)", "",
-           _md_table(["scale", "noise", "L", "mode", "all", "Deep1B", "FAS", "N_r mean", "N_r median", "N_r p95"],
-                     rows), ""]
+    title = "Per part, and candidate counts N_r" if shown else "Candidate counts N_r"
+    md += [f"## {title} (recall within 20 frames, %)", "",
+           _md_table(["scale", "noise", "L", "mode", "all", *(named.get(p, p) for p in shown), "N_r mean",
+                      "N_r median", "N_r p95"], rows), ""]
     rows = []
     for scale in scales:
         sub = _main_rows(res, scale, mains[scale])
@@ -486,13 +495,14 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
                          _ratio(b.ops_per_query / m.ops_per_query), time_cell(m),
                          "" if frame is None or frame != frame else f"{frame:.2f}", time_cell(b),
                          _ratio(b.us_per_query / max(m.us_per_query, 1e-9)) if same_run else "(different runs)"])
-    md += [f"## Compute per query: CoarseHash (paper mode) vs baseline, {main_noise(res).upper()}", "",
-           "Operations by the formulas of docs/accounting.md. Times are µs per query per core: the CPU time of "
-           "one thread running the method, the median of the repeats with their range, including the per-frame "
-           "work of one new frame (hash, nearest occupied address, list retrieval) as in online use; the column "
-           "beside gives that per-frame part. Ratios are of medians measured in the same run.", "",
-           _md_table(["scale", "L", "ops method", "ops baseline", "ops ratio", "µs method", "of which per frame",
-                      "µs baseline", "time ratio"], rows), ""]
+    if rows:  # an evaluation without the baseline (--no-baseline) has nothing to set CoarseHash against here
+        md += [f"## Compute per query: CoarseHash (paper mode) vs baseline, {main_noise(res).upper()}", "",
+               "Operations by the formulas of docs/accounting.md. Times are µs per query per core: the CPU time of "
+               "one thread running the method, the median of the repeats with their range, including the per-frame "
+               "work of one new frame (hash, nearest occupied address, list retrieval) as in online use; the column "
+               "beside gives that per-frame part. Ratios are of medians measured in the same run.", "",
+               _md_table(["scale", "L", "ops method", "ops baseline", "ops ratio", "µs method", "of which per frame",
+                          "µs baseline", "time ratio"], rows), ""]
     rows = []
     for i in sorted(indexes, key=lambda i: (i["n_ref"], i["d"])):
         st = i["storage"]
@@ -500,7 +510,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
         whole = _whole_index_bytes(i)
         whole = whole / i["n_ref"] if whole else None
         floor = floor_bits(i["n_ref"], i["d"], i["k"]) / 8
-        rows.append([i["store"]["scale"] + ("" if i["store"].get("rescale", True) else " (no rescale)"), i["d"],
+        rows.append([_store_label(i["store"]), i["d"],
                      f"{i['n_ref']:,}", *(f"{st[p]['paper'] / 1e6:.3f}" for p in ("P1", "P2", "P3", "P4", "total")),
                      f"{st['total']['packed'] / 1e6:.3f}", f"{st['total']['disk'] / 1e6:.3f}", _num(lists, ".2f"),
                      _num(_sql_table_bytes(i) / i["n_ref"] or None, ".2f"), _num(whole, ".2f"), f"{floor:.2f}",
@@ -523,7 +533,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
         built = i["store"].get("built", {})
         ev = next((e for e in evals if i["path"] in e["_indexes"]), {})
         gib = 2**30
-        rows.append([i["store"]["scale"] + ("" if i["store"].get("rescale", True) else " (no rescale)"), i["d"],
+        rows.append([_store_label(i["store"]), i["d"],
                      _num(built.get("wall_s"), ".1f"), _num(built.get("peak_rss_bytes", math.nan) / gib, ".2f"),
                      _num(i["wall_s"], ".1f"), _num(i["peak_rss_bytes"] / gib, ".2f"), _num(ev.get("wall_s"), ".1f"),
                      _num(ev.get("peak_rss_bytes", math.nan) / gib, ".2f"),
