@@ -421,6 +421,10 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
             "1,000 unless asked (the queries column, and the recall intervals, say how many). Lines join "
             "each method's Pareto front: the "
             "operating points no other point of the method beats on both recall and throughput.", "",
+            "FAISS's codes are trained (k-means, OPQ and ITQ rotations) with the processor's own BLAS, whose "
+            "last bits differ between processor families: on another processor than the one the provenance "
+            "names, their rows may differ by a few points (CoarseHash's and the baseline's are exact, the same "
+            "bytes on any machine).", "",
             *(line for name in figures for line in (f"![{name}]({name}.png)", "")), *_words(points, scales), "",
             table(["scale", "noise", "L", "method (mode)", "family", "B/place", "µs/query",
                    "within 20 frames % (95 % interval)", "queries"], rows), ""]
