@@ -342,3 +342,19 @@ def test_a_checkpoint_another_user_could_have_written_is_not_loaded(tmp_path, ca
     os.chmod(ckpt, 0o666)  # as a file anybody could have written
     assert passes.reduce_pass(tmp_path, "sum", bounds, lambda a, b: a, lambda s, r: s + r, 0, quiet=True) == 15
     assert not planted.exists() and "not loaded" in caplog.text
+
+
+def test_a_dry_run_says_when_a_stage_needs_more_memory_than_the_machine_has(tmp_path, capsys):
+    """An index measured at a peak beyond this machine's memory: the dry run says so beside it,
+    what will happen and what it needs, rather than printing 65 GB on a 24 GB machine without a word."""
+    path = _pipeline(tmp_path)
+    runs = tmp_path / "data" / "runs"
+    runs.mkdir(parents=True)
+    (runs / "20261201T100000Z.json").write_text(json.dumps({"name": "t", "started": "20261201T100000Z", "stages": [
+        {"name": "index", "kind": "index", "params": {"store": "build"}, "status": "ran", "seconds": 60.0,
+         "outputs": {"peak_rss_bytes": 10**15, "bytes_on_disk": 1}}]}))
+    assert main(["run", str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    at = next(i for i, line in enumerate(out) if line.startswith("run   index (index)"))
+    assert "is more than this machine's" in out[at + 1] and "at least 1000000 GB" in out[at + 1]
+    assert not any("is more than this machine's" in line for line in out[:at])  # the build fits

@@ -66,11 +66,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _plan(summary: dict, budget: str | None) -> int:
+    import psutil
+
+    memory = psutil.virtual_memory().total
     for s in summary["stages"]:
         why = "; ".join(s["reasons"]) if s["run"] else "up to date"
         cost = f" [{_cost(s['estimate'])}]" if s["run"] else ""
         when = f" — {s['call']}" if "call" in s else ""
         print(f"{'run ' if s['run'] else 'skip'}  {s['name']} ({s['kind']}): {why}{cost}{when}")
+        peak = s["estimate"].peak_bytes if s["run"] else None
+        if peak is not None and peak > memory:
+            print(f"      ! its estimated peak, {_gb(peak)}, is more than this machine's {_gb(memory)} of memory: it "
+                  "will start, and the system will likely stop it for memory part way; run it on a machine with "
+                  f"at least {_gb(peak)} (the estimate is {s['estimate'].basis})")
     total = summary["estimate"]
     running = [s for s in summary["stages"] if s["run"]]
     if running and total["unmeasured"] == len(running):  # nothing to add up: no figure, not a zero
