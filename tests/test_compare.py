@@ -520,3 +520,18 @@ def test_every_method_names_its_family_wherever_it_is_shown(compared, capsys):
     assert main(["results", str(compared["out"]), "--where", "radius = 20 AND part = 'all'"]) == 0
     table = capsys.readouterr().out.splitlines()
     assert "family" in table[0] and any("hashing" in line for line in table) and any("graph" in line for line in table)
+
+
+def test_faiss_s_training_messages_are_said_once_not_printed_raw(caplog, capfd):
+    """FAISS's k-means prints its warning on the process's stderr once per sub-quantiser, raw,
+    between the command's own lines; it is said once, as a log line naming the code."""
+    import logging
+
+    from vprscale.compared.faisscodes import FaissCodes
+
+    caplog.set_level(logging.INFO, logger="vprscale.compared.faisscodes")
+    codes = FaissCodes("PQ2", 16, k=1)
+    codes.train(np.random.default_rng(0).standard_normal((2000, 16)).astype(np.float32))
+    assert "WARNING clustering" not in capfd.readouterr().err
+    assert caplog.text.count("WARNING clustering 2000 points to 256 centroids") == 1
+    assert "FAISS, training PQ2:" in caplog.text

@@ -16,9 +16,14 @@ codes, in reference order, are what the window scores read.
 from __future__ import annotations
 
 import hashlib
+import logging
+import os
 import re
-from collections.abc import Callable
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from functools import partial
 from typing import Any, NamedTuple
 
@@ -37,6 +42,8 @@ from vprscale.compared.codescore import (
 )
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
+
+log = logging.getLogger(__name__)
 
 TRAIN_ROWS = 1 << 18  # references a FAISS index is trained on (evenly spaced; all when there are fewer)
 DEFAULT_NPROBE = 16  # inverted lists an IVF index visits per frame (FAISS's own default, 1, finds little)
@@ -227,6 +234,27 @@ def _one_thread(fn: Callable[[np.ndarray], Any], x: np.ndarray) -> Any:
     """``fn(x)`` with FAISS (and the BLAS it links, threaded by OpenMP) on this thread alone."""
     faiss.omp_set_num_threads(1)  # OpenMP's thread count is per calling thread
     return fn(x)
+
+
+@contextmanager
+def _said_once(factory: str) -> Iterator[None]:
+    """What FAISS's C++ prints on the process's standard error while it trains (its k-means says
+    "WARNING clustering 2000 points to 256 centroids: please provide at least 9984 training points"
+    once per sub-quantiser, raw, between a command's own lines), gathered and said once per
+    distinct line, as a log line naming the code."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as said:
+        os.dup2(said.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            said.seek(0)
+            lines = dict.fromkeys(x.strip() for x in said.read().decode(errors="replace").splitlines() if x.strip())
+    for line in lines:
+        log.info("  FAISS, training %s: %s", factory, line)
 
 
 def _encode_blocks(x: np.ndarray, start: int) -> list[np.ndarray]:
@@ -531,7 +559,8 @@ class FaissCodes:
         nprobe = self.nprobe
         self.set_point(self.k, 1)
         try:
-            _one_thread(self.index.train, np.ascontiguousarray(sample, np.float32))
+            with _said_once(self.factory):
+                _one_thread(self.index.train, np.ascontiguousarray(sample, np.float32))
         finally:
             self.set_point(self.k, nprobe)
 
