@@ -423,8 +423,8 @@ def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table
             "operating points no other point of the method beats on both recall and throughput.", "",
             "FAISS's codes are trained (k-means, OPQ and ITQ rotations) with the processor's own BLAS, whose "
             "last bits differ between processor families: on another processor than the one the provenance "
-            "names, their rows may differ by a few points (CoarseHash's and the baseline's are exact, the same "
-            "bytes on any machine).", "",
+            "names, their rows may differ, by several points for the rotated codes (OPQ, ITQ) at small radii; "
+            "CoarseHash's and the baseline's are exact, the same bytes on any machine.", "",
             *(line for name in figures for line in (f"![{name}]({name}.png)", "")), *_words(points, scales), "",
             table(["scale", "noise", "L", "method (mode)", "family", "B/place", "µs/query",
                    "within 20 frames % (95 % interval)", "queries"], rows), ""]
