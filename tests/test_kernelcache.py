@@ -225,3 +225,27 @@ def test_a_process_waiting_for_a_kernel_ends_on_sigterm(tmp_path):
         assert proc.returncode == 143
     finally:
         os.close(fd)
+
+
+def test_which_folders_are_private(tmp_path, caplog):
+    """A cache folder is used only where strangers cannot write it or swap it: under a parent of
+    this user's that its group may write (``~/.cache`` under a umask of 002) or a sticky one
+    (``/tmp``), never under one everybody can write, and never when it is itself writable by
+    others (the warning says how to make it private)."""
+    from vprscale.core.private import private_folder
+
+    def parent(name: str, mode: int) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        folder.chmod(mode)
+        return folder
+
+    made = private_folder(parent("group", 0o775) / "vprscale", "compiled alone")
+    assert made is not None and made.stat().st_mode & 0o777 == 0o700
+    assert private_folder(parent("sticky", 0o1777) / "vprscale", "compiled alone") is not None
+    assert private_folder(parent("open", 0o777) / "vprscale", "compiled alone") is None
+    shared = parent("mine", 0o755) / "vprscale"
+    shared.mkdir()
+    shared.chmod(0o775)
+    assert private_folder(shared, "compiled alone") is None
+    assert f"chmod go-w {shared}" in caplog.text

@@ -27,12 +27,14 @@ def _safe(info: os.stat_result) -> bool:
 
 
 def _safe_parent(info: os.stat_result) -> bool:
-    """A parent from which nobody else can remove or rename an entry of ours: writable by this
-    user alone, or with the sticky bit (``/tmp``), or owned by root and writable by root alone."""
+    """A parent from which a stranger cannot remove or rename an entry of ours: one with the sticky
+    bit (``/tmp``), or one not everybody can write that is this user's or root's (a group-writable
+    folder of this user's is the usual ``~/.cache`` under a umask of 002: its group is the user's own)."""
     if not stat.S_ISDIR(info.st_mode):
         return False
-    others_write = info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
-    return bool(not others_write and info.st_uid in (os.geteuid(), 0)) or bool(info.st_mode & stat.S_ISVTX)
+    if info.st_mode & stat.S_ISVTX:
+        return True
+    return not info.st_mode & stat.S_IWOTH and (info.st_uid in (os.geteuid(), 0) or not info.st_mode & stat.S_IWGRP)
 
 
 def private_folder(path: Path, what: str) -> Path | None:
@@ -54,7 +56,8 @@ def private_folder(path: Path, what: str) -> Path | None:
     if stat.S_ISLNK(info.st_mode):
         return _refused(path, what, "it is a symbolic link")
     if not _safe(info):
-        owner = "another user's" if info.st_uid != os.geteuid() else "writable by other users"
+        owner = ("another user's" if info.st_uid != os.geteuid()
+                 else f"writable by other users; `chmod go-w {path}` makes it yours alone")
         return _refused(path, what, owner if stat.S_ISDIR(info.st_mode) else "not a directory")
     return path
 
