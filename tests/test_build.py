@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import zarr
 
+from vprscale.cli import main
 from vprscale.dataset.build import BuildRequest, build
 from vprscale.dataset.sources.deep1b import open_deep1b
 from vprscale.dataset.sources.fas import open_fas
@@ -206,3 +207,21 @@ def test_fas_fit_has_the_same_bits_from_python_and_from_a_job(tmp_path, monkeypa
                 fits.append(MergeTransform(96, 47_781, 26_638, 0).fit(moments, traverse))
     for name in ("fas_ref_", "fas_query_", "noise_mean_", "noise_std_", "scale_"):
         np.testing.assert_array_equal(getattr(fits[0], name), getattr(fits[1], name), err_msg=name)
+
+
+def test_plain_zarr_lists_a_store_without_a_warning(tiny_store, tmp_path):
+    """A store lists with plain zarr as any Zarr group does: its metadata is consolidated before it
+    is published, so zarr does not warn on every listing of the files it does not know (build.json,
+    manifest.json), a recipe's store and your own alike."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "ref.npy", rng.standard_normal((500, 8)).astype(np.float32))
+    np.save(tmp_path / "gt.npy", np.arange(500))
+    assert main(["build", "--ref", str(tmp_path / "ref.npy"), "--query", f"day={tmp_path / 'ref.npy'}", "--gt",
+                 str(tmp_path / "gt.npy"), "--name", "mine", "--out", str(tmp_path), "-q"]) == 0
+    for store in (tiny_store, tmp_path / "mine.zarr"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            group = zarr.open_group(str(store), mode="r")
+            assert "ref" in set(group.keys()) and group["ref"].shape[0] > 0

@@ -41,7 +41,7 @@ from vprscale.core.throughput import throughput
 from vprscale.dataset import compact
 from vprscale.dataset.corpora import Corpus, check_corpus
 from vprscale.dataset.homogenise import window_mean
-from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, Layout, codecs, grid
+from vprscale.dataset.layout import NOISE_LEVELS, ChunkWriter, Layout, codecs, consolidate, grid
 from vprscale.dataset.merge import MergeTransform, noisy_rows, project_rows
 from vprscale.dataset.recipe import MAX_CHUNK_ROWS, Recipe, load_recipe
 from vprscale.dataset.sources.base import RowSource
@@ -343,6 +343,7 @@ def _build(recipe: Recipe, deep: RowSource, traverse: Traverse, final: Path | Re
                                     "n_fas_query": lay.n_fas_query, **extra}}
     partial.write_text("build.json", json.dumps({k: v for k, v in summary.items() if k != "store"},
                                                 indent=1, default=str))
+    consolidate(store)
     partial.publish()
     summary["bytes_on_disk"] = (sum(final.files().values()) if isinstance(final, Remote)
                                 else sum(f.stat().st_size for f in final.rglob("*") if f.is_file()))

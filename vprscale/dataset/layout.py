@@ -7,6 +7,7 @@ The compact layout (:mod:`vprscale.dataset.compact`) computes its rows with the 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -140,3 +141,14 @@ class ChunkWriter:
 
     def _parts(self, a: int, b: int) -> np.ndarray:
         return np.where(np.arange(a, b) >= self.layout.n_deep, FAS, 0).astype(np.uint8)
+
+
+def consolidate(store: str) -> None:
+    """Record every array's and group's metadata in the store's root ``zarr.json`` (zarr's
+    consolidated metadata), the last write before the store is published: a reader then opens it
+    without listing its folder, and plain zarr no longer warns, on every listing, that it does not
+    know the store's ``build.json`` and ``manifest.json``. (zarr says consolidated metadata is not
+    yet in the v3 specification; readers without it list the folder, as before.)"""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Cc]onsolidated metadata.*")
+        zarr.consolidate_metadata(store)

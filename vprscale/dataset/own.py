@@ -34,7 +34,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
-from vprscale.dataset.layout import codecs
+from vprscale.dataset.layout import codecs, consolidate
 from vprscale.dataset.sources.base import RowSource
 from vprscale.dataset.sources.rows import open_rows, read_labels, read_positions
 from vprscale.dataset.store import ATTR
@@ -240,6 +240,7 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
         group.attrs[ATTR] = {**json.loads(json.dumps(identity, default=str)), "complete": True, "layout": layout}
         (partial.path / "build.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "store"},
                                                             indent=1, default=str))
+        consolidate(str(partial.path))
         partial.publish()
     if resumed and not req.quiet:
         log.info(f"resumed the unfinished build of {final}")
