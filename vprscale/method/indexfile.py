@@ -116,8 +116,8 @@ class _Tables:
     which every writer holds); :meth:`close` returns the layout that ``index.json`` records.
     """
 
-    def __init__(self, out: Path, n_ref: int, d: int, k: int) -> None:
-        self.n_ref, self.d, self.k = n_ref, d, k
+    def __init__(self, out: Path, n_ref: int, d: int, k: int, check: TableCheck | None = None) -> None:
+        self.n_ref, self.d, self.k, self.check = n_ref, d, k, check  # check: what an untrusted source passes
         self.id_type = pa.uint32() if n_ref <= 1 << 32 else pa.uint64()
         delta = "DELTA_BINARY_PACKED"
         self.codes_table = _TableWriter(out / "codes.parquet",
@@ -141,6 +141,8 @@ class _Tables:
         """The addresses of the next places, ``a … a + len(h) − 1``."""
         if a != self.n_codes:
             raise ValueError(f"codes of places from {a:,}: the next place is {self.n_codes:,}")
+        if self.check:
+            self.check.codes(np.asarray(h, np.uint64))
         self.codes_table.write(np.arange(a, a + len(h), dtype=np.uint64), np.asarray(h, np.uint64))
         self.n_codes += len(h)
 
@@ -151,6 +153,8 @@ class _Tables:
         order = np.array(ids, np.int64)
         best = ascending_with_best(order, starts)
         addresses = np.asarray(addresses, np.uint64)
+        if self.check:
+            self.check.lists(addresses, sizes, order)
         self.lists_table.write(np.repeat(addresses, sizes), order.view(np.uint64), best)  # ids ≥ 0: no copy
         self.buckets_table.write(addresses, sizes.astype(np.uint32), (self.n_ids + starts[:-1]).astype(np.uint64))
         self.n_ids += len(order)
@@ -389,23 +393,18 @@ def upgrade(old: Path, out: Path, quiet: bool = False) -> dict[str, Any]:
         raise InputError(f"{old}: a format-{fmt} index file is missing or damaged "
                          f"({str(exc).splitlines()[0][:200]}); re-run vprscale index") from None
     codes, occupied, lists = source
-    writer, check = _Tables(out, n_ref, d, k), TableCheck(n_ref, d, k)
+    check = TableCheck(n_ref, d, k)
+    writer = _Tables(out, n_ref, d, k, check)
     chunk = 1 << 24
     try:
         progress = None if quiet else ChunkProgress("upgrade: codes", -(-n_ref // chunk))
         for a in range(0, n_ref, chunk):
-            h = np.asarray(codes(a, min(n_ref, a + chunk)), np.uint64)
-            check.codes(h)
-            writer.codes(a, h)
+            writer.codes(a, codes(a, min(n_ref, a + chunk)))
             if progress:
                 progress.update(1)
         progress = None if quiet else ChunkProgress("upgrade: lists", -(-occupied // UPGRADE_LISTS))
         for a in range(0, occupied, UPGRADE_LISTS):
-            addresses, sizes, ids = lists(a, min(occupied, a + UPGRADE_LISTS))
-            ascending = np.array(ids, np.int64)
-            ascending_with_best(ascending, np.r_[0, np.cumsum(sizes)].astype(np.int64))
-            check.lists(np.asarray(addresses, np.uint64), np.asarray(sizes, np.int64), ascending)
-            writer.lists(addresses, sizes, ids)
+            writer.lists(*lists(a, min(occupied, a + UPGRADE_LISTS)))
             if progress:
                 progress.update(1)
         check.close()
