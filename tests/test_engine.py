@@ -11,7 +11,7 @@ from vprscale.method.coarsehash import CoarseHasher
 from vprscale.method.index import Index
 from vprscale.method.kernels import match_batch
 from vprscale.method.online import OnlineMatcher
-from vprscale.protocol import MIN_FAS, part_weights, query_centres
+from vprscale.protocol import MIN_FAS, NO_MASK, part_weights, query_centres
 
 CENTRES = np.tile([[-1.0, 1.0]], (4, 1))  # d = 4, K = 2, equal gaps: δ = 2·Hamming in real units
 
@@ -32,8 +32,9 @@ def plain(idx: Index) -> dict[str, np.ndarray]:
             "best": idx.lists.best(np.arange(idx.occupied))}
 
 
-# n_best and threads as vprscale passes them (numba compiles the defaults left out as another signature)
-ONE_BEST = (1, 2)
+# the window mask, n_best and threads as vprscale passes them (numba compiles the defaults left out as another
+# signature)
+ONE_BEST = (NO_MASK, 1, 2)  # every window exists (one traverse); the match alone; 2 threads
 
 
 def run(idx: Index, q_hash, t, L, aligned=False):
@@ -198,13 +199,13 @@ def test_push_and_push_many_share_one_stream(tiny_store, tiny_index):
 
 def test_baseline_nearest_and_candidate_count():
     x = np.array([0.0, 5.0, 1.0, 1.0, 9.0, 2.0])
-    np.testing.assert_array_equal(nearest(x, 1.2, 3), [2, 3, 5])
-    np.testing.assert_array_equal(nearest(x, 1.0, 1), [2])  # ties: smaller id
+    np.testing.assert_array_equal(nearest(x, 1.2, 3, NO_MASK), [2, 3, 5])
+    np.testing.assert_array_equal(nearest(x, 1.0, 1, NO_MASK), [2])  # ties: smaller id
     y = np.array([5.1, 0.9, 1.1])
-    top, _, counts = baseline_batch(np.array([1]), 3, 2, x, y, float(np.ptp(x)))
+    top, _, counts = baseline_batch(np.array([1]), 3, 2, x, y, float(np.ptp(x)), NO_MASK)
     match = top[:, 0]
     assert counts[0] == 2 and match[0] == 2  # candidates {2, 3}: centre 2 pairs (5,5.1),(1,0.9),(1,1.1)
-    m1 = baseline_batch(np.array([0]), 1, 1, x, y, float(np.ptp(x)))[0][:, 0]
+    m1 = baseline_batch(np.array([0]), 1, 1, x, y, float(np.ptp(x)), NO_MASK)[0][:, 0]
     assert m1[0] == 1
 
 
@@ -244,7 +245,7 @@ def test_recall_at_each_radius():
 def test_baseline_respects_n_r(L):
     x = np.linspace(0, 1, 50)
     y = np.linspace(0, 1, 50)
-    _, _, counts = baseline_batch(np.array([10, 20]), L, 7, x, y, 1.0)
+    _, _, counts = baseline_batch(np.array([10, 20]), L, 7, x, y, 1.0, NO_MASK)
     np.testing.assert_array_equal(counts, [7, 7])
 
 
@@ -388,9 +389,10 @@ def test_pairs_sorted_by_window_score_as_in_query_order():
     hashes, q_planes, start, stop, ids = qf.kernel_args()
     codes, code_bits, n_ref, planes, gaps, w, tables, d, k, dmax = idx.kernel_args()
     proposals = count_proposals(t, L, start, stop)
-    in_order, by_window = (_pairs_by_window(*propose(t, L, False, start, stop, ids, len(ref), proposals, shift), shift)
+    in_order, by_window = (_pairs_by_window(*propose(t, L, False, start, stop, ids, len(ref), proposals, shift,
+                                                     NO_MASK), shift)
                            for shift in (62, 12))
-    cand, first, n_r, _ = propose(t, L, False, start, stop, ids, len(ref), proposals, 62)
+    cand, first, n_r, _ = propose(t, L, False, start, stop, ids, len(ref), proposals, 62, NO_MASK)
     expected = np.concatenate([(cand[first[i]:first[i] + n_r[i]] << 20) | i for i in range(len(t))])
     np.testing.assert_array_equal(in_order, expected)
     np.testing.assert_array_equal(by_window, expected[np.argsort(expected >> 32, kind="stable")])

@@ -56,22 +56,78 @@ class Centres:
     fas_stride: int | None  # None: the FAS part follows the common stride
 
 
-def _valid(t: np.ndarray, gt_at: Callable[[np.ndarray], np.ndarray], n_query: int, L: int) -> np.ndarray:
+class Sequences:
+    """Rows that are many sequences (drives, MSLS ``sequence_key``s), each with frame numbers.
+
+    A window of ``L`` frames is ``L`` consecutive rows of one sequence whose frame numbers
+    follow one another; a window that would cross from one sequence into the next, or over a
+    gap in the frame numbers, does not exist. Rows are cut into *runs*, the longest stretches
+    of rows that are one sequence with consecutive frame numbers; a window exists where it
+    lies inside one run. Single-traverse data has no :class:`Sequences` (None), and its
+    windows are any ``L`` consecutive rows, as the paper's.
+    """
+
+    def __init__(self, sequence: np.ndarray, frame: np.ndarray) -> None:
+        sequence, frame = np.asarray(sequence, np.int64), np.asarray(frame, np.int64)
+        if sequence.shape != frame.shape or sequence.ndim != 1:
+            raise ValueError(f"sequence ids {sequence.shape} and frame numbers {frame.shape} must be one per row")
+        self.n = len(sequence)
+        cut = np.ones(self.n, bool)  # a run starts at row 0 and wherever the sequence or the frame count breaks
+        cut[1:] = (sequence[1:] != sequence[:-1]) | (frame[1:] != frame[:-1] + 1)
+        starts = np.flatnonzero(cut)
+        self.runs = len(starts)
+        run = np.cumsum(cut) - 1
+        self.run_start = starts[run]  # first row of each row's run
+        self.run_stop = np.append(starts[1:], self.n)[run]  # one past its last row
+        self.sequences = int(len(np.unique(sequence))) if self.n else 0
+        self._masks: dict[int, np.ndarray] = {}
+
+    def window_ok(self, t: np.ndarray, L: int) -> np.ndarray:
+        """Whether the window of ``L`` centred on each row ``t`` exists (``t`` in ``[0, n)``)."""
+        t = np.asarray(t, np.int64)
+        first = window_start(t, L)
+        return (first >= self.run_start[t]) & (first + L <= self.run_stop[t])
+
+    def mask(self, L: int) -> np.ndarray:
+        """One byte a row, 1 where the window of ``L`` centred there exists: what the matchers
+        read to never form, score or return a window that does not (kept per ``L``)."""
+        if L not in self._masks:
+            self._masks[L] = self.window_ok(np.arange(self.n, dtype=np.int64), L).astype(np.uint8)
+        return self._masks[L]
+
+    def missing(self, L: int) -> int:
+        """Rows on which no window of ``L`` can be centred (near a sequence's ends or a gap)."""
+        return int(self.n - self.mask(L).sum())
+
+
+NO_MASK = np.zeros(0, np.uint8)  # single-traverse data: every window inside the map exists
+
+
+def window_mask(sequences: Sequences | None, L: int) -> np.ndarray:
+    """The matchers' mask of centres whose window of ``L`` exists (``NO_MASK``: all of them)."""
+    return NO_MASK if sequences is None or L == 1 else sequences.mask(L)
+
+
+def _valid(t: np.ndarray, gt_at: Callable[[np.ndarray], np.ndarray], n_query: int, L: int,
+           sequences: Sequences | None = None) -> np.ndarray:
     first = window_start(t, L)
     t = t[(first >= 0) & (first + L <= n_query)]
+    if sequences is not None:
+        t = t[sequences.window_ok(t, L)]
     return t[gt_at(t) >= 0]
 
 
 def query_centres(gt_at: Callable[[np.ndarray], np.ndarray], n_query: int, n_deep: int, z: int,
-                  L: int) -> Centres:
-    """The evaluated centres for sequences of ``L``; ``gt_at(t)`` is the truth of frames ``t`` (−1: none)."""
-    common = _valid(np.arange(0, n_query, z, dtype=np.int64), gt_at, n_query, L)
+                  L: int, sequences: Sequences | None = None) -> Centres:
+    """The evaluated centres for sequences of ``L``; ``gt_at(t)`` is the truth of frames ``t`` (−1: none).
+    With the query rows' ``sequences``, a centre whose window crosses a sequence's end or a gap is none."""
+    common = _valid(np.arange(0, n_query, z, dtype=np.int64), gt_at, n_query, L, sequences)
     n_fas = n_query - n_deep
     if n_fas == 0 or int((common >= n_deep).sum()) >= MIN_FAS:
         return Centres(common, None)
     stride = max(1, n_fas // MIN_FAS)
     while True:
-        fas = _valid(np.arange(n_deep, n_query, stride, dtype=np.int64), gt_at, n_query, L)
+        fas = _valid(np.arange(n_deep, n_query, stride, dtype=np.int64), gt_at, n_query, L, sequences)
         if len(fas) >= MIN_FAS or stride == 1:
             break
         stride -= 1

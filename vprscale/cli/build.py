@@ -9,7 +9,8 @@ from vprscale.cli.common import MAX_FAS_DIM, bounded_int, positive_float, positi
 from vprscale.core.errors import InputError
 
 # what it reads: no output may be written over them
-INPUTS = ('deep1b', 'base', 'fas', 'scale', 'ref', 'query', 'gt', 'part', 'ref_pos', 'query_pos')
+INPUTS = ('deep1b', 'base', 'fas', 'scale', 'ref', 'query', 'gt', 'part', 'ref_pos', 'query_pos', 'ref_seq',
+          'query_seq', 'msls', 'descriptors', 'keys')
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
@@ -35,9 +36,22 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                      help="positions of the references in metres, for eval --radius-m: an .npy of (east, north) or "
                           "(x, y, z) per row, or a text file of image names with @UTM_east@UTM_north@ (optional)")
     own.add_argument("--query-pos", metavar="PATH", help="positions of the query rows, as --ref-pos (with it)")
+    own.add_argument("--ref-seq", metavar="PATH",
+                     help="many sequences: each reference row's sequence and frame number, a CSV or Parquet table "
+                          "with sequence_key and frame_number columns (MSLS's seq_info.csv) or an .npy of 2 integer "
+                          "columns; a window never crosses a sequence's end or a gap in its frame numbers (optional)")
+    own.add_argument("--query-seq", metavar="PATH", help="the query rows' sequences, as --ref-seq (with it)")
     own.add_argument("--name", help="the store's name, <out>/<name>.zarr (default: the --ref file's stem)")
     own.add_argument("--stride", type=positive_int, default=1,
                      help="the evaluation's default query stride z (default 1: every centre)")
+    msls = p.add_argument_group("MSLS as it is laid out (docs/bring-your-own.md), instead of --scale")
+    msls.add_argument("--msls", metavar="ROOT", help="MSLS's root folder (train_val/<city>/{database,query}/ with "
+                                                   "seq_info.csv, postprocessed.csv, raw.csv, subtask_index.csv)")
+    msls.add_argument("--cities", help="the cities to store, comma-separated (e.g. cph,sf, MSLS's validation set)")
+    msls.add_argument("--descriptors", metavar="FILE",
+                      help="your descriptors of every image of those cities: a Parquet file with a key column and "
+                           "a descriptor column (FILE.parquet[:COLUMN]), or any --ref form with --keys")
+    msls.add_argument("--keys", metavar="FILE", help="a text file of the --descriptors rows' image keys, one a line")
     p.add_argument("--base", metavar="[CORPUS:]PATH",
                    help="the recipe's large corpus, by path or URL, in any form --ref takes (.fbin, .u8bin, .i8bin, "
                         ".f16bin, fvecs, bvecs, .npy or shards, FILE.hdf5:DATASET, FILE.parquet:COLUMN); CORPUS "
@@ -66,7 +80,9 @@ def run(args: argparse.Namespace) -> int:
     from vprscale.dataset.build import BuildRequest, build, format_summary
     from vprscale.dataset.corpora import CORPORA, parse_base
 
-    if args.ref or args.query or args.gt or args.ref_pos or args.query_pos:
+    if args.msls or args.cities or args.descriptors or args.keys:
+        return _build_msls(args)
+    if args.ref or args.query or args.gt or args.ref_pos or args.query_pos or args.ref_seq or args.query_seq:
         return _build_own(args)
     if not args.scale:
         raise InputError("build: give --scale (a recipe), or --ref, --query and --gt (your own descriptors)")
@@ -103,7 +119,32 @@ def _build_own(args: argparse.Namespace) -> int:
     summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=args.gt, part=args.part, out=Path(args.out),
                                    name=args.name, stride=args.stride, force=args.force, workers=args.workers,
                                    scheduler=args.scheduler, ref_pos=args.ref_pos, query_pos=args.query_pos,
-                                   gt_radius_m=args.gt_radius_m))
+                                   ref_seq=args.ref_seq, query_seq=args.query_seq, gt_radius_m=args.gt_radius_m))
+    print(format_summary(summary))
+    write_summary(args, summary)
+    return 0
+
+
+def _build_msls(args: argparse.Namespace) -> int:
+    from vprscale.dataset.build import format_summary
+    from vprscale.dataset.mslsbuild import MslsRequest, build_msls
+
+    for flag in ("scale", "deep1b", "base", "fas", "layout", "ref", "gt", "part", "ref_pos", "query_pos", "ref_seq",
+                 "query_seq", "stride", "dry_run"):
+        if getattr(args, flag) not in (None, False, [], 1):
+            raise InputError(f"--{flag.replace('_', '-')}: not an option of an MSLS build (--msls, --cities, "
+                             "--descriptors, --keys, --name, --gt-radius-m, --out)")
+    if args.query:
+        raise InputError("--query: not an option of an MSLS build: its query images are the cities' own")
+    missing = [f for f, v in (("--msls", args.msls), ("--cities", args.cities), ("--descriptors", args.descriptors))
+               if not v]
+    if missing:
+        raise InputError(f"{' and '.join(missing)} missing (an MSLS build needs --msls ROOT, --cities and "
+                         "--descriptors)")
+    summary = build_msls(MslsRequest(root=args.msls, cities=args.cities, descriptors=args.descriptors,
+                                     keys=args.keys, out=Path(args.out), name=args.name or "msls",
+                                     threshold_m=args.gt_radius_m, force=args.force, workers=args.workers,
+                                     scheduler=args.scheduler))
     print(format_summary(summary))
     write_summary(args, summary)
     return 0

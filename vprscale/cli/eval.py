@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-from vprscale.cli.common import csv_of, local_output, positive_int, write_summary
+from vprscale.cli.common import csv_of, local_output, positive_float, positive_int, write_summary
 from vprscale.core.errors import InputError
 from vprscale.core.objects import is_url, location, public
 
@@ -19,7 +20,7 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("index", nargs="?", help="an index of that store (or use --d to index several widths)")
     p.add_argument("--noise", type=csv_of(str), default=None,
                    help="the store's query sets to evaluate, e.g. qm1,qm2 (default: every one it holds)")
-    p.add_argument("--L", type=csv_of(int), default=[1, 50, 100], help="sequence lengths, e.g. 1,50,100")
+    p.add_argument("--L", type=csv_of(int), default=None, help="sequence lengths (default: 1,50,100)")
     p.add_argument("--modes", type=csv_of(str), default=["paper", "aligned"], help="paper,aligned")
     p.add_argument("--baseline", action=argparse.BooleanOptionalAction, default=True,
                    help="also run the baseline of docs/method.md (default on)")
@@ -69,6 +70,18 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                    help="Deep1B query rows per noise level for --nn, evenly spaced (default 10,000)")
     p.add_argument("--repeats", type=positive_int, default=3,
                    help="timing repeats of every timed kernel, on one thread (default 3; docs/accounting.md)")
+    task = p.add_argument_group("MSLS's tasks (a store of many sequences: build --msls, or --ref-seq and --query-seq)")
+    task.add_argument("--task", choices=["im2im", "seq2im", "im2seq", "seq2seq"], default=None,
+                      help="evaluate MSLS's task instead of the frame grid: recall@k and map@k, k = 1, 5, 10, 20")
+    task.add_argument("--seq-length", type=positive_int, default=3,
+                      help="frames of a sequence in seq2im, im2seq, seq2seq (odd; default 3)")
+    task.add_argument("--subtask", default="all", choices=["all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d"],
+                      help="MSLS's subtask: its query and database windows only (default all)")
+    task.add_argument("--threshold", type=positive_float, default=25.0, metavar="M",
+                      help="a positive holds a frame within M metres of a query frame (default 25, MSLS's)")
+    task.add_argument("--export-msls", metavar="FILE",
+                      help="write each method's answers as MSLS's prediction file, which its evaluate.py scores "
+                           "(several methods: FILE with the method's name before the suffix)")
     p.add_argument("--out", help="output directory (default: INDEX/eval)")
     p.set_defaults(func=run, input_flags=INPUTS, out_is_dir=True)
 
@@ -82,14 +95,19 @@ def run(args: argparse.Namespace) -> int:
                          "storage is read from a copy in the cache, which is no place for results)")
     req = EvalRequest(store=location(args.store), indexes=[local_output(args.index)] if args.index else [],
                       index_urls=[public(args.index) if is_url(args.index) else None] if args.index else [],
-                      noises=args.noise, lengths=args.L, modes=args.modes, baseline=args.baseline,
+                      noises=args.noise, lengths=[1, 50, 100] if args.L is None else args.L, modes=args.modes,
+                      baseline=args.baseline,
                       z=args.z, baseline_queries=args.baseline_queries,
                       compare=args.compare, faiss_k=args.faiss_k, methods=args.methods, method_k=args.method_k,
                       faiss_nprobe=args.faiss_nprobe, compare_queries=args.compare_queries,
                       flat_noise=args.flat_noise,
                       deep1b=args.deep1b, fas=args.fas, out=location(args.out) if args.out else None,
                       workers=args.workers, scheduler=args.scheduler, repeats=args.repeats,
-                      force=args.force, radii_m=args.radius_m, nn=args.nn, nn_queries=args.nn_queries)
+                      force=args.force, radii_m=args.radius_m, nn=args.nn, nn_queries=args.nn_queries,
+                      task=args.task, seq_length=args.seq_length, subtask=args.subtask, threshold_m=args.threshold,
+                      export_msls=Path(args.export_msls).absolute() if args.export_msls else None)
+    if args.task is not None and args.L is not None:
+        raise InputError("--L: a task sets its own lengths (--seq-length)")
     if args.d:  # a sweep: its indexes are built (where missing) once the request is known to be sound
         if args.compare or args.methods:
             flag = "--compare" if args.compare else "--method"
@@ -101,6 +119,13 @@ def run(args: argparse.Namespace) -> int:
         write_summary(args, summary)
         return 0
     print(summary["table"])
+    for path in summary.get("predictions") or []:
+        print(f"wrote {path} (MSLS's prediction format)")
+    for L, count in (summary.get("windows") or {}).items():  # a store of many sequences
+        if int(L) > 1:
+            print(f"L = {L}: {count['query_centres_without_window']:,} query centres and "
+                  f"{count['places_without_window']:,} places have no window of {L} frames inside one sequence "
+                  "(left out: never a query, a candidate or an answer)")
     print(f"wrote {summary['out']}/results.parquet ({summary['rows']:,} rows) and queries.parquet "
           f"({summary['queries']:,} rows)" + (f", results_m.parquet (radii {','.join(f'{r:g}' for r in args.radius_m)}"
                                             " m)" if args.radius_m else "") + (", nn.parquet" if args.nn else "")

@@ -42,6 +42,16 @@ TABLE_COLUMNS = ("run", "scale", "noise", "method", "series", "family", "params"
                  "us_per_query", "qps_per_core")
 METRE_COLUMNS = tuple("radius_m" if c == "radius" else c for c in TABLE_COLUMNS)
 QUERY_COLUMNS = ("run", "noise", "method", "params", "mode", "L", "centre", "gt", "match", "score", "n_r")
+# an evaluation of MSLS's tasks (eval --task): its own metrics, recall@k and map@k
+TASK_KS = (1, 5, 10, 20)
+TASK_COLUMNS = ("run", "scale", "task", "seq_length", "subtask", "method", "family", "params", "mode", "part",
+                "n_queries", *(f"recall_at_{k}" for k in TASK_KS), *(f"map_at_{k}" for k in TASK_KS),
+                "bytes_per_place", "us_per_query")
+
+
+def _is_task(table) -> bool:
+    """Whether every row is a task's (``eval --task``): then the table shows recall@k and map@k."""
+    return "task" in table.column_names and table.column("task").null_count == 0 and table.num_rows > 0
 
 
 def _shown(table, all_columns: bool, queries: bool, metres: bool = False):
@@ -61,11 +71,12 @@ def _shown(table, all_columns: bool, queries: bool, metres: bool = False):
             table = table.drop_columns(["run"])
     if all_columns:
         return table
-    keep = [c for c in (QUERY_COLUMNS if queries else METRE_COLUMNS if metres else TABLE_COLUMNS)
-            if c in table.column_names]
+    task = not queries and _is_task(table)
+    keep = [c for c in (QUERY_COLUMNS if queries else TASK_COLUMNS if task else METRE_COLUMNS if metres
+                        else TABLE_COLUMNS) if c in table.column_names]
     table = table.select(keep)
     for name in ("recall", "recall_lo", "recall_hi", "recall_at_20", "nr_mean", "bytes_per_place", "us_per_query",
-                 "qps_per_core"):
+                 "qps_per_core", *(f"{m}_at_{k}" for m in ("recall", "map") for k in TASK_KS)):
         if name in table.column_names:  # three decimals (one for µs and queries a second) read at a glance
             table = table.set_column(table.column_names.index(name), name,
                                      pc.round(table.column(name), 1 if name in ("us_per_query", "qps_per_core")
@@ -118,10 +129,16 @@ def run(args: argparse.Namespace) -> int:
     shown = _shown(table, args.all_columns, args.queries, args.metres) if args.format == "table" else table
     write_table(shown, args.format, sys.stdout, max_width=width)
     if args.format == "table" and not args.all_columns:
-        legend = [text for column, text in _legend(args.metres).items() if column in shown.column_names]
+        legend = ([TASK_LEGEND] if _is_task(shown) else
+                  [text for column, text in _legend(args.metres).items() if column in shown.column_names])
         if legend:
             print("; ".join(legend))
     return 0
+
+
+TASK_LEGEND = ("recall_at_k: share of query windows with a positive (a database window holding a frame within the "
+               "threshold of a query frame) among their k first answers; map_at_k: MSLS's mean average precision at "
+               "k")
 
 
 def _legend(metres: bool) -> dict[str, str]:

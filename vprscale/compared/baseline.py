@@ -2,7 +2,8 @@
 
 For each query centre it scans all references by ``|x_i − y_t|``, keeps the ``N_r`` nearest
 (ties: smaller id) and scores each as a sequence centre with ``Σ_l |x_{c+l} − y_{t+l}|``;
-reference frames outside the map cost the full range of ``x``.
+reference frames outside the map cost the full range of ``x``. On a map of many sequences only
+centres whose window exists are candidates (:class:`vprscale.protocol.Sequences`).
 """
 
 from __future__ import annotations
@@ -34,24 +35,28 @@ def _sift_down(hd: np.ndarray, hi: np.ndarray, n: int) -> None:
 
 
 @numba.njit(cache=True, nogil=True)
-def nearest(x: np.ndarray, y: float, n_r: int) -> np.ndarray:
-    """Ids of the ``n_r`` references nearest to ``y`` by a full scan (ties: smaller id)."""
+def nearest(x: np.ndarray, y: float, n_r: int, valid: np.ndarray) -> np.ndarray:
+    """Ids of the ``n_r`` references nearest to ``y`` by a full scan (ties: smaller id), of those
+    ``valid`` allows (one byte a reference, or empty: all); fewer where fewer are allowed."""
     hd = np.full(n_r, np.inf)
     hi = np.full(n_r, np.iinfo(np.int64).max)
     for i in range(x.shape[0]):
+        if valid.shape[0] > 0 and valid[i] == 0:
+            continue
         dist = abs(x[i] - y)
         if dist < hd[0]:  # ids arrive ascending: an equal distance never displaces a smaller id
             hd[0], hi[0] = dist, i
             _sift_down(hd, hi, n_r)
-    return np.sort(hi)
+    found = np.sort(hi)
+    return found[found < np.iinfo(np.int64).max]
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np.ndarray,
-                   x_range: float, n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   x_range: float, valid: np.ndarray, n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(top, scores, n_r)`` of every query centre (``y`` indexed by query frame): its
     ``n_best`` best candidates, best first (−1 where fewer), their scores, and the number
-    of candidates."""
+    of candidates, never a centre whose window ``valid`` rules out (many sequences)."""
     half = L // 2
     n_ref = x.shape[0]
     top = np.full((centres_t.shape[0], n_best), NO_CANDIDATE)
@@ -59,7 +64,7 @@ def baseline_batch(centres_t: np.ndarray, L: int, n_r: int, x: np.ndarray, y: np
     counts = np.empty(centres_t.shape[0], np.int64)
     for qi in numba.prange(centres_t.shape[0]):
         t = centres_t[qi]
-        cand = nearest(x, y[t], min(n_r, n_ref))
+        cand = nearest(x, y[t], min(n_r, n_ref), valid)
         for c in cand:  # ascending
             s = 0.0
             bound = scores[qi, n_best - 1]

@@ -42,6 +42,7 @@ from vprscale.compared.codescore import (
 )
 from vprscale.core.errors import InputError
 from vprscale.method.kernels import window_proposals
+from vprscale.protocol import NO_MASK
 
 log = logging.getLogger(__name__)
 
@@ -913,15 +914,16 @@ class FaissCodes:
         return tables, y, levels, scale
 
     def match(self, positions: np.ndarray, L: int, aligned: bool, lists: tuple, terms: FrameTerms,
-              n_best: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              n_best: int = 1, valid: np.ndarray = NO_MASK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sequence match of the windows centred at query-frame ``positions``: ``(top, scores,
         n_r)``, the ``n_best`` best candidates best first (:func:`score_windows`).
 
         ``lists`` are the frames' top-k lists (:func:`vprscale.method.kernels.ranked_lists`);
-        candidates come from :func:`vprscale.method.kernels.window_proposals`.
+        candidates come from :func:`vprscale.method.kernels.window_proposals`, never a centre
+        whose window ``valid`` rules out (a byte a place; empty: all).
         """
         positions = np.asarray(positions, np.int64)
-        cand, first, n_r = window_proposals(positions, L, aligned, lists, self.n_ref)
+        cand, first, n_r = window_proposals(positions, L, aligned, lists, self.n_ref, valid)
         top, scores = self.score(positions, L, cand, first, n_r, terms, n_best)
         return top, scores, n_r
 

@@ -28,6 +28,7 @@ from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.errors import InputError
 from vprscale.core.kernelcache import share_kernels
 from vprscale.core.progress import ChunkProgress, Timings
+from vprscale.protocol import Sequences
 
 share_kernels()
 
@@ -178,8 +179,12 @@ class PooledCodes:
     read the same codes."""
 
     def __init__(self, specs: list[PooledSpec], dim: int, lengths: list[int], n_ref: int, nprobe: int,
-                 threads: int = 1) -> None:
+                 threads: int = 1, sequences: Sequences | None = None) -> None:
         self.specs, self.n_ref = specs, n_ref
+        # many sequences: only the windows that exist are pooled, and code row e is the window
+        # starting at reference starts[L][e] (single traverse: every window, row r starts at r)
+        self.starts = {L: np.flatnonzero(sequences.mask(L)) - L // 2
+                       for L in lengths if 1 < L <= n_ref} if sequences is not None else {}
         self.spec = PooledSpec(specs[0].prefix, specs[0].factory)  # the encoding: a pooling and a code
         named = specs[0].name  # as the user wrote it, for messages
         try:
@@ -195,8 +200,21 @@ class PooledCodes:
         self.pooling = Pooling("mean") if self.spec.pooling == "mean" else None  # GeM's: once the minimum is known
 
     def windows(self, L: int) -> int:
-        """Complete reference windows of ``L`` frames."""
-        return self.n_ref - L + 1
+        """Complete reference windows of ``L`` frames (of many sequences: those that exist)."""
+        return len(self.starts[L]) if L in self.starts else self.n_ref - L + 1
+
+    def centres(self, ids: np.ndarray, L: int) -> np.ndarray:
+        """The centre of each found code row (−1 stays −1)."""
+        start = self.starts[L][np.maximum(ids, 0)] if L in self.starts else ids
+        return np.where(ids >= 0, start + L // 2, -1)
+
+    def kept(self, L: int, first: int, n: int) -> tuple[np.ndarray, int]:
+        """``(rows, e)``: which of the ``n`` windows starting at ``first, first + 1, …`` are
+        encoded (positions among them), and the code row of the first of those."""
+        if L not in self.starts:
+            return np.arange(n), first
+        lo, hi = np.searchsorted(self.starts[L], [first, first + n])
+        return self.starts[L][lo:hi] - first, int(lo)
 
     @property
     def bytes_per_place(self) -> float:
@@ -208,12 +226,12 @@ class PooledCodes:
 
 
 def pooled_encodings(specs: list[PooledSpec], dim: int, lengths: list[int], n_ref: int, nprobe: int,
-                     threads: int = 1) -> list[PooledCodes]:
+                     threads: int = 1, sequences: Sequences | None = None) -> list[PooledCodes]:
     """One :class:`PooledCodes` per pooling and code asked for, in the order first asked."""
     shared: dict[tuple[str, str], list[PooledSpec]] = {}
     for spec in specs:
         shared.setdefault((spec.prefix, spec.factory), []).append(spec)
-    return [PooledCodes(group, dim, lengths, n_ref, nprobe, threads) for group in shared.values()]
+    return [PooledCodes(group, dim, lengths, n_ref, nprobe, threads, sequences) for group in shared.values()]
 
 
 def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True) -> None:
@@ -249,9 +267,15 @@ def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True)
                 bar.update(1)
 
     def keep_sample(m: PooledCodes, L: int, first: int, pooled: np.ndarray) -> None:
+        rows, e = m.kept(L, first, len(pooled))
         at = sample_at[(id(m), L)]
-        chosen = at[(at >= first) & (at < first + len(pooled))]
-        samples[(id(m), L)].append(pooled[chosen - first])
+        chosen = at[(at >= e) & (at < e + len(rows))]
+        samples[(id(m), L)].append(pooled[rows[chosen - e]])
+
+    def encode(m: PooledCodes, L: int, first: int, pooled: np.ndarray) -> None:
+        rows, _ = m.kept(L, first, len(pooled))
+        if len(rows):
+            m.codes[L].encode(pooled if len(rows) == len(pooled) else pooled[rows])
 
     with timings.stage(f"pool the training windows of {len(methods)} pooled encoding(s)"):
         stream("pool reference windows (training sample)", keep_sample)
@@ -261,6 +285,6 @@ def fit_pooled(methods: list[PooledCodes], ref: da.Array, progress: bool = True)
             m.codes[L].train(np.concatenate(samples.pop((id(m), L))))
             m.codes[L].start(m.windows(L))
     with timings.stage(f"pool and encode {ref.shape[0]:,} references' windows"):
-        stream("pool and encode reference windows", lambda m, L, first, pooled: m.codes[L].encode(pooled))
+        stream("pool and encode reference windows", encode)
         for m, L in jobs:
             m.codes[L].finish()

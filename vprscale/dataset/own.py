@@ -35,8 +35,9 @@ from vprscale.core.progress import Timings, run_tasks
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive
 from vprscale.dataset.layout import codecs, consolidate
+from vprscale.dataset.shuffle import reorder_into
 from vprscale.dataset.sources.base import RowSource
-from vprscale.dataset.sources.rows import open_rows, read_labels, read_positions
+from vprscale.dataset.sources.rows import open_rows, read_labels, read_positions, read_sequences
 from vprscale.dataset.store import ATTR
 
 log = logging.getLogger(__name__)
@@ -59,6 +60,8 @@ class OwnRequest:
     name: str | None = None  # the store's (and results' scale column's) name; default: the ref file's stem
     ref_pos: str | None = None  # positions in metres of the references and of the query rows (both or neither)
     query_pos: str | None = None
+    ref_seq: str | None = None  # many sequences: each row's sequence and frame number (both or neither)
+    query_seq: str | None = None
     stride: int = 1  # the evaluation's default query stride z
     gt_radius_m: float = 25.0  # without --gt: how far a query row's nearest reference may be to be its truth
     force: bool = False
@@ -129,6 +132,18 @@ def check_positions(req: OwnRequest, n_ref: int, n_query: int) -> tuple[np.ndarr
     return ref_pos, query_pos
 
 
+def check_sequences(req: OwnRequest, n_ref: int, n_query: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The references' and query rows' sequences (``--ref-seq``, ``--query-seq``), read and checked;
+    empty without them. Both or neither: a window is the same thing on either side."""
+    if (req.ref_seq is None) != (req.query_seq is None):
+        raise InputError(f"--{'query' if req.query_seq is None else 'ref'}-seq missing: sequences need both the "
+                         "references' (--ref-seq) and the query rows' (--query-seq)")
+    if req.ref_seq is None:
+        return {}
+    return {"ref": read_sequences(req.ref_seq, n_ref, "reference sequences"),
+            "query": read_sequences(req.query_seq, n_query, "query sequences")}
+
+
 def truth_from_positions(ref_pos: np.ndarray, query_pos: np.ndarray, radius_m: float) -> np.ndarray:
     """Each query row's nearest reference by position (ties: the smaller row), or −1 where none lies
     within ``radius_m`` metres: the truth VPR-methods-evaluation derives from UTM positions."""
@@ -170,6 +185,7 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
     """Write the store ``<out>/<name>.zarr``; returns the summary the CLI prints."""
     ref, queries, gt, part = check_inputs(req)
     positions = check_positions(req, ref.n_rows, len(gt))
+    sequences = check_sequences(req, ref.n_rows, len(gt))
     if req.gt is None:
         if not req.gt_radius_m > 0:
             raise InputError(f"--gt-radius-m {req.gt_radius_m}: must be above 0 metres")
@@ -190,11 +206,45 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
                             "gt": _digest(gt), "part": _digest(part),
                             **({"gt_from_positions_within_m": req.gt_radius_m} if req.gt is None else {}),
                             **({"ref_pos": _digest(positions[0]), "query_pos": _digest(positions[1])}
-                               if positions else {})},
+                               if positions else {}),
+                            **{f"{side}_seq": _digest(np.stack(seq)) for side, seq in sequences.items()}},
                 "rescale": None, "seed": None}
     check_writable(out)
     check_room(ref, queries, out)
+    labels = {"gt": gt, "query_part": part.astype(np.uint8), "ref_part": np.zeros(ref.n_rows, np.uint8),
+              **{f"{side}_{what}": a for side, seq in sequences.items() for what, a in zip(("seq", "frame"), seq,
+                                                                                        strict=True)},
+              **({"ref_pos": positions[0], "query_pos": positions[1]} if positions else {})}
+    layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(gt) - n_deep,
+              "noises": sorted(queries), **({"positions": int(positions[0].shape[1])} if positions else {}),
+              **({"sequences": {side: int(len(np.unique(seq))) for side, (seq, _) in sequences.items()}}
+                 if sequences else {})}
+    rows = {"ref": StoreRows(ref), **{f"query_{n}": StoreRows(q) for n, q in queries.items()}}
+    return write_store(final, identity, rows, labels, layout, req)
+
+
+@dataclass
+class StoreRows:
+    """One descriptor array of a store: its source, and the source row of each store row (None:
+    every row, in order, copied a chunk per task; else reordered out of core, :mod:`.shuffle`)."""
+
+    source: RowSource
+    order: np.ndarray | None = None
+
+    @property
+    def n_rows(self) -> int:
+        return self.source.n_rows if self.order is None else len(self.order)
+
+
+def write_store(final: Path, identity: dict[str, Any], rows: dict[str, StoreRows], labels: dict[str, np.ndarray],
+                layout: dict[str, Any], req: Any) -> dict[str, Any]:
+    """Write the store ``final`` (full layout: descriptor arrays ``rows``, label arrays ``labels``
+    as their dtypes, ``layout``) into a hidden work copy and publish it whole; returns the summary
+    the CLI prints. ``req`` gives ``force``, ``quiet``, ``workers`` and ``scheduler``."""
+    out = final.parent
+    check_writable(out)
     t0 = time.perf_counter()
+    dim = next(iter(rows.values())).source.dim
     with exclusive(final):
         PartialOutput(final, {}).recover()
         if final.exists() and not (final / "zarr.json").is_file():
@@ -207,34 +257,35 @@ def build_own(req: OwnRequest) -> dict[str, Any]:
         timings = Timings(req.quiet)
         group = zarr.open_group(str(partial.path), mode="a", zarr_format=3)
         if not partial.done("arrays"):
-            for array, rows in (("ref", ref.n_rows), *((f"query_{n}", len(gt)) for n in queries)):
-                group.create_array(array, shape=(rows, ref.dim), chunks=(chunk_rows(rows, 4 * ref.dim), ref.dim),
-                                   dtype="f4",
-                                   overwrite=True, **codecs("descriptors"))
-            for array, data, dtype in (("gt", gt, "i8"), ("query_part", part, "u1"),
-                                       ("ref_part", np.zeros(ref.n_rows), "u1")):
-                group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data), 8),), dtype=dtype,
-                                   overwrite=True, **codecs("labels"))
-                group[array][:] = data.astype(dtype)
-            for array, data in zip(("ref_pos", "query_pos"), positions, strict=True) if positions else ():
-                group.create_array(array, shape=data.shape, chunks=(chunk_rows(len(data), 8 * data.shape[1]),
-                                                                    data.shape[1]),
-                                   dtype="f8", overwrite=True, **codecs("labels"))
+            for array, r in rows.items():
+                group.create_array(array, shape=(r.n_rows, dim), chunks=(chunk_rows(r.n_rows, 4 * dim), dim),
+                                   dtype="f4", overwrite=True, **codecs("descriptors"))
+            for array, data in labels.items():
+                width = int(np.prod(data.shape[1:], dtype=np.int64))
+                group.create_array(array, shape=data.shape,
+                                   chunks=(chunk_rows(len(data), 8 * width), *data.shape[1:]),
+                                   dtype=data.dtype, overwrite=True, **codecs("labels"))
                 group[array][:] = data
             partial.mark("arrays")
-        sources = {"ref": ref, **{f"query_{n}": q for n, q in queries.items()}}
-        tasks = [dask.delayed(_copy_chunk)(str(partial.path), array, src, a, b, partial, f"{array}-{c}")
-                 for array, src in sources.items()
-                 for c, (a, b) in enumerate(chunk_bounds(src.n_rows, chunk_rows(src.n_rows, 4 * src.dim)))
+        for array, r in rows.items():  # a source in another order: read once, in order, into chunk buckets
+            if r.order is not None and not partial.done(array):
+                with timings.stage(f"reorder {array}"):
+                    reorder_into(r.source, r.order, group[array], partial.path / f".{array}-buckets", not req.quiet)
+                shutil.rmtree(partial.path / f".{array}-buckets", ignore_errors=True)
+                partial.mark(array)
+        tasks = [dask.delayed(_copy_chunk)(str(partial.path), array, r.source, a, b, partial, f"{array}-{c}")
+                 for array, r in rows.items() if r.order is None
+                 for c, (a, b) in enumerate(chunk_bounds(r.n_rows, chunk_rows(r.n_rows, 4 * dim)))
                  if not partial.done(f"{array}-{c}")]
-        with dask_client(req.scheduler, req.workers) as client, timings.stage(f"copy {len(tasks)} chunks"):
-            run_tasks(tasks, "copy chunks")
+        with dask_client(req.scheduler, req.workers) as client:
+            if tasks:
+                with timings.stage(f"copy {len(tasks)} chunks"):
+                    run_tasks(tasks, "copy chunks")
             peak = cluster_peak_rss(client)
-        layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(gt) - n_deep,
-                  "noises": sorted(queries), **({"positions": int(positions[0].shape[1])} if positions else {})}
-        summary = {"store": str(final), "scale": name, "layout": "full", "ref_rows": ref.n_rows,
-                   "query_rows": len(gt), "query_sets": len(queries), "resumed": resumed,
-                   "stages_s": timings.stages,
+        queries = [a for a in rows if a.startswith("query_")]
+        summary = {"store": str(final), "scale": identity["recipe"]["scale"], "layout": "full",
+                   "ref_rows": rows["ref"].n_rows, "query_rows": rows[queries[0]].n_rows, "query_sets": len(queries),
+                   "resumed": resumed, "stages_s": timings.stages,
                    "wall_s": time.perf_counter() - t0, "peak_rss_bytes": peak,
                    "provenance": provenance(inputs={"sources": identity["sources"]})}
         group.attrs[ATTR] = {**json.loads(json.dumps(identity, default=str)), "complete": True, "layout": layout}

@@ -20,6 +20,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.manifest import check_manifest, made_since_manifests, read_record, remake
 from vprscale.core.objects import Remote, location, zarr_url
 from vprscale.method.coarsehash import CoarseHasher
+from vprscale.protocol import Sequences
 
 ATTR = "vprscale"
 MODEL = ("mean", "components", "centres", "explained_variance", "ranges")  # a compact store's CoarseHash model
@@ -63,6 +64,14 @@ def store_identity(group: zarr.Group) -> str:
 def store_layout(group: zarr.Group) -> dict[str, Any]:
     """The layout attributes of a store (``kind`` is ``full`` for stores built before layouts had a name)."""
     return {"kind": "full", **group.attrs[ATTR].get("layout", {})}
+
+
+def read_sequences(group: zarr.Group, side: str) -> Sequences | None:
+    """The sequences of the store's ``side`` rows (``ref`` or ``query``), from its ``<side>_seq``
+    and ``<side>_frame`` arrays; None for a store of one traverse (every recipe's)."""
+    if f"{side}_seq" not in group:
+        return None
+    return Sequences(group[f"{side}_seq"][:], group[f"{side}_frame"][:])
 
 
 def ref_moments(group: zarr.Group) -> np.ndarray | None:

@@ -35,7 +35,7 @@ from vprscale.core.progress import StepProgress
 from vprscale.core.provenance import parquet_metadata, provenance
 from vprscale.core.publish import PartialOutput, check_writable, exclusive, keep_beside, refuse_foreign, shared
 from vprscale.dataset.references import reference_rows
-from vprscale.dataset.store import ATTR, open_complete_group, store_identity, store_layout
+from vprscale.dataset.store import ATTR, open_complete_group, read_sequences, store_identity, store_layout
 from vprscale.evaluation.algorithms import registry
 from vprscale.evaluation.algorithms.base import Answer
 from vprscale.evaluation.algorithms.baseline import BaselineMap, baseline_limit, load_baseline_map
@@ -44,11 +44,14 @@ from vprscale.evaluation.algorithms.plugged import load_method
 from vprscale.evaluation.metrics import RADII, TOP_N, metrics_at, recall_curve, run_metrics, top_distance
 from vprscale.evaluation.nearest import check_nn, exact_neighbours, nn_rows
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
+from vprscale.evaluation.taskgrid import run_task, task_table
+from vprscale.evaluation.tasks import TaskSet
 from vprscale.method.index import Index
 from vprscale.protocol import (
     PARTS,
     SEQUENCE_MODES,
     Centres,
+    Sequences,
     part_weights,
     query_centres,
     window_frames,
@@ -89,6 +92,11 @@ class EvalRequest:
     radii_m: list[float] | None = None  # radii in metres (a store with positions): results_m.parquet
     nn: bool = False  # the nearest-neighbour axis: nn.parquet
     nn_queries: int = NN_QUERIES  # Deep1B query rows it is measured on (evenly spaced)
+    task: str | None = None  # MSLS's task (im2im, seq2im, im2seq, seq2seq) instead of the frame grid
+    seq_length: int = 3
+    subtask: str = "all"
+    threshold_m: float = 25.0  # a task's positives: a database frame within this of a query frame
+    export_msls: Path | None = None  # the task's answers as MSLS's prediction file(s)
     repeats: int = DEFAULT_REPEATS  # timing repeats of every timed kernel
     force: bool = False  # replace an evaluation already in the output (kept beside as <out>.previous)
     out: Path | Remote | None = None  # a URL's evaluation is made in the cache, then uploaded
@@ -117,6 +125,7 @@ class QuerySet:
             self.n_query = int(group["gt"].shape[0])
             self.frames = None
         self.noises = list(layout.get("noises", DEFAULT_NOISES))
+        self.sequences = read_sequences(group, "query")  # a store of many sequences (None: one traverse)
         self._gt = group["gt"][:]
         self._part = group["query_part"][:]
         if "query_pos" in group:  # a store of your own: every row's position
@@ -152,7 +161,7 @@ class QuerySet:
         return np.where(held, self._part[pos], 255).astype(np.uint8)
 
     def centres(self, z: int, L: int) -> Centres:
-        c = query_centres(self.gt_at, self.n_query, self.n_deep, z, L)
+        c = query_centres(self.gt_at, self.n_query, self.n_deep, z, L, self.sequences)
         if self.compact and len(c.t):
             missing = ~np.isin(window_frames([c.t], [L]), self.frames)
             if missing.any() or L not in self.lengths:
@@ -213,6 +222,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     layout = store_layout(group)
     identity = store_identity(group)
     qs = QuerySet(group, layout)
+    ref_sequences = read_sequences(group, "ref")
     if req.radii_m and qs.positions is None:
         raise InputError(f"--radius-m: {req.store} holds no positions; build it with --ref-pos and --query-pos "
                          "(docs/bring-your-own.md)")
@@ -225,6 +235,18 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     if outside:
         raise InputError(f"--flat-noise {','.join(outside)}: not among the evaluated noise levels "
                          f"({', '.join(req.noises)})")
+    task = None
+    if req.task is not None:
+        if req.radii_m or req.nn or len(req.indexes) > 1:
+            flag = "--radius-m" if req.radii_m else "--nn" if req.nn else "--d"
+            raise InputError(f"{flag}: not with --task (a task scores its own positives, on one index)")
+        task = TaskSet(group, req.task, req.seq_length, req.subtask, req.threshold_m)
+        if req.export_msls is None and not task.scored:
+            raise InputError(f"--task {req.task}: {req.store} holds no positions (MSLS's test cities): nothing to "
+                             "score; --export-msls FILE writes the predictions for MSLS's own server")
+        req.lengths = [task.match_length]
+    elif req.export_msls is not None:
+        raise InputError("--export-msls: writes a task's predictions; give --task too")
     too_long = [L for L in req.lengths if L > qs.n_query]
     if too_long:
         raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
@@ -261,7 +283,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(_HOLDS.format(out=out))
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
-        pooled = _pooled(req, indexes, dim)
+        pooled = _pooled(req, indexes, dim, ref_sequences)
         stored = {m.factory: stored_encoding(req.store, m.factory, identity) for m in compared}  # vprscale encode's
         _check_methods(req, plugged, indexes[0][1])
         if req.nn:
@@ -290,7 +312,16 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             fit_pooled(pooled, ref, not req.quiet) if pooled else None
             fit_s = time.perf_counter() - t_fit
             method_fit_s = _fit_methods(plugged, ref, req.quiet) if plugged else {}
-            rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, pooled, plugged)
+            written: list[str] = []
+            if task is not None:
+                rows, queries, written = run_task(req, task, qs, dim, indexes, base, compared, pooled, plugged,
+                                                  _method_k(req, indexes[0][1]), layout.get("msls", {}).get("cities",
+                                                                                                          []),
+                                                  req.export_msls)
+                rows_m = []
+            else:
+                rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, pooled, plugged,
+                                              ref_sequences)
             columns = {"scale": meta["recipe"]["scale"], "store": shown(req.store),
                        "store_identity": identity}
             record = provenance(inputs={"store_identity": identity, "indexes": [
@@ -308,6 +339,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        "noises": req.noises, "flat_noise": req.flat_noise,
                        "radii_m": req.radii_m, "nn_queries": req.nn_queries if req.nn else None,
                        "lengths": req.lengths, "modes": req.modes,
+                       **({"task": {"task": task.task, "seq_length": task.seq_length, "subtask": task.subtask,
+                                    "threshold_m": task.threshold_m, "queries": len(task.centres),
+                                    "predictions": written}} if task is not None else {}),
+                       **({"windows": window_counts(qs, ref_sequences, req.lengths, z)}
+                          if qs.sequences is not None or ref_sequences is not None else {}),
                        "baseline": req.baseline,
                        "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
                        "indexes": _index_sources(req),
@@ -329,7 +365,23 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         if remote is not None:
             upload(out, remote, keep=True)  # with --force: the previous evaluation is kept beside
     return {"out": str(remote or out), "rows": len(rows), "queries": len(queries), "z": z,
-            "table": _summary_table(rows)}
+            "table": task_table(rows) if task is not None else _summary_table(rows),
+            "windows": None if task is not None else summary.get("windows"), "predictions": written}
+
+
+def window_counts(qs: QuerySet, ref_sequences: Sequences | None, lengths: list[int], z: int) -> dict[str, Any]:
+    """What a store of many sequences leaves out, per ``L``: the query centres (on the stride,
+    with a truth) whose window would cross a sequence's end or a gap, and the places on which no
+    reference window can be centred. Neither is ever a query, a candidate or an answer."""
+    counts: dict[str, Any] = {}
+    for L in lengths:
+        t = np.arange(0, qs.n_query, z, dtype=np.int64)
+        t = t[qs.gt_at(t) >= 0]
+        crossing = int((~qs.sequences.window_ok(t, L)).sum()) if qs.sequences is not None else 0
+        counts[str(L)] = {"query_centres_without_window": crossing,
+                          "places_without_window": ref_sequences.missing(L) if ref_sequences is not None and L > 1
+                          else 0}
+    return counts
 
 
 def _index_sources(req: EvalRequest) -> list[str]:
@@ -411,14 +463,16 @@ def _nn(req: EvalRequest, qs: QuerySet, idx: Index, dim: int, compared: list[Fai
     return found
 
 
-def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int) -> list[PooledCodes]:
+def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int,
+            ref_sequences: Sequences | None) -> list[PooledCodes]:
     """The pooled sequence descriptors asked for (``--compare seq:…``): an encoding per pooling and
     code, with a code per evaluated L > 1."""
     specs = [parse_pooled(s) for s in req.compare if is_pooled(s)]
     if specs and not any(1 < L <= indexes[0][1].n_ref for L in req.lengths):
         raise InputError(f"--compare {specs[0].name}: a pooled descriptor matches sequences; evaluate an --L above 1 "
                          f"(--L {','.join(map(str, req.lengths))} has none)")
-    return pooled_encodings(specs, dim, req.lengths, indexes[0][1].n_ref, req.faiss_nprobe[0], req.workers)
+    return pooled_encodings(specs, dim, req.lengths, indexes[0][1].n_ref, req.faiss_nprobe[0], req.workers,
+                            ref_sequences)
 
 
 def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -430,8 +484,8 @@ def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
-          compared: list[FaissCodes], pooled: list[PooledCodes], plugged: list[tuple[str, Any]]
-          ) -> tuple[list[dict], list[dict]]:
+          compared: list[FaissCodes], pooled: list[PooledCodes], plugged: list[tuple[str, Any]],
+          ref_sequences: Sequences | None = None) -> tuple[list[dict], list[dict]]:
     """Every method of every index on every noise, L and mode; the methods come from the registry."""
     rows: list[dict] = []
     queries: list[dict] = []
@@ -444,7 +498,8 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
         index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
         compared=compared, pooled=pooled, compare_queries=req.compare_queries, flat_noise=req.flat_noise,
-        faiss_k=req.faiss_k, faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx))))
+        faiss_k=req.faiss_k, faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx),
+        ref_sequences=ref_sequences)))
         for path, idx in indexes]
     steps = sum(1 + sum(len(a.modes(L, req.modes)) for L in req.lengths)
                 for noise in req.noises for _, algos in methods for a in algos if a.runs_on(noise))

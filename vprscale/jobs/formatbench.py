@@ -32,6 +32,7 @@ from vprscale.method import engine
 from vprscale.method.index import Index, QueryFrames
 from vprscale.method.indexfile import fill_from_tables, load_index_meta, read_model
 from vprscale.method.kernels import address_delta, bit_planes, match_batch
+from vprscale.protocol import NO_MASK
 
 share_kernels()
 
@@ -201,7 +202,7 @@ def _answer_plain(idx: Index, plain: PlainLists, qf: QueryFrames, pos: np.ndarra
         taken = plain.addresses[qf.slot[pos]].astype(np.uint64)
         return (_top_plain(qf.slot[pos], plain.offsets, plain.ids, plain.best, 1),
                 address_delta(qf.hashes[pos], taken, w, tables, idx.d, idx.k))
-    return match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *idx.kernel_args(), 1, 1)
+    return match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *idx.kernel_args(), NO_MASK, 1, 1)
 
 
 def _line(what: str, times: dict[str, list[float]]) -> str:

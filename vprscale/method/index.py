@@ -31,7 +31,7 @@ from vprscale.method.kernels import (
 )
 from vprscale.method.lists import inverted_lists
 from vprscale.method.succinct import pack
-from vprscale.protocol import centre_lag, check_window, window_positions, window_start
+from vprscale.protocol import NO_MASK, centre_lag, check_window, window_positions, window_start
 
 
 @dataclass
@@ -265,16 +265,17 @@ class Index:
         return Matches(t, top[:, 0].copy(), score, n_r, top)
 
     def answer(self, qf: QueryFrames, pos: np.ndarray, L: int, mode: str | None,
-               n_best: int = N_BEST) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               n_best: int = N_BEST, valid: np.ndarray = NO_MASK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(top, score, n_r)`` of the centres at positions ``pos`` of the query frames (see
-        :class:`Matches`; ``score`` of the best, in δ_max units)."""
+        :class:`Matches`; ``score`` of the best, in δ_max units); ``valid`` (a byte a place,
+        :func:`vprscale.protocol.window_mask`) leaves out the centres whose window does not exist."""
         pos = np.ascontiguousarray(pos, np.int64)  # a slice too: one compiled signature of match_batch
         if L == 1:  # the frame's own list, decoded with the per-frame work: its best first
             err = None if qf.errors is None else np.asarray(qf.errors)[pos]
             score = self.single_scores(qf.hashes[pos], qf.taken[pos], err)
             return frame_top(qf.start, qf.stop, qf.ids, pos, n_best), score, qf.stop[pos] - qf.start[pos]
         args = self.kernel_args()  # (…, δ_max) last
-        top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, n_best,
+        top, scores, n_r = match_batch(pos, L, mode == "aligned", *qf.kernel_args(), *args, valid, n_best,
                                        numba.get_num_threads())
         return top, scores[:, 0] / float(args[-1]), n_r
 

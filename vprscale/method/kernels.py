@@ -15,6 +15,7 @@ import numpy as np
 from vprscale.core.kernelcache import share_kernels
 from vprscale.method.intrinsics import funnel_shift_right, popcount, prefetch
 from vprscale.method.succinct import get_packed
+from vprscale.protocol import NO_MASK
 
 share_kernels()
 
@@ -257,8 +258,12 @@ def _prefetch_window(planes: np.ndarray, d: int, p: np.int64, L: int) -> None:
 
 @numba.njit(cache=True, nogil=True)
 def window_candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
-                ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int) -> int:
+                ids: np.ndarray, n_ref: int, cand: np.ndarray, slots: np.ndarray, bits: int,
+                valid: np.ndarray) -> int:
     """Distinct candidate centres of the window at ``t`` into ``cand``, in first-seen order.
+
+    ``valid`` (one byte a reference, or empty: all) leaves out a centre whose window does not
+    exist, one that would cross a sequence's end or a gap (:class:`vprscale.protocol.Sequences`).
 
     The proposals are first copied out of the lists, which lie next to each other
     (:class:`QueryFrames`); then an open-addressing set in ``slots`` (``2**bits`` entries,
@@ -277,7 +282,7 @@ def window_candidates(t: np.int64, L: int, half: int, aligned: bool, q_start: np
     u = 0
     for j in range(m):
         c = cand[j]
-        if c < 0 or c >= n_ref:
+        if c < 0 or c >= n_ref or (valid.shape[0] > 0 and valid[c] == 0):
             continue
         pos = np.int64((np.uint64(c) * np.uint64(0x9E3779B97F4A7C15)) >> hash_shift)
         while slots[pos] != -1 and slots[pos] != c:
@@ -303,7 +308,7 @@ def count_proposals(centres_t: np.ndarray, L: int, q_start: np.ndarray, q_stop: 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q_stop: np.ndarray,
-             ids: np.ndarray, n_ref: int, proposals: np.ndarray, shift: int
+             ids: np.ndarray, n_ref: int, proposals: np.ndarray, shift: int, valid: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(cand, first, n_r, counts)``: query ``qi``'s distinct candidates are ``cand[first[qi]:first[qi] + n_r[qi]]``.
 
@@ -326,7 +331,7 @@ def propose(centres_t: np.ndarray, L: int, aligned: bool, q_start: np.ndarray, q
             if (1 << bits) > slots.shape[0]:
                 slots = np.empty(1 << bits, np.int64)
             n_r[qi] = window_candidates(centres_t[qi], L, half, aligned, q_start, q_stop, ids, n_ref, cand[first[qi]:],
-                                  slots[: 1 << bits], bits)
+                                  slots[: 1 << bits], bits, valid)
             for j in range(first[qi], first[qi] + n_r[qi]):
                 counts[blk, cand[j] >> shift] += 1
     return cand, first, n_r, counts
@@ -445,7 +450,7 @@ def _score_pairs(pairs: np.ndarray, centres_t: np.ndarray, L: int, q_hash: np.nd
 def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray, q_planes: np.ndarray,
                 q_start: np.ndarray, q_stop: np.ndarray, q_ids: np.ndarray, codes: np.ndarray, code_bits: int,
                 n_ref: int, planes: np.ndarray, gaps: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int,
-                k: int, dmax: np.int64, n_best: int = 1, threads: int = SCORE_CHUNKS // 2
+                k: int, dmax: np.int64, valid: np.ndarray, n_best: int = 1, threads: int = SCORE_CHUNKS // 2
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sequence match of every query centre: ``(top, scores, n_r)``, its ``n_best`` best
     candidates best first (``top[:, 0]`` is the match; −1 where there were fewer), their
@@ -463,8 +468,10 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
     hash set per query), all (candidate, query) pairs of the block are sorted by where
     their reference window lies (:func:`_pairs_by_window`), and scored in that order, so
     that the bit planes of the map stream through the caches instead of being fetched
-    window by window. For K = 2 a window inside the map is scored on bit planes
-    (:func:`score_planes`); other windows, and K > 2, frame by frame (:func:`score_window`).
+    window by window. ``valid`` (one byte a reference, or empty) leaves out the centres whose
+    window does not exist (many sequences: :func:`window_candidates`). For K = 2 a window
+    inside the map is scored on bit planes (:func:`score_planes`); other windows, and K > 2,
+    frame by frame (:func:`score_window`).
     """
     n = centres_t.shape[0]
     # the bit-plane score sums in float64: exact while L·δ_max < 2^53
@@ -481,7 +488,7 @@ def match_batch(centres_t: np.ndarray, L: int, aligned: bool, q_hash: np.ndarray
                  max(lo + 1, np.searchsorted(upto, upto[lo] - proposals[lo] + PAIR_BUDGET, "right")))
         t = centres_t[lo:hi]
         cand, first, block_n_r, counts = propose(t, L, aligned, q_start, q_stop, q_ids, n_ref, proposals[lo:hi],
-                                                  shift)
+                                                  shift, valid)
         pairs = _pairs_by_window(cand, first, block_n_r, counts, shift)
         q_words = _query_words(t, L, q_planes, d) if fast else np.zeros((t.shape[0], 0), np.uint64)
         top[lo:hi], scores[lo:hi] = _score_pairs(pairs, t, L, q_hash, q_words, codes, code_bits, n_ref, planes,
@@ -510,13 +517,13 @@ def ranked_lists(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return stop - found.sum(axis=1), stop, np.asarray(ids)[found].astype(np.int64)
 
 
-def window_proposals(positions: np.ndarray, L: int, aligned: bool, lists: tuple, n_ref: int
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def window_proposals(positions: np.ndarray, L: int, aligned: bool, lists: tuple, n_ref: int,
+                     valid: np.ndarray = NO_MASK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(cand, first, n_r)`` of the windows centred at ``positions`` from per-frame
     :func:`ranked_lists`: the union of their lists (paper) or the centres their members imply
-    (aligned), as CoarseHash's windows take theirs."""
+    (aligned), as CoarseHash's windows take theirs, never a centre ``valid`` rules out."""
     start, stop, flat = lists
     positions = np.asarray(positions, np.int64)
     cand, first, n_r, _ = propose(positions, L, aligned, start, stop, flat, n_ref,
-                                  count_proposals(positions, L, start, stop), 62)
+                                  count_proposals(positions, L, start, stop), 62, valid)
     return cand, first, n_r

@@ -45,7 +45,7 @@ from vprscale.method.kernels import (
 )
 from vprscale.method.lent import borrow, lend
 from vprscale.method.succinct import get_packed
-from vprscale.protocol import MAX_BEST, check_window
+from vprscale.protocol import MAX_BEST, NO_MASK, check_window
 
 share_kernels()
 
@@ -59,6 +59,8 @@ class OnlineMatcher:
     L : sequence length (frames per window).
     mode : ``"paper"`` or ``"aligned"`` (see docs/method.md).
     n_best : how many best candidates each window keeps (``top``); 1 keeps the match alone.
+    valid : for a map of many sequences, a byte a place, 1 where a window of ``L`` centred
+        there exists (:func:`vprscale.protocol.window_mask`): no other place is a candidate.
 
     ``push(descriptor)`` returns the match of the window the frame completes (None for the
     first L − 1 frames); ``n_r`` is then that window's number of candidates and ``top`` its
@@ -69,10 +71,14 @@ class OnlineMatcher:
     units; lower is more confident), so a live user can threshold it.
     """
 
-    def __init__(self, index: Index, L: int, mode: str = "paper", n_best: int = 1) -> None:
+    def __init__(self, index: Index, L: int, mode: str = "paper", n_best: int = 1,
+                 valid: np.ndarray | None = None) -> None:
         check_window(L, mode)
         if not 1 <= int(n_best) <= MAX_BEST:
             raise ValueError(f"n_best {n_best}: keep 1 to {MAX_BEST} candidates a window")
+        valid = NO_MASK if valid is None else np.ascontiguousarray(valid, np.uint8)
+        if len(valid) not in (0, index.n_ref):
+            raise ValueError(f"valid: {len(valid):,} places, the index has {index.n_ref:,}")
         self.index, self.L, self.mode, self.n_best = index, int(L), mode, int(n_best)
         self._top_s = np.full(self.n_best, 2**62, np.int64)  # the window's best-first list, as the batch keeps it
         self._top_c = np.full(self.n_best, NO_CANDIDATE, np.int64)
@@ -94,7 +100,7 @@ class OnlineMatcher:
         self._win_planes = np.empty(((self.L + 63) // 64 + 2) * d, np.uint64)
         lists = index.lists
         self._args = _plain((lists.occupied_args(), lists.starts_args(), lists.ids, lists.id_bits, codes, code_bits,
-                             n_ref, planes, gaps, masks, w, tables, d, k, dmax))
+                             n_ref, planes, gaps, masks, valid, w, tables, d, k, dmax))
         self._fast = bool(k == 2 and planes.shape[0] > 0 and float(self.L) * float(dmax) < 2.0**53)
         centres = np.ascontiguousarray(index.centres, np.float64)
         self._dim = int(index.components.shape[1])
@@ -199,14 +205,14 @@ class _Engine(structref.StructRefProxy):
 structref.define_proxy(_Engine, _EngineType, [
     "frame", "last", "score", "top_s", "top_c", "mean", "w", "centres", "acc", "code_row", "span",
     "state", "ring_h", "ring_n", "buf", "cand", "slots", "win_h", "win_bounds", "win_planes", "L", "aligned", "fast",
-    "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "dw", "tables",
-    "d", "k", "dmax"])
+    "occ", "starts", "ids", "id_bits", "codes", "code_bits", "n_ref", "planes", "gaps", "masks", "valid", "dw",
+    "tables", "d", "k", "dmax"])
 
 
 @numba.njit(cache=True)
 def _engine(frame, last, score, top_s, top_c, mean, w, centres, acc, code_row, span, state, ring_h, ring_n, buf, cand,
             slots, win_h, win_bounds, win_planes, L, aligned, fast, occ, starts, ids, id_bits, codes, code_bits, n_ref,
-            planes, gaps, masks, dw, tables, d, k, dmax) -> _Engine:
+            planes, gaps, masks, valid, dw, tables, d, k, dmax) -> _Engine:
     """The engine of these arrays (lent: their owner keeps them) and values."""
     kind, high, low, lb, ones, zeros, n, size = occ
     s_high, s_low, s_lb, s_ones = starts
@@ -215,7 +221,7 @@ def _engine(frame, last, score, top_s, top_c, mean, w, centres, acc, code_row, s
                    lend(slots), lend(win_h), lend(win_bounds), lend(win_planes), L, aligned, fast,
                    (kind, lend(high), lend(low), lb, lend(ones), lend(zeros), n, size),
                    (lend(s_high), lend(s_low), s_lb, lend(s_ones)), lend(ids), id_bits, lend(codes), code_bits,
-                   n_ref, lend(planes), lend(gaps), lend(masks), lend(dw), lend(tables), d, k, dmax)
+                   n_ref, lend(planes), lend(gaps), lend(masks), lend(valid), lend(dw), lend(tables), d, k, dmax)
 
 
 @numba.njit(cache=True)  # the GIL kept: releasing and taking it back would cost a third of an L = 1 frame
@@ -243,8 +249,8 @@ def _push(e: _Engine) -> np.int64:
     best, n_r, units = _step(h, borrow(e.state), borrow(e.ring_h), borrow(e.ring_n), borrow(e.buf), borrow(e.cand),
                              borrow(e.slots), borrow(e.win_h), borrow(e.win_bounds), borrow(e.win_planes), e.L,
                              e.aligned, e.fast, borrow(e.top_s), top_c, occ, starts, ids, e.id_bits, borrow(e.codes),
-                             e.code_bits, e.n_ref, borrow(e.planes), borrow(e.gaps), borrow(e.masks), dw, tables, e.d,
-                             e.k, e.dmax)
+                             e.code_bits, e.n_ref, borrow(e.planes), borrow(e.gaps), borrow(e.masks),
+                             borrow(e.valid), dw, tables, e.d, e.k, e.dmax)
     if best >= 0:
         last_n[0], score[0] = n_r, units / float(e.dmax)
     return best
@@ -287,7 +293,7 @@ def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarra
            cand: np.ndarray, slots: np.ndarray, win_h: np.ndarray, win_bounds: np.ndarray, win_planes: np.ndarray,
            L: int, aligned: bool, fast: bool, top_s: np.ndarray, top_c: np.ndarray, occ: tuple, starts: tuple,
            ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int, planes: np.ndarray,
-           gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+           gaps: np.ndarray, masks: np.ndarray, valid: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
            dmax: np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_step` for each address of ``hs`` in turn: match, N_r, the match's score in
     fixed-point units and the best-first list (−1 before L frames)."""
@@ -298,7 +304,7 @@ def _steps(hs: np.ndarray, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarra
     for i in range(hs.shape[0]):
         match[i], n_r[i], units[i] = _step(hs[i], st, ring_h, ring_n, buf, cand, slots, win_h, win_bounds,
                                            win_planes, L, aligned, fast, top_s, top_c, occ, starts, ids, id_bits,
-                                           codes, code_bits, n_ref, planes, gaps, masks, w, tables, d, k, dmax)
+                                           codes, code_bits, n_ref, planes, gaps, masks, valid, w, tables, d, k, dmax)
         if match[i] >= 0:
             top[i] = top_c
     return match, n_r, units, finish_best(top)
@@ -309,7 +315,7 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
           cand: np.ndarray, slots: np.ndarray, win_h: np.ndarray, win_bounds: np.ndarray, win_planes: np.ndarray,
           L: int, aligned: bool, fast: bool, top_s: np.ndarray, top_c: np.ndarray, occ: tuple, starts: tuple,
           ids: np.ndarray, id_bits: int, codes: np.ndarray, code_bits: int, n_ref: int, planes: np.ndarray,
-          gaps: np.ndarray, masks: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
+          gaps: np.ndarray, masks: np.ndarray, valid: np.ndarray, w: np.ndarray, tables: np.ndarray, d: int, k: int,
           dmax: np.int64) -> tuple[np.int64, np.int64, np.int64]:
     """One frame: its list into the window, then the window's match (−1 until L frames), its N_r
     and its score (fixed point); ``(top_s, top_c)`` then hold the window's best-first list
@@ -354,7 +360,7 @@ def _step(h: np.uint64, st: np.ndarray, ring_h: np.ndarray, ring_n: np.ndarray, 
         bits += 1
     q_words = q_planes[: masks.shape[0]]  # the window starts at frame 0: its words are the plane rows as they are
     n_r = window_candidates(np.int64(half), L, half, aligned, q_start, q_stop, buf, n_ref, cand, slots[: 1 << bits],
-                            bits)
+                            bits, valid)
     n_best = top_c.shape[0]
     top_s[:] = np.int64(2**62)
     top_c[:] = NO_CANDIDATE

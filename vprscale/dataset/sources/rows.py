@@ -178,3 +178,74 @@ def read_positions(path: str | os.PathLike, n: int, what: str) -> np.ndarray:
     if len(bad):
         raise InputError(f"{p}: row {bad[0]:,} of the {what} is not a finite number")
     return pos
+
+
+SEQUENCE_COLUMNS = ("sequence_key", "sequence", "seq")  # a table's sequence column, first found (MSLS's first)
+FRAME_COLUMNS = ("frame_number", "frame")
+
+
+def read_sequences(path: str | os.PathLike, n: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(sequence, frame)`` of ``n`` rows, int64: which sequence each row belongs to (ids numbered
+    by first appearance when the file names them by key) and its frame number. An ``.npy`` of two
+    integer columns, or a CSV or Parquet table with a ``sequence_key`` (or ``sequence``) and a
+    ``frame_number`` (or ``frame``) column, one row per descriptor row: MSLS's ``seq_info.csv``
+    as it is."""
+    p = Path(path)
+    if p.suffix == ".npy":
+        a = open_npy(p)
+        if a.ndim != 2 or a.shape[1] != 2 or not np.issubdtype(a.dtype, np.integer):
+            raise InputError(f"{p}: {what} must be integers in 2 columns (sequence, frame number), not "
+                             f"{a.ndim}-D {a.dtype} {a.shape}")
+        sequence, frame = np.asarray(a[:, 0], np.int64), np.asarray(a[:, 1], np.int64)
+    elif p.suffix in (".csv", ".parquet"):
+        table = _read_table(p)
+        seq_col = next((c for c in SEQUENCE_COLUMNS if c in table.column_names), None)
+        frame_col = next((c for c in FRAME_COLUMNS if c in table.column_names), None)
+        if seq_col is None or frame_col is None:
+            raise InputError(f"{p}: {what} needs a {' or '.join(SEQUENCE_COLUMNS[:2])} column and a "
+                             f"{' or '.join(FRAME_COLUMNS)} column; it has {', '.join(table.column_names) or 'none'}")
+        sequence = _column_ids(p, table[seq_col], seq_col)
+        frame = _column_ints(p, table[frame_col], frame_col)
+    else:
+        raise InputError(f"{p}: {what} must be an .npy of (sequence, frame number) rows, or a .csv or .parquet "
+                         "table with sequence_key and frame_number columns")
+    if len(sequence) != n:
+        raise InputError(f"{p}: {len(sequence):,} {what} rows for {n:,} descriptor rows")
+    return sequence, frame
+
+
+def _read_table(p: Path) -> Any:
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(p) if p.suffix == ".parquet" else pacsv.read_csv(p)
+    except (OSError, pa.ArrowInvalid) as exc:
+        raise InputError(f"{p}: cannot be read as {p.suffix[1:].upper()} ({str(exc).splitlines()[0]})") from None
+
+
+def _nulls(p: Path, column: Any, name: str) -> None:
+    if column.null_count:
+        row = int(np.flatnonzero(np.asarray(column.is_null()))[0])
+        raise InputError(f"{p}: row {row:,} has no {name}")
+
+
+def _column_ids(p: Path, column: Any, name: str) -> np.ndarray:
+    """A sequence column as int64 ids: integers as they are, keys numbered by first appearance."""
+    _nulls(p, column, name)
+    values = column.to_numpy(zero_copy_only=False)
+    if np.issubdtype(values.dtype, np.integer):
+        return values.astype(np.int64)
+    _, first, inverse = np.unique(values.astype(str), return_index=True, return_inverse=True)
+    rank = np.empty(len(first), np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    return rank[inverse.ravel()]
+
+
+def _column_ints(p: Path, column: Any, name: str) -> np.ndarray:
+    _nulls(p, column, name)
+    values = column.to_numpy(zero_copy_only=False)
+    if not np.issubdtype(values.dtype, np.integer):
+        raise InputError(f"{p}: {name} must be integers, not {values.dtype}")
+    return values.astype(np.int64)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from vprscale.method.kernels import N_BEST
-from vprscale.protocol import SEQUENCE_MODES
+from vprscale.protocol import SEQUENCE_MODES, Sequences
 
 
 @dataclass
@@ -87,6 +87,9 @@ class Algorithm(ABC):
     threads: int = 1
     answers_apart: bool = False  # the answers' frame state comes from answer_frames, not frames
     timed_side_by_side: bool = False
+    # A map of many sequences (None: one traverse): a centre whose window does not exist is never
+    # a candidate, a scored centre or an answer (:func:`vprscale.protocol.window_mask` of it)
+    ref_windows: Sequences | None = None
 
     def runs_on(self, noise: str) -> bool:
         """Whether this method runs on query set ``noise`` (``noises``)."""

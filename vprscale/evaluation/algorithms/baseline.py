@@ -17,7 +17,7 @@ from vprscale.evaluation.algorithms.base import Algorithm, Answer
 from vprscale.evaluation.algorithms.coarsehash import CoarseHash
 from vprscale.method.kernels import N_BEST
 from vprscale.method.pca import ExactPCA, moments_of
-from vprscale.protocol import window_positions
+from vprscale.protocol import window_mask, window_positions
 
 FLOAT_BYTES = 4  # the baseline's map: one float32 per place
 SUBSAMPLE = 64  # baseline queries per run at 10^8 query rows and beyond (each scans every place)
@@ -73,6 +73,7 @@ class Baseline(Algorithm):
         return {"d": 1, "K": None, "params": None}
 
     def prepare(self, noise: str, frames: np.ndarray, rows: np.ndarray, centres: dict[int, np.ndarray]) -> None:
+        self.coarse.ref_windows = self.ref_windows  # its budget: CoarseHash's N_r over the same windows
         state = self.coarse.frames(rows)
         self.budget = {}
         for L, t in centres.items():
@@ -84,11 +85,12 @@ class Baseline(Algorithm):
 
     def localise(self, state: np.ndarray, pos: np.ndarray, L: int, mode: str | None, n_best: int = N_BEST) -> Answer:
         nr = self.budget[L]
-        top, scores, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range, n_best)
+        valid = window_mask(self.ref_windows, L)
+        top, scores, n_r = baseline_batch(pos, L, nr, self.base.x, state, self.x_range, valid, n_best)
         answer = Answer(top, scores[:, 0], n_r, baseline_ops(self.dim, len(self.base.x), L, nr)["total"])
         if 1 < n_best and nr < n_best:  # the Recall@N ranking weighs at least N (its budget at L = 1 is one)
             answer.ranked, _, answer.n_ranked = baseline_batch(pos, L, n_best, self.base.x, state, self.x_range,
-                                                               n_best)
+                                                               valid, n_best)
         return answer
 
 

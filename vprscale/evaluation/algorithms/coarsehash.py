@@ -11,6 +11,7 @@ from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_mode
 from vprscale.method.index import Index, QueryFrames
 from vprscale.method.invlists import in_list_distance
 from vprscale.method.kernels import N_BEST
+from vprscale.protocol import window_mask
 
 
 class CoarseHash(Algorithm):
@@ -44,7 +45,7 @@ class CoarseHash(Algorithm):
 
     def localise(self, state: QueryFrames, pos: np.ndarray, L: int, mode: str | None,
                  n_best: int = N_BEST) -> Answer:
-        top, score, n_r = self.index.answer(state, pos, L, mode, n_best)
+        top, score, n_r = self.index.answer(state, pos, L, mode, n_best, window_mask(self.ref_windows, L))
         return Answer(top, score, np.asarray(n_r, np.int64), self._ops(state, pos, L, n_r))
 
     def _ops(self, state: QueryFrames, pos: np.ndarray, L: int, n_r: np.ndarray) -> float:

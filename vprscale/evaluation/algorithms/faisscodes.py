@@ -18,6 +18,7 @@ from vprscale.core.progress import ChunkProgress, Timings
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
 from vprscale.evaluation.runner import spread
 from vprscale.method.kernels import N_BEST, ranked_lists
+from vprscale.protocol import window_mask
 
 SCAN_BUDGET = 2**35  # codes a run's frames may visit (~1 min of a flat 3-byte scan on 2 cores); beyond, a sample
 MIN_CENTRES = 1000  # centres a run localises at least, whatever the budget (recall's 95 % interval within ±3 points)
@@ -226,7 +227,8 @@ class FaissMethod(Algorithm):
         ranking and distances, L > 1 the window scores of the lists' proposals."""
         if L == 1:
             return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), self._frame_ops)
-        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", lists, terms, n_best)
+        top, scores, n_r = self.codes.match(pos, L, mode == "aligned", lists, terms, n_best,
+                                            window_mask(self.ref_windows, L))
         n_r_mean = float(n_r.mean()) if len(n_r) else 0.0
         return Answer(top, scores[:, 0], n_r, self._frame_ops + L * n_r_mean * self.codes.pair_ops())
 

@@ -36,6 +36,7 @@ from threadpoolctl import threadpool_limits
 from vprscale.core.errors import InputError
 from vprscale.evaluation.algorithms.base import Algorithm, Answer, sequence_modes, top_columns
 from vprscale.method.kernels import N_BEST, ranked_lists, window_proposals
+from vprscale.protocol import window_mask
 
 PAIR_BLOCK = 1 << 18  # (frame, reference) pairs handed to pair_distances at a time (their rows: ~100 MB)
 
@@ -138,7 +139,8 @@ class Plugged(Algorithm):
         pos = np.asarray(pos, np.int64)
         if L == 1:
             return Answer(*top_columns(ids[pos], dist[pos], n_best), (ids[pos] >= 0).sum(axis=1), float("nan"))
-        cand, first, n_r = window_proposals(pos, L, mode == "aligned", lists, self.n_ref)
+        cand, first, n_r = window_proposals(pos, L, mode == "aligned", lists, self.n_ref,
+                                            window_mask(self.ref_windows, L))
         with threadpool_limits(limits=self.threads):
             top, score = self._score(rows, pos, L, cand, first, n_r, n_best)
         return Answer(top, score, n_r, float("nan"))

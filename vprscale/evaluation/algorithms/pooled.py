@@ -78,7 +78,7 @@ class PooledMethod(Algorithm):
         k = self.rerank or n_best
         codes.set_point(k, codes.nprobe)
         dist, ids = codes.search(pool_windows(state.rows, pos, L, self.pooled.pooling))
-        centres = np.where(ids >= 0, ids + L // 2, -1)  # pooled row r is the window centred on r + ⌊L/2⌋
+        centres = self.pooled.centres(ids, L)
         n_r = (ids >= 0).sum(axis=1)
         ops = self.dim * L + codes.frame_ops()  # the pooling's adds, the pooled row's search
         if not self.rerank:

@@ -60,6 +60,7 @@ class Context:
     faiss_nprobe: list[int] | None = None  # … with every nprobe (IVF codes only)
     plugged: list[tuple[str, Any]] = field(default_factory=list)  # fitted --method methods, with their labels
     method_k: list[int] = field(default_factory=list)  # the k of each of their operating points
+    ref_sequences: Any = None  # the map's sequences (:class:`vprscale.protocol.Sequences`; None: one traverse)
 
 
 def _load(target: str) -> Any:
@@ -91,5 +92,9 @@ def installed_methods() -> dict[str, str]:
 
 
 def create(context: Context) -> list[Algorithm]:
-    """The methods every registered factory contributes to one evaluation of one index."""
-    return [alg for target, kind in registered().values() if kind != "method" for alg in _load(target)(context)]
+    """The methods every registered factory contributes to one evaluation of one index, each
+    told the map's sequences (``ref_windows``), whose windows it must keep to."""
+    found = [alg for target, kind in registered().values() if kind != "method" for alg in _load(target)(context)]
+    for alg in found:
+        alg.ref_windows = context.ref_sequences
+    return found
