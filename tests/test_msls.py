@@ -123,6 +123,8 @@ def test_msls_scores_vprscale_s_predictions_as_vprscale_does(msls, task, seq_len
             "--subtask", subtask, "--compare", "PQ4", "--out", str(out), "--export-msls", str(pred), "-q"]
     if task != "im2im":
         argv += ["--seq-length", str(seq_length)]
+    if task.startswith("seq"):  # a pooled descriptor's windows: only MSLS's database windows
+        argv += ["--compare", "seq:PQ4"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     results = pq.read_table(out / "results.parquet").to_pandas()
@@ -186,3 +188,43 @@ def test_the_pages_msls_example_runs_as_written(tmp_path, monkeypatch, capsys):
     assert "recall_at_1" in out and "seq:PQ8" in out and "map_at_20" in out
     assert (tmp_path / "data" / "pred.coarsehash-paper.csv").is_file()
     assert (tmp_path / "data" / "pred.seq_PQ8.csv").is_file()
+
+
+@pytest.mark.slow
+def test_a_test_city_without_positions_is_exported_not_scored(tmp_path, capsys):
+    """MSLS's test cities have no positions: the store builds, a task says it cannot score, and
+    --export-msls writes the predictions MSLS's server would score, one line per query window."""
+    import shutil
+
+    root = tmp_path / "MSLS"
+    assert main(["synth", "--msls", "--out", str(root), "--frames", "1000", "--cities", "athens", "-q"]) == 0
+    (root / "test").mkdir()
+    shutil.move(root / "train_val" / "athens", root / "test" / "athens")
+    for side in ("database", "query"):
+        for name in ("postprocessed.csv", "raw.csv"):
+            (root / "test" / "athens" / side / name).unlink()
+    assert main(["build", "--msls", str(root), "--cities", "athens", "--descriptors", str(root / "descriptors.npy"),
+                 "--keys", str(root / "keys.txt"), "--out", str(tmp_path / "data"), "-q"]) == 0
+    store, index = tmp_path / "data" / "msls.zarr", tmp_path / "data" / "msls.index"
+    assert main(["index", str(store), "--out", str(index), "-q"]) == 0
+    capsys.readouterr()
+    base = ["eval", str(store), str(index), "--task", "seq2seq", "--seq-length", "3", "--no-baseline", "-q"]
+    assert main([*base, "--out", str(tmp_path / "e1")]) == 2
+    assert "holds no positions" in capsys.readouterr().err
+    assert main([*base, "--out", str(tmp_path / "e2"), "--modes", "paper", "--export-msls",
+                 str(tmp_path / "p.csv")]) == 0
+    lines = (tmp_path / "p.csv").read_text().splitlines()
+    _, idxs = msls_windows_test(root / "test" / "athens" / "query", 3)
+    assert len(lines) == len(idxs) and all(len(line.split(" ")) == 21 for line in lines)
+
+
+def msls_windows_test(folder: Path, seq_length: int) -> tuple[list[str], list[np.ndarray]]:
+    """MSLS's test mode: windows of the subtask 'all' (no panorama filter: no raw.csv)."""
+    info = pd.read_csv(folder / "seq_info.csv", index_col=0)
+    keys, idxs = [], []
+    for idx in range(seq_length // 2, len(info) - seq_length // 2):
+        seq = info.iloc[np.arange(-seq_length // 2, seq_length // 2) + 1 + idx]
+        if len(np.unique(seq["sequence_key"])) == 1 and (seq["frame_number"].diff()[1:] == 1).all():
+            keys.append(",".join(seq["key"]))
+            idxs.append(idx)
+    return keys, idxs

@@ -190,3 +190,77 @@ def test_bad_sequences_are_one_line(tmp_path, capsys, flags, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not (tmp_path / "data" / "ref.zarr").exists()
+
+
+@pytest.mark.slow
+def test_query_sets_of_any_lengths_each_with_its_own_truth(tmp_path, capsys):
+    """Two query sets of different drives and lengths, each with its own truth and sequences
+    (one by --gt, one by positions): each is evaluated on its own centres and windows."""
+    ref_places, query_places = _drives(tmp_path, sequences=False)
+    rng = np.random.default_rng(5)
+    query = np.load(tmp_path / "query.npy")
+    qseq = pd.read_parquet(tmp_path / "query_seq.parquet")
+    short = qseq["sequence_key"] != "q002"  # the night set: the first two drives only, 580 rows
+    np.save(tmp_path / "night.npy", query[short.to_numpy()] + rng.normal(scale=0.05, size=query[short].shape)
+            .astype(np.float32))
+    qseq[short].to_csv(tmp_path / "night_seq.csv", index=False)
+    np.save(tmp_path / "ref_pos.npy", np.c_[ref_places * 5.0, np.zeros(len(ref_places))])  # 5 m between places
+    np.save(tmp_path / "night_pos.npy", np.c_[query_places[short.to_numpy()] * 5.0, np.zeros(int(short.sum()))])
+    np.save(tmp_path / "day_pos.npy", np.c_[query_places * 5.0, np.zeros(len(query_places))])
+    argv = ["build", "--ref", str(tmp_path / "ref.npy"), "--query", f"day={tmp_path / 'query.npy'}",
+            "--query", f"night={tmp_path / 'night.npy'}", "--gt", f"day={tmp_path / 'gt.npy'}",
+            "--ref-seq", str(tmp_path / "ref_seq.csv"), "--query-seq", f"day={tmp_path / 'query_seq.parquet'}",
+            "--query-seq", f"night={tmp_path / 'night_seq.csv'}", "--ref-pos", str(tmp_path / "ref_pos.npy"),
+            "--query-pos", f"day={tmp_path / 'day_pos.npy'}", "--query-pos", f"night={tmp_path / 'night_pos.npy'}",
+            "--gt-radius-m", "3", "--name", "sets", "--out", str(tmp_path / "data"), "-q"]
+    assert main(argv) == 0
+    store, index = tmp_path / "data" / "sets.zarr", tmp_path / "data" / "sets.index"
+    assert main(["index", str(store), "--out", str(index), "-q"]) == 0
+    assert main(["eval", str(store), str(index), "--L", "1,9", "--out", str(tmp_path / "ev"), "-q",
+                 "--radius-m", "10"]) == 0
+    res = pq.read_table(tmp_path / "ev" / "results.parquet").to_pandas()
+    n = res[(res.radius == 0) & (res.method == "coarsehash")].groupby(["noise", "L"])["n_queries"].max()
+    night_seq = Sequences(pd.factorize(qseq[short]["sequence_key"])[0], qseq[short]["frame_number"].to_numpy())
+    day_seq = Sequences(pd.factorize(qseq["sequence_key"])[0], qseq["frame_number"].to_numpy())
+    day_truth = np.load(tmp_path / "gt.npy") >= 0  # the night set's: all of its places are in the map
+    assert n[("night", 9)] == int(night_seq.mask(9).sum()) < n[("day", 9)] == int((day_seq.mask(9) & day_truth).sum())
+    queries = pq.read_table(tmp_path / "ev" / "queries.parquet").to_pandas()
+    night = queries[(queries.noise == "night") & (queries.L == 1) & (queries.method == "coarsehash")]
+    assert night["t"].max() < short.sum() and (night["gt"] >= 0).all()
+    place = query_places[short.to_numpy()][night["t"]]
+    assert (np.abs(ref_places[night["gt"]] - place) == 0).all()  # its truth by position: the same place
+    capsys.readouterr()
+    # one --gt for sets of different lengths is refused, naming the fix
+    assert main(["build", "--ref", str(tmp_path / "ref.npy"), "--query", f"day={tmp_path / 'query.npy'}",
+                 "--query", f"night={tmp_path / 'night.npy'}", "--gt", str(tmp_path / "gt.npy"),
+                 "--out", str(tmp_path / "data2")]) == 2
+    assert "give each its own, --gt NAME=PATH" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_online_matcher_keeps_to_the_map_s_windows_as_the_batch_does(tmp_path, capsys):
+    """``localise --store``: a stream matched frame by frame answers what the batch answers with
+    the map's window mask, and never a window across drives."""
+    from vprscale.method.index import Index
+    from vprscale.protocol import window_mask
+
+    _drives(tmp_path)
+    store, index = tmp_path / "data" / "drives.zarr", tmp_path / "data" / "drives.index"
+    assert main(["index", str(store), "--out", str(index), "-q"]) == 0
+    seq = pd.read_csv(tmp_path / "ref_seq.csv")
+    valid = window_mask(Sequences(pd.factorize(seq["sequence_key"])[0], seq["frame_number"].to_numpy()), 9)
+    frames = np.load(tmp_path / "query.npy")[:300]
+    np.save(tmp_path / "stream.npy", frames)
+    out = tmp_path / "online.parquet"
+    assert main(["localise", str(index), str(tmp_path / "stream.npy"), "--L", "9", "--top", "5", "--store",
+                 str(store), "--out", str(out)]) == 0
+    online = pq.read_table(out).to_pandas().dropna(subset=["match"])
+    idx = Index.load(index)
+    qf = idx.query_frames(idx.hash_frames(frames)[0], errors=idx.hash_frames(frames)[1])
+    centres = online["centre"].to_numpy(np.int64)
+    top, _, _ = idx.answer(qf, qf.positions(centres, 9), 9, "paper", 5, valid)
+    np.testing.assert_array_equal(online["match"].to_numpy(np.int64), top[:, 0])
+    assert valid[online["match"].to_numpy(np.int64)].all()
+    capsys.readouterr()
+    assert main(["localise", str(index), str(tmp_path / "stream.npy"), "--store", str(tmp_path / "data" / "x.zarr"),
+                 "--out", str(tmp_path / "x.parquet")]) == 2

@@ -7,7 +7,7 @@ The public Python API::
 (imported on first use, so that ``import vprscale`` and the command line start fast).
 """
 
-__version__ = "0.9.0"
+__version__ = "0.10.0"
 
 _PUBLIC = {"CoarseHasher": "vprscale.method.coarsehash", "ExactPCA": "vprscale.method.pca",
            "RandomizedPCA": "vprscale.method.pca", "Index": "vprscale.method.index",

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -103,7 +104,14 @@ class Sequences:
 NO_MASK = np.zeros(0, np.uint8)  # single-traverse data: every window inside the map exists
 
 
-def window_mask(sequences: Sequences | None, L: int) -> np.ndarray:
+class WindowMask(Protocol):
+    """What the matchers read of a map's windows: a byte a place for each L (:class:`Sequences`,
+    or a task's answerable centres)."""
+
+    def mask(self, L: int) -> np.ndarray: ...
+
+
+def window_mask(sequences: WindowMask | None, L: int) -> np.ndarray:
     """The matchers' mask of centres whose window of ``L`` exists (``NO_MASK``: all of them)."""
     return NO_MASK if sequences is None or L == 1 else sequences.mask(L)
 

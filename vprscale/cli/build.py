@@ -24,23 +24,28 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
                                    ".i8bin, fvecs, bvecs, FILE.hdf5:DATASET or FILE.parquet:COLUMN (or a folder of "
                                    "Parquet files); the bin and vecs forms also by URL")
     own.add_argument("--query", action="append", default=[], metavar="NAME=PATH",
-                     help="a query set (rows aligned with the other sets'), evaluated as --noise NAME; repeatable")
-    own.add_argument("--gt", help=".npy of int, one per query row: its reference row, −1 for no truth (or the "
-                                  "first neighbour of an .ibin or .ivecs ground truth; with "
-                                  "--ref-pos and --query-pos: optional, the nearest reference by position)")
+                     help="a query set, evaluated as --noise NAME; repeatable. Sets sharing one --gt are the same "
+                          "traverse row for row; sets of any lengths give each label flag once per set, NAME=PATH")
+    own.add_argument("--gt", action="append", default=None, metavar="[NAME=]PATH",
+                     help=".npy of int, one per query row: its reference row, −1 for no truth (or the "
+                          "first neighbour of an .ibin or .ivecs ground truth; with "
+                          "--ref-pos and --query-pos: optional, the nearest reference by position)"),
     own.add_argument("--gt-radius-m", type=positive_float, default=25.0, metavar="R",
                      help="without --gt: a query row's truth is its nearest reference within R metres, else none "
                           "(default 25, VPR-methods-evaluation's positives)")
-    own.add_argument("--part", help=".npy of 0/1 per query row (0s first): two parts reported apart (optional)")
+    own.add_argument("--part", action="append", default=None, metavar="[NAME=]PATH",
+                     help=".npy of 0/1 per query row (0s first): two parts reported apart (optional)")
     own.add_argument("--ref-pos", metavar="PATH",
                      help="positions of the references in metres, for eval --radius-m: an .npy of (east, north) or "
                           "(x, y, z) per row, or a text file of image names with @UTM_east@UTM_north@ (optional)")
-    own.add_argument("--query-pos", metavar="PATH", help="positions of the query rows, as --ref-pos (with it)")
+    own.add_argument("--query-pos", action="append", default=None, metavar="[NAME=]PATH",
+                     help="positions of the query rows, as --ref-pos (with it)")
     own.add_argument("--ref-seq", metavar="PATH",
                      help="many sequences: each reference row's sequence and frame number, a CSV or Parquet table "
                           "with sequence_key and frame_number columns (MSLS's seq_info.csv) or an .npy of 2 integer "
                           "columns; a window never crosses a sequence's end or a gap in its frame numbers (optional)")
-    own.add_argument("--query-seq", metavar="PATH", help="the query rows' sequences, as --ref-seq (with it)")
+    own.add_argument("--query-seq", action="append", default=None, metavar="[NAME=]PATH",
+                     help="the query rows' sequences, as --ref-seq (with it)")
     own.add_argument("--name", help="the store's name, <out>/<name>.zarr (default: the --ref file's stem)")
     own.add_argument("--stride", type=positive_int, default=1,
                      help="the evaluation's default query stride z (default 1: every centre)")
@@ -116,10 +121,12 @@ def _build_own(args: argparse.Namespace) -> int:
     queries = dict(parse_query(q) for q in args.query)
     if len(queries) != len(args.query):
         raise InputError("--query: a name is given twice")
-    summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=args.gt, part=args.part, out=Path(args.out),
+    labels = {flag: per_set(getattr(args, flag), queries, flag) for flag in ("gt", "part", "query_pos", "query_seq")}
+    summary = build_own(OwnRequest(ref=args.ref, queries=queries, gt=labels["gt"], part=labels["part"],
+                                   out=Path(args.out),
                                    name=args.name, stride=args.stride, force=args.force, workers=args.workers,
-                                   scheduler=args.scheduler, ref_pos=args.ref_pos, query_pos=args.query_pos,
-                                   ref_seq=args.ref_seq, query_seq=args.query_seq, gt_radius_m=args.gt_radius_m))
+                                   scheduler=args.scheduler, ref_pos=args.ref_pos, query_pos=labels["query_pos"],
+                                   ref_seq=args.ref_seq, query_seq=labels["query_seq"], gt_radius_m=args.gt_radius_m))
     print(format_summary(summary))
     write_summary(args, summary)
     return 0
@@ -148,3 +155,22 @@ def _build_msls(args: argparse.Namespace) -> int:
     print(format_summary(summary))
     write_summary(args, summary)
     return 0
+
+
+def per_set(values: list[str] | None, queries: dict[str, str], flag: str) -> str | dict[str, str] | None:
+    """A label flag's files: one PATH every query set shares, or NAME=PATH once for each set."""
+    if not values:
+        return None
+    named = [v.partition("=") for v in values]
+    if len(values) == 1 and not (named[0][1] and named[0][0] in queries):
+        return values[0]
+    option = "--" + flag.replace("_", "-")
+    found: dict[str, str] = {}
+    for name, sep, path in named:
+        if not sep or name not in queries:
+            raise InputError(f"{option} {name}{sep}{path}: give one PATH for every query set, or NAME=PATH once for "
+                             f"each ({', '.join(queries)})")
+        if name in found:
+            raise InputError(f"{option} {name}=…: given twice")
+        found[name] = path
+    return found

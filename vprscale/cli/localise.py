@@ -7,7 +7,7 @@ import argparse
 from vprscale.cli.common import bounded_int, local_output, positive_int, write_summary
 from vprscale.protocol import MAX_BEST
 
-INPUTS = ('index', 'queries')  # the flags naming what it reads: no output may be written over them
+INPUTS = ('index', 'queries', 'store')  # the flags naming what it reads: no output may be written over them
 
 
 def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
@@ -25,6 +25,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("--out", help="a .parquet or .csv file of (frame, centre, match, n_r, score), one row per "
                                  "frame (default: CSV on standard output)")
     p.add_argument("--force", action="store_true", help="replace an existing --out file (kept beside, as .previous)")
+    p.add_argument("--store", metavar="STORE",
+                   help="the index's store, for a map of many sequences (build --ref-seq, --msls): no window that "
+                        "crosses a sequence's end or a gap is answered")
     p.set_defaults(func=run, input_flags=INPUTS)
 
 
@@ -32,6 +35,6 @@ def run(args: argparse.Namespace) -> int:
     from vprscale.jobs.localise import localise
 
     summary = localise(local_output(args.index), args.queries, args.L, mode=args.mode, out=args.out or "-",
-                       top=args.top, force=args.force)
+                       top=args.top, force=args.force, store=local_output(args.store) if args.store else None)
     write_summary(args, summary)
     return 0

@@ -28,7 +28,7 @@ from vprscale.compared.faisscodes import FaissCodes, training_rows
 from vprscale.core.errors import InputError
 from vprscale.core.kernelcache import share_kernels
 from vprscale.core.progress import ChunkProgress, Timings
-from vprscale.protocol import Sequences
+from vprscale.protocol import WindowMask
 
 share_kernels()
 
@@ -179,7 +179,7 @@ class PooledCodes:
     read the same codes."""
 
     def __init__(self, specs: list[PooledSpec], dim: int, lengths: list[int], n_ref: int, nprobe: int,
-                 threads: int = 1, sequences: Sequences | None = None) -> None:
+                 threads: int = 1, sequences: WindowMask | None = None) -> None:
         self.specs, self.n_ref = specs, n_ref
         # many sequences: only the windows that exist are pooled, and code row e is the window
         # starting at reference starts[L][e] (single traverse: every window, row r starts at r)
@@ -226,7 +226,7 @@ class PooledCodes:
 
 
 def pooled_encodings(specs: list[PooledSpec], dim: int, lengths: list[int], n_ref: int, nprobe: int,
-                     threads: int = 1, sequences: Sequences | None = None) -> list[PooledCodes]:
+                     threads: int = 1, sequences: WindowMask | None = None) -> list[PooledCodes]:
     """One :class:`PooledCodes` per pooling and code asked for, in the order first asked."""
     shared: dict[tuple[str, str], list[PooledSpec]] = {}
     for spec in specs:

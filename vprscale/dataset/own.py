@@ -46,6 +46,7 @@ CHUNK_ROWS = 16 * BLOCK  # rows per Zarr chunk and per task, at most
 CHUNK_BYTES = 32 << 20  # bytes of one chunk (and of what one task holds), at most, unless one row is larger
 MAX_ROW_BYTES = 1 << 30  # a single descriptor this large is no descriptor
 NAME = re.compile(r"[a-z][a-z0-9_]{0,30}")
+Labels = str | dict[str, str] | None  # a label file every query set shares, one per set by name, or none
 
 
 @dataclass
@@ -54,14 +55,14 @@ class OwnRequest:
 
     ref: str
     queries: dict[str, str]  # noise name → file
-    gt: str | None  # None: each query row's nearest reference by position, within gt_radius_m
+    gt: Labels  # None: each query row's nearest reference by position, within gt_radius_m
     out: Path
-    part: str | None = None
+    part: Labels = None
     name: str | None = None  # the store's (and results' scale column's) name; default: the ref file's stem
     ref_pos: str | None = None  # positions in metres of the references and of the query rows (both or neither)
-    query_pos: str | None = None
+    query_pos: Labels = None
     ref_seq: str | None = None  # many sequences: each row's sequence and frame number (both or neither)
-    query_seq: str | None = None
+    query_seq: Labels = None
     stride: int = 1  # the evaluation's default query stride z
     gt_radius_m: float = 25.0  # without --gt: how far a query row's nearest reference may be to be its truth
     force: bool = False
@@ -84,64 +85,95 @@ def _digest(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
 
 
-def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource], np.ndarray, np.ndarray]:
-    """Open and check every input before anything is written: one line naming the file and what is wrong."""
+@dataclass
+class SetLabels:
+    """One query set's labels: each row's truth (−1: none) and part, and optionally its position
+    and its (sequence, frame number)."""
+
+    gt: np.ndarray
+    part: np.ndarray
+    pos: np.ndarray | None = None
+    seq: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def for_set(value: Labels, name: str | None) -> str | None:
+    """The file a label flag gives query set ``name``: its own, or the one every set shares."""
+    return value.get(name) if isinstance(value, dict) else value
+
+
+def shared_labels(req: OwnRequest) -> bool:
+    """Whether every query set takes the same label files (query sets row for row, the layout of
+    one set of labels), rather than each its own (query sets of any lengths)."""
+    return not any(isinstance(v, dict) for v in (req.gt, req.part, req.query_pos, req.query_seq))
+
+
+def check_inputs(req: OwnRequest) -> tuple[RowSource, dict[str, RowSource]]:
+    """Open and check the descriptor files before anything is written: one line naming the file and what is wrong."""
     if not req.queries:
         raise InputError("--query: give at least one query set, NAME=PATH")
     if req.stride < 1:
         raise InputError(f"--stride {req.stride}: must be at least 1")
+    for flag, value in (("--gt", req.gt), ("--part", req.part), ("--query-pos", req.query_pos),
+                        ("--query-seq", req.query_seq)):
+        unknown = [n for n in value if n not in req.queries] if isinstance(value, dict) else []
+        if unknown:
+            raise InputError(f"{flag} {unknown[0]}=…: no query set {unknown[0]} (--query NAME=PATH names them)")
     ref = open_rows(req.ref)
     queries = {name: open_rows(path) for name, path in req.queries.items()}
     n_query = None
     for q in queries.values():
         if q.dim != ref.dim:
             raise InputError(f"{q.name}: query rows have {q.dim} dimensions, the references {ref.dim}")
-        if n_query is not None and q.n_rows != n_query:
+        if shared_labels(req) and n_query is not None and q.n_rows != n_query:
             raise InputError(f"{q.name}: {q.n_rows:,} rows, but the other query sets have {n_query:,}: query sets "
-                             "are the same traverse in other conditions, row for row")
+                             "sharing one --gt are the same traverse row for row; give each its own, --gt NAME=PATH")
         n_query = q.n_rows
-    if req.gt is None and (req.ref_pos is None or req.query_pos is None):
-        raise InputError("--gt missing: give each query row's reference row, or --ref-pos and --query-pos to take "
-                         "the nearest reference by position")
-    gt = np.full(n_query, -1, np.int64) if req.gt is None else read_labels(req.gt, n_query, "ground truth")
-    bad = np.flatnonzero((gt < -1) | (gt >= ref.n_rows))
-    if len(bad):
-        raise InputError(f"{req.gt}: row {bad[0]:,} holds {gt[bad[0]]}, not a reference row (0 … {ref.n_rows - 1:,}) "
-                         "or −1 (no truth)")
-    if req.gt is not None and not (gt >= 0).any():
-        raise InputError(f"{req.gt}: no query row has a truth (all −1): nothing could be evaluated")
-    part = np.zeros(n_query, np.int64) if req.part is None else read_labels(req.part, n_query, "part")
+    return ref, queries
+
+
+def set_labels(req: OwnRequest, name: str, n: int, n_ref: int, ref_pos: np.ndarray | None,
+               ref_seq: bool) -> SetLabels:
+    """Query set ``name``'s labels (``n`` rows), read and checked."""
+    gt_file, part_file = for_set(req.gt, name), for_set(req.part, name)
+    pos_file, seq_file = for_set(req.query_pos, name), for_set(req.query_seq, name)
+    if (ref_pos is None) != (pos_file is None):
+        flag = f"--query-pos {name}=…" if isinstance(req.query_pos, dict) else "--query-pos"
+        raise InputError(f"{'--ref-pos' if ref_pos is None else flag} missing: positions in metres need both the "
+                         "references' (--ref-pos) and the query rows' (--query-pos)")
+    if ref_seq != (seq_file is not None):
+        flag = f"--query-seq {name}=…" if isinstance(req.query_seq, dict) else "--query-seq"
+        raise InputError(f"{'--ref-seq' if not ref_seq else flag} missing: sequences need both the references' "
+                         "(--ref-seq) and the query rows' (--query-seq)")
+    pos = None
+    if pos_file is not None:
+        pos = read_positions(pos_file, n, "query positions")
+        if ref_pos.shape[1] != pos.shape[1]:
+            raise InputError(f"{pos_file}: {pos.shape[1]} coordinates a row, the reference positions have "
+                             f"{ref_pos.shape[1]}")
+    if gt_file is None:
+        if pos is None:
+            raise InputError(f"--gt missing{f' for {name}' if isinstance(req.gt, dict) else ''}: give each query "
+                             "row's reference row, or --ref-pos and --query-pos to take the nearest reference by "
+                             "position")
+        if not req.gt_radius_m > 0:
+            raise InputError(f"--gt-radius-m {req.gt_radius_m}: must be above 0 metres")
+        gt = truth_from_positions(ref_pos, pos, req.gt_radius_m)
+        if not (gt >= 0).any():
+            raise InputError(f"--query-pos {pos_file}: no query row lies within {req.gt_radius_m:g} m of a "
+                             "reference: nothing could be evaluated (check both files' coordinates, or --gt-radius-m)")
+    else:
+        gt = read_labels(gt_file, n, "ground truth")
+        bad = np.flatnonzero((gt < -1) | (gt >= n_ref))
+        if len(bad):
+            raise InputError(f"{gt_file}: row {bad[0]:,} holds {gt[bad[0]]}, not a reference row "
+                             f"(0 … {n_ref - 1:,}) or −1 (no truth)")
+        if not (gt >= 0).any():
+            raise InputError(f"{gt_file}: no query row has a truth (all −1): nothing could be evaluated")
+    part = np.zeros(n, np.int64) if part_file is None else read_labels(part_file, n, "part")
     if not np.isin(part, (0, 1)).all() or (np.diff(part) < 0).any():
-        raise InputError(f"{req.part}: parts must be 0 for the first query rows, then 1 for the rest")
-    return ref, queries, gt, part
-
-
-def check_positions(req: OwnRequest, n_ref: int, n_query: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """The references' and query rows' positions (``--ref-pos``, ``--query-pos``), read and checked;
-    None without them. Both or neither: a radius in metres needs both ends."""
-    if (req.ref_pos is None) != (req.query_pos is None):
-        raise InputError(f"--{'query' if req.query_pos is None else 'ref'}-pos missing: positions in metres need "
-                         "both the references' (--ref-pos) and the query rows' (--query-pos)")
-    if req.ref_pos is None:
-        return None
-    ref_pos = read_positions(req.ref_pos, n_ref, "reference positions")
-    query_pos = read_positions(req.query_pos, n_query, "query positions")
-    if ref_pos.shape[1] != query_pos.shape[1]:
-        raise InputError(f"{req.query_pos}: {query_pos.shape[1]} coordinates a row, the reference positions have "
-                         f"{ref_pos.shape[1]}")
-    return ref_pos, query_pos
-
-
-def check_sequences(req: OwnRequest, n_ref: int, n_query: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The references' and query rows' sequences (``--ref-seq``, ``--query-seq``), read and checked;
-    empty without them. Both or neither: a window is the same thing on either side."""
-    if (req.ref_seq is None) != (req.query_seq is None):
-        raise InputError(f"--{'query' if req.query_seq is None else 'ref'}-seq missing: sequences need both the "
-                         "references' (--ref-seq) and the query rows' (--query-seq)")
-    if req.ref_seq is None:
-        return {}
-    return {"ref": read_sequences(req.ref_seq, n_ref, "reference sequences"),
-            "query": read_sequences(req.query_seq, n_query, "query sequences")}
+        raise InputError(f"{part_file}: parts must be 0 for the first query rows, then 1 for the rest")
+    seq = read_sequences(seq_file, n, "query sequences") if seq_file is not None else None
+    return SetLabels(gt, part, pos, seq)
 
 
 def truth_from_positions(ref_pos: np.ndarray, query_pos: np.ndarray, radius_m: float) -> np.ndarray:
@@ -183,44 +215,81 @@ def check_room(ref: RowSource, queries: dict[str, RowSource], out: Path) -> None
 
 def build_own(req: OwnRequest) -> dict[str, Any]:
     """Write the store ``<out>/<name>.zarr``; returns the summary the CLI prints."""
-    ref, queries, gt, part = check_inputs(req)
-    positions = check_positions(req, ref.n_rows, len(gt))
-    sequences = check_sequences(req, ref.n_rows, len(gt))
-    if req.gt is None:
-        if not req.gt_radius_m > 0:
-            raise InputError(f"--gt-radius-m {req.gt_radius_m}: must be above 0 metres")
-        gt = truth_from_positions(*positions, req.gt_radius_m)
-        if not (gt >= 0).any():
-            raise InputError(f"--query-pos {req.query_pos}: no query row lies within {req.gt_radius_m:g} m of a "
-                             "reference: nothing could be evaluated (check both files' coordinates, or --gt-radius-m)")
+    ref, queries = check_inputs(req)
+    if (req.ref_pos is None) != (req.query_pos is None):
+        raise InputError(f"--{'query' if req.query_pos is None else 'ref'}-pos missing: positions in metres need "
+                         "both the references' (--ref-pos) and the query rows' (--query-pos)")
+    if (req.ref_seq is None) != (req.query_seq is None):
+        raise InputError(f"--{'query' if req.query_seq is None else 'ref'}-seq missing: sequences need both the "
+                         "references' (--ref-seq) and the query rows' (--query-seq)")
+    ref_pos = read_positions(req.ref_pos, ref.n_rows, "reference positions") if req.ref_pos is not None else None
+    ref_seq = read_sequences(req.ref_seq, ref.n_rows, "reference sequences") if req.ref_seq is not None else None
+    shared = shared_labels(req)
+    sets: dict[str, SetLabels] = {}
+    for set_name, q in queries.items():  # label files every set shares are read once
+        sets[set_name] = (next(iter(sets.values())) if shared and sets else
+                          set_labels(req, set_name, q.n_rows, ref.n_rows, ref_pos, ref_seq is not None))
     name = req.name or Path(req.ref).stem
     if not NAME.fullmatch(name.lower()) or name != name.lower():
         raise InputError(f"--name {name}: lower-case letters, digits and _, starting with a letter")
     out = Path(req.out).absolute()
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {req.out}: is a file, not a directory")
-    final = out / f"{name}.zarr"
-    n_deep = int((part == 0).sum())
-    identity = {"recipe": {"scale": name, "dim": ref.dim, "query_stride": req.stride, "own": True},
-                "sources": {"ref": ref.fingerprint(), **{f"query_{n}": q.fingerprint() for n, q in queries.items()},
-                            "gt": _digest(gt), "part": _digest(part),
-                            **({"gt_from_positions_within_m": req.gt_radius_m} if req.gt is None else {}),
-                            **({"ref_pos": _digest(positions[0]), "query_pos": _digest(positions[1])}
-                               if positions else {}),
-                            **{f"{side}_seq": _digest(np.stack(seq)) for side, seq in sequences.items()}},
-                "rescale": None, "seed": None}
     check_writable(out)
     check_room(ref, queries, out)
-    labels = {"gt": gt, "query_part": part.astype(np.uint8), "ref_part": np.zeros(ref.n_rows, np.uint8),
-              **{f"{side}_{what}": a for side, seq in sequences.items() for what, a in zip(("seq", "frame"), seq,
-                                                                                        strict=True)},
-              **({"ref_pos": positions[0], "query_pos": positions[1]} if positions else {})}
-    layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(gt) - n_deep,
-              "noises": sorted(queries), **({"positions": int(positions[0].shape[1])} if positions else {}),
-              **({"sequences": {side: int(len(np.unique(seq))) for side, (seq, _) in sequences.items()}}
-                 if sequences else {})}
+    labels, sources = _labels(req, ref, queries, sets, ref_pos, ref_seq)
+    identity = {"recipe": {"scale": name, "dim": ref.dim, "query_stride": req.stride, "own": True},
+                "sources": sources, "rescale": None, "seed": None}
+    first = next(iter(sets.values()))
+    n_deep = int((first.part == 0).sum())
+    layout = {"kind": "full", "n_deep1b": n_deep, "n_fas_ref": 0, "n_fas_query": len(first.gt) - n_deep,
+              "noises": sorted(queries), **({"positions": int(ref_pos.shape[1])} if ref_pos is not None else {}),
+              **({"sequences": {"ref": int(len(np.unique(ref_seq[0]))),
+                                "query": int(len(np.unique(np.concatenate([s.seq[0] for s in sets.values()]))))}}
+                 if ref_seq is not None else {}),
+              **({"query_sets": {n: {"rows": len(lab.gt), "n_deep1b": int((lab.part == 0).sum())}
+                                 for n, lab in sets.items()}} if not shared else {})}
     rows = {"ref": StoreRows(ref), **{f"query_{n}": StoreRows(q) for n, q in queries.items()}}
-    return write_store(final, identity, rows, labels, layout, req)
+    return write_store(out / f"{name}.zarr", identity, rows, labels, layout, req)
+
+
+def _labels(req: OwnRequest, ref: RowSource, queries: dict[str, RowSource], sets: dict[str, SetLabels],
+            ref_pos: np.ndarray | None, ref_seq: tuple[np.ndarray, np.ndarray] | None
+            ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """``(arrays, sources)``: the label arrays of the store and the record of what they came from.
+
+    Query sets that share their labels (one traverse in several conditions) keep one set of them,
+    ``gt``, ``query_part``, ``query_pos``, ``query_seq`` (docs/dataset.md); sets of any lengths
+    keep their own, ``query_<name>_gt``, ``query_<name>_part``, …"""
+    shared = shared_labels(req)
+    labels: dict[str, np.ndarray] = {}
+    truth: dict[str, Any] = {}
+    placed: dict[str, Any] = {}
+    for set_name, lab in (sets.items() if not shared else [(None, next(iter(sets.values())))]):
+        prefix, tag = (f"query_{set_name}_", f"_{set_name}") if set_name else ("query_", "")
+        labels |= {f"{prefix}gt" if set_name else "gt": lab.gt, f"{prefix}part": lab.part.astype(np.uint8)}
+        truth |= {f"gt{tag}": _digest(lab.gt), f"part{tag}": _digest(lab.part)}
+        if for_set(req.gt, set_name) is None:
+            truth[f"gt_from_positions_within_m{tag}"] = req.gt_radius_m
+        if lab.pos is not None:
+            labels[f"{prefix}pos"] = lab.pos
+            placed[f"query_pos{tag}"] = _digest(lab.pos)
+        if lab.seq is not None:
+            labels |= {f"{prefix}seq": lab.seq[0], f"{prefix}frame": lab.seq[1]}
+            placed[f"query_seq{tag}"] = _digest(np.stack(lab.seq))
+    labels["ref_part"] = np.zeros(ref.n_rows, np.uint8)
+    # the record in the order earlier versions wrote it: the same store identity for the same inputs
+    sources: dict[str, Any] = {"ref": ref.fingerprint(), **{f"query_{n}": q.fingerprint() for n, q in queries.items()},
+                               **truth}
+    if ref_pos is not None:
+        labels["ref_pos"] = ref_pos
+        sources |= {"ref_pos": _digest(ref_pos), **{k: v for k, v in placed.items() if k.startswith("query_pos")}}
+    if ref_seq is not None:
+        labels |= {"ref_seq": ref_seq[0], "ref_frame": ref_seq[1]}
+        sources |= {"ref_seq": _digest(np.stack(ref_seq)),
+                    **{k: v for k, v in placed.items() if k.startswith("query_seq")}}
+    first = ("gt", "query_part", "ref_part", "ref_seq", "ref_frame", "query_seq", "query_frame", "ref_pos", "query_pos")
+    return {**{k: labels[k] for k in first if k in labels}, **labels}, sources
 
 
 @dataclass

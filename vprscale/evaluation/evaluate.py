@@ -45,13 +45,14 @@ from vprscale.evaluation.metrics import RADII, TOP_N, metrics_at, recall_curve, 
 from vprscale.evaluation.nearest import check_nn, exact_neighbours, nn_rows
 from vprscale.evaluation.runner import DEFAULT_REPEATS, Runner, Timing, spread
 from vprscale.evaluation.taskgrid import run_task, task_table
-from vprscale.evaluation.tasks import TaskSet
+from vprscale.evaluation.tasks import Allowed, TaskSet
 from vprscale.method.index import Index
 from vprscale.protocol import (
     PARTS,
     SEQUENCE_MODES,
     Centres,
     Sequences,
+    WindowMask,
     part_weights,
     query_centres,
     window_frames,
@@ -113,23 +114,26 @@ class QuerySet:
     (−1 / 255 where the store holds nothing), and ``rows`` reads descriptors of held frames.
     """
 
-    def __init__(self, group: zarr.Group, layout: dict[str, Any]) -> None:
+    def __init__(self, group: zarr.Group, layout: dict[str, Any], noise: str | None = None) -> None:
         self.group = group
         self.compact = layout["kind"] == "compact"
-        self.n_deep = int(layout["n_deep1b"])
+        own = layout.get("query_sets", {}).get(noise)  # a set of its own length, with its own labels
+        side = f"query_{noise}" if own else "query"
+        self.n_deep = int((own or layout)["n_deep1b"])
+        gt = group[f"{side}_gt" if own else "gt"]
         if self.compact:
             self.n_query = int(layout["n_query"])
             self.frames = group["query_frames"][:]
             self.lengths = set(layout["eval_lengths"])
         else:
-            self.n_query = int(group["gt"].shape[0])
+            self.n_query = int(gt.shape[0])
             self.frames = None
         self.noises = list(layout.get("noises", DEFAULT_NOISES))
-        self.sequences = read_sequences(group, "query")  # a store of many sequences (None: one traverse)
-        self._gt = group["gt"][:]
-        self._part = group["query_part"][:]
-        if "query_pos" in group:  # a store of your own: every row's position
-            self.positions, self._pos_from = (group["ref_pos"][:], group["query_pos"][:]), 0
+        self.sequences = read_sequences(group, side)  # a store of many sequences (None: one traverse)
+        self._gt = gt[:]
+        self._part = group[f"{side}_part"][:]
+        if f"{side}_pos" in group:  # a store of your own: every row's position
+            self.positions, self._pos_from = (group["ref_pos"][:], group[f"{side}_pos"][:]), 0
         elif "fas_query_pos" in group:  # a recipe's store: the FAS part's, rows from n_deep1b on
             self.positions, self._pos_from = (group["fas_ref_pos"][:], group["fas_query_pos"][:]), self.n_deep
         else:
@@ -221,16 +225,20 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
     meta = group.attrs[ATTR]
     layout = store_layout(group)
     identity = store_identity(group)
-    qs = QuerySet(group, layout)
-    ref_sequences = read_sequences(group, "ref")
-    if req.radii_m and qs.positions is None:
-        raise InputError(f"--radius-m: {req.store} holds no positions; build it with --ref-pos and --query-pos "
-                         "(docs/bring-your-own.md)")
-    unknown = [n for n in req.noises or [] if n not in qs.noises]
+    noises = list(layout.get("noises", DEFAULT_NOISES))
+    unknown = [n for n in req.noises or [] if n not in noises]
     if unknown:
         raise InputError(f"--noise {','.join(unknown)}: {req.store} holds no such query set; choose from "
-                         f"{', '.join(qs.noises)}")
-    req.noises = req.noises or qs.noises
+                         f"{', '.join(noises)}")
+    req.noises = req.noises or noises
+    # the query sets' labels: shared by sets row for row, each set's own where their lengths differ
+    one = None if "query_sets" in layout else QuerySet(group, layout)
+    sets = {noise: one or QuerySet(group, layout, noise) for noise in req.noises}
+    qs = sets[req.noises[0]]
+    ref_sequences = read_sequences(group, "ref")
+    if req.radii_m and any(q.positions is None for q in sets.values()):
+        raise InputError(f"--radius-m: {req.store} holds no positions; build it with --ref-pos and --query-pos "
+                         "(docs/bring-your-own.md)")
     outside = [n for n in req.flat_noise or [] if n not in req.noises]
     if outside:
         raise InputError(f"--flat-noise {','.join(outside)}: not among the evaluated noise levels "
@@ -240,16 +248,21 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
         if req.radii_m or req.nn or len(req.indexes) > 1:
             flag = "--radius-m" if req.radii_m else "--nn" if req.nn else "--d"
             raise InputError(f"{flag}: not with --task (a task scores its own positives, on one index)")
-        task = TaskSet(group, req.task, req.seq_length, req.subtask, req.threshold_m)
+        if "query_sets" in layout and len(req.noises) > 1:
+            raise InputError("--task: this store's query sets have their own lengths; evaluate one at a time, "
+                             f"--noise NAME ({', '.join(req.noises)})")
+        side = f"query_{req.noises[0]}" if "query_sets" in layout else "query"
+        task = TaskSet(group, req.task, req.seq_length, req.subtask, req.threshold_m, side)
         if req.export_msls is None and not task.scored:
             raise InputError(f"--task {req.task}: {req.store} holds no positions (MSLS's test cities): nothing to "
                              "score; --export-msls FILE writes the predictions for MSLS's own server")
         req.lengths = [task.match_length]
     elif req.export_msls is not None:
         raise InputError("--export-msls: writes a task's predictions; give --task too")
-    too_long = [L for L in req.lengths if L > qs.n_query]
+    shortest = min(q.n_query for q in sets.values())
+    too_long = [L for L in req.lengths if L > shortest]
     if too_long:
-        raise InputError(f"--L {too_long[0]}: longer than the {qs.n_query:,} query frames")
+        raise InputError(f"--L {too_long[0]}: longer than the {shortest:,} query frames")
     z = req.z or meta["recipe"]["query_stride"]
     dim = int(meta["recipe"]["dim"])
     plugged = [load_method(spec, registry.installed_methods()) for spec in req.methods]
@@ -283,10 +296,14 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError(_HOLDS.format(out=out))
         check_writable(out.parent)
         compared = _compared(req, indexes, dim)
-        pooled = _pooled(req, indexes, dim, ref_sequences)
+        # a task's pooled windows: only those it may answer (MSLS's database windows)
+        pooled = _pooled(req, indexes, dim, ref_sequences if task is None else Allowed(task.allowed))
         stored = {m.factory: stored_encoding(req.store, m.factory, identity) for m in compared}  # vprscale encode's
         _check_methods(req, plugged, indexes[0][1])
         if req.nn:
+            if "query_sets" in layout:
+                raise InputError("--nn: measured on the same query rows of every set; this store's sets have "
+                                 "their own lengths")
             check_nn(indexes[0][1], qs.n_deep)
         base = load_baseline_map(group, layout) if req.baseline else None
         with ExitStack() as locks:
@@ -320,7 +337,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                                                   req.export_msls)
                 rows_m = []
             else:
-                rows, queries, rows_m = _grid(req, qs, z, dim, indexes, base, compared, pooled, plugged,
+                rows, queries, rows_m = _grid(req, sets, z, dim, indexes, base, compared, pooled, plugged,
                                               ref_sequences)
             columns = {"scale": meta["recipe"]["scale"], "store": shown(req.store),
                        "store_identity": identity}
@@ -342,10 +359,11 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
                        **({"task": {"task": task.task, "seq_length": task.seq_length, "subtask": task.subtask,
                                     "threshold_m": task.threshold_m, "queries": len(task.centres),
                                     "predictions": written}} if task is not None else {}),
-                       **({"windows": window_counts(qs, ref_sequences, req.lengths, z)}
+                       **({"windows": window_counts(list(sets.values()), ref_sequences, req.lengths, z)}
                           if qs.sequences is not None or ref_sequences is not None else {}),
                        "baseline": req.baseline,
-                       "baseline_queries": baseline_limit(req.baseline_queries, qs.n_query), "layout": layout["kind"],
+                       "baseline_queries": baseline_limit(req.baseline_queries, max(q.n_query for q in sets.values())),
+                       "layout": layout["kind"],
                        "indexes": _index_sources(req),
                        "compare": {c.name: {"k": req.faiss_k or [c.k], "nprobe": req.faiss_nprobe if c.ivf else None,
                                             "bytes_per_place": c.bytes_per_place,
@@ -369,15 +387,19 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             "windows": None if task is not None else summary.get("windows"), "predictions": written}
 
 
-def window_counts(qs: QuerySet, ref_sequences: Sequences | None, lengths: list[int], z: int) -> dict[str, Any]:
+def window_counts(sets: list[QuerySet], ref_sequences: Sequences | None, lengths: list[int], z: int
+                  ) -> dict[str, Any]:
     """What a store of many sequences leaves out, per ``L``: the query centres (on the stride,
-    with a truth) whose window would cross a sequence's end or a gap, and the places on which no
-    reference window can be centred. Neither is ever a query, a candidate or an answer."""
+    with a truth, in every query set evaluated) whose window would cross a sequence's end or a
+    gap, and the places on which no reference window can be centred. Neither is ever a query, a
+    candidate or an answer."""
     counts: dict[str, Any] = {}
     for L in lengths:
-        t = np.arange(0, qs.n_query, z, dtype=np.int64)
-        t = t[qs.gt_at(t) >= 0]
-        crossing = int((~qs.sequences.window_ok(t, L)).sum()) if qs.sequences is not None else 0
+        crossing = 0
+        for qs in (q for q in sets if q.sequences is not None):
+            t = np.arange(0, qs.n_query, z, dtype=np.int64)
+            t = t[qs.gt_at(t) >= 0]
+            crossing += int((~qs.sequences.window_ok(t, L)).sum())
         counts[str(L)] = {"query_centres_without_window": crossing,
                           "places_without_window": ref_sequences.missing(L) if ref_sequences is not None and L > 1
                           else 0}
@@ -464,7 +486,7 @@ def _nn(req: EvalRequest, qs: QuerySet, idx: Index, dim: int, compared: list[Fai
 
 
 def _pooled(req: EvalRequest, indexes: list[tuple[Path, Index]], dim: int,
-            ref_sequences: Sequences | None) -> list[PooledCodes]:
+            ref_sequences: WindowMask | None) -> list[PooledCodes]:
     """The pooled sequence descriptors asked for (``--compare seq:…``): an encoding per pooling and
     code, with a code per evaluated L > 1."""
     specs = [parse_pooled(s) for s in req.compare if is_pooled(s)]
@@ -483,19 +505,19 @@ def _positions(table: np.ndarray, rows: np.ndarray) -> np.ndarray:
     return out
 
 
-def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base: BaselineMap | None,
+def _grid(req: EvalRequest, sets: dict[str, QuerySet], z: int, dim: int, indexes: list, base: BaselineMap | None,
           compared: list[FaissCodes], pooled: list[PooledCodes], plugged: list[tuple[str, Any]],
           ref_sequences: Sequences | None = None) -> tuple[list[dict], list[dict]]:
-    """Every method of every index on every noise, L and mode; the methods come from the registry."""
+    """Every method of every index on every noise, L and mode; the methods come from the registry.
+    Each noise is a query set (``sets``), whose centres are its own when its labels are."""
     rows: list[dict] = []
     queries: list[dict] = []
     rows_m: list[dict] = []
-    centres = {L: qs.centres(z, L) for L in req.lengths}
-    frames = window_frames([centres[L].t for L in req.lengths], req.lengths)
-    weights = part_weights(qs.n_query, qs.n_deep)
+    windows = {id(qs): _windows(qs, z, req.lengths) for qs in sets.values()}
     runner = Runner(req.workers, req.repeats)
     methods = [(path, registry.create(registry.Context(
-        index_path=path, index=idx, dim=dim, n_query=qs.n_query, n_centres=max(len(c.t) for c in centres.values()),
+        index_path=path, index=idx, dim=dim, n_query=max(q.n_query for q in sets.values()),
+        n_centres=max(len(c.t) for centres, _ in windows.values() for c in centres.values()),
         lengths=req.lengths, workers=req.workers, baseline=base, baseline_queries=req.baseline_queries,
         compared=compared, pooled=pooled, compare_queries=req.compare_queries, flat_noise=req.flat_noise,
         faiss_k=req.faiss_k, faiss_nprobe=req.faiss_nprobe, plugged=plugged, method_k=_method_k(req, idx),
@@ -508,6 +530,9 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
     # them at once held 6 GB), its runs' rows put back in the order noise, index, L, method, mode
     runs: dict[tuple[int, int, int, int], tuple[list, list, list]] = {}
     for n_i, noise in enumerate(req.noises):
+        qs = sets[noise]
+        centres, frames = windows[id(qs)]
+        weights = part_weights(qs.n_query, qs.n_deep)
         x_q = qs.rows(noise, frames)
         for p_i, (path, algos) in enumerate(methods):
             for a_i, alg in enumerate(algos):
@@ -541,6 +566,12 @@ def _grid(req: EvalRequest, qs: QuerySet, z: int, dim: int, indexes: list, base:
         rows_m += run[2]
     bar.close()
     return rows, queries, rows_m
+
+
+def _windows(qs: QuerySet, z: int, lengths: list[int]) -> tuple[dict[int, Centres], np.ndarray]:
+    """A query set's centres for each L, and every frame of their windows."""
+    centres = {L: qs.centres(z, L) for L in lengths}
+    return centres, window_frames([centres[L].t for L in lengths], lengths)
 
 
 def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray, parts: np.ndarray,

@@ -63,9 +63,9 @@ def run_task(req: Any, task: TaskSet, qs: Any, dim: int, indexes: list, base: An
         bar.step(f"{noise} {alg.name}" + (f", {mode} mode" if mode else ""))
         centres = t[sample]
         answer, timing = runner.localise(alg, state, window_positions(held, centres, L), L, mode, cost)
-        ranked = answer.ranking[0]
-        if L == 1:  # a frame's own ranking: what the task may not answer taken out (panoramas, other subtasks)
-            ranked = keep_allowed(ranked, task.allowed)
+        # what the task may not answer taken out (a frame's own ranking at L = 1 holds panoramas and
+        # other subtasks; at L > 1 the matchers never propose them, and this changes nothing)
+        ranked = keep_allowed(answer.ranking[0], task.allowed)
         name = alg.name + (f"-{mode}" if mode else "") + (f"-{noise}" if len(req.noises) > 1 else "")
         if export is not None and len(sample) < len(t):  # MSLS's scorer wants every query answered
             log.warning(f"{name}: answered {len(sample):,} of the {len(t):,} queries (a sample: --compare-queries, "

@@ -106,8 +106,9 @@ class TaskSet:
     """One task on a store: its query windows (those with a positive), the database centres it
     may answer, and its positives (see the module's docstring)."""
 
-    def __init__(self, group: zarr.Group, task: str, seq_length: int, subtask: str, threshold_m: float) -> None:
-        if "ref_seq" not in group or "query_seq" not in group:
+    def __init__(self, group: zarr.Group, task: str, seq_length: int, subtask: str, threshold_m: float,
+                 query: str = "query") -> None:
+        if "ref_seq" not in group or f"{query}_seq" not in group:
             raise InputError("--task: the store holds no sequences; build it with --msls, or --ref-seq and --query-seq "
                              "(docs/bring-your-own.md)")
         if subtask not in SUBTASKS:
@@ -117,7 +118,7 @@ class TaskSet:
         self.task, self.subtask, self.threshold_m = task, subtask, float(threshold_m)
         self.q_len, self.db_len = lengths(task, seq_length)
         self.seq_length = 1 if task == "im2im" else seq_length
-        self.db, self.q = Side.read(group, "ref"), Side.read(group, "query")
+        self.db, self.q = Side.read(group, "ref"), Side.read(group, query)
         # a method matches the query's own windows (im2seq: single frames, answered by the database
         # window centred on each; seq2im: sequences, answered by their centre frames)
         self.match_length = self.q_len
@@ -154,9 +155,11 @@ class TaskSet:
         return self._trees[city]
 
     def positives(self, centres: np.ndarray) -> np.ndarray:
-        """How many kept database windows are positives of each query window centred at ``centres``."""
+        """How many kept database windows are positives of each query window centred at ``centres``:
+        the kept centres within ``db_len // 2`` of a database frame near one of the query's frames."""
         out = np.zeros(len(centres), np.int64)
         hq, hd = self.q_len // 2, self.db_len // 2
+        n_db = len(self.db_kept)
         for lo in range(0, len(centres), QUERY_BLOCK):
             block = centres[lo : lo + QUERY_BLOCK]
             for city in np.unique(self.q.city[block]):
@@ -164,21 +167,24 @@ class TaskSet:
                 sel = np.flatnonzero(self.q.city[block] == city)
                 frames = (block[sel, None] - hq + np.arange(self.q_len)[None, :]).ravel()
                 near = tree.query_ball_point(self.q.pos[frames], self.threshold_m)
-                for j, i in enumerate(sel):
-                    found = np.unique(np.concatenate([rows[n] for n in near[j * self.q_len:(j + 1) * self.q_len]]
-                                                     + [np.zeros(0, np.int64)]).astype(np.int64))
-                    out[lo + i] = self._windows_holding(found, hd)
+                counts = np.fromiter((len(x) for x in near), np.int64, len(near))
+                if not counts.sum():
+                    continue
+                query = np.repeat(np.repeat(sel, self.q_len), counts)  # (query, database frame) pairs
+                frame = rows[np.concatenate([np.asarray(x, np.int64) for x in near if len(x)])]
+                order = np.lexsort((frame, query))
+                query, frame = query[order], frame[order]
+                keep = np.r_[True, (query[1:] != query[:-1]) | (frame[1:] != frame[:-1])]
+                query, frame = query[keep], frame[keep]
+                # the windows holding a frame: kept centres in [f - hd, f + hd]; spans of one query
+                # that touch merge (all are 2 hd + 1 wide), and each merged span counts its centres
+                start = np.r_[True, (query[1:] != query[:-1]) | (frame[1:] - frame[:-1] > 2 * hd + 1)]
+                first = np.flatnonzero(start)
+                last = np.r_[first[1:] - 1, len(frame) - 1]
+                a = np.clip(frame[first] - hd, 0, n_db)
+                b = np.clip(frame[last] + hd + 1, 0, n_db)
+                np.add.at(out, lo + query[first], self._frames[b] - self._frames[a])
         return out
-
-    def _windows_holding(self, frames: np.ndarray, half: int) -> int:
-        """Kept database windows holding any of ``frames`` (sorted): kept centres within ``half``."""
-        if not len(frames):
-            return 0
-        lo, hi = frames - half, frames + half + 1
-        breaks = np.flatnonzero(lo[1:] > hi[:-1]) + 1  # merge overlapping spans
-        starts, stops = lo[np.r_[0, breaks]], hi[np.r_[breaks - 1, len(hi) - 1]]
-        starts, stops = np.clip(starts, 0, len(self.db_kept)), np.clip(stops, 0, len(self.db_kept))
-        return int((self._frames[stops] - self._frames[starts]).sum())
 
     def hits(self, centres: np.ndarray, answers: np.ndarray) -> np.ndarray:
         """Whether each answer (database centre, −1: none) is a positive of its query window:

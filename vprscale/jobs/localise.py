@@ -29,11 +29,11 @@ import zarr
 from vprscale.core.errors import InputError
 from vprscale.core.progress import ChunkProgress
 from vprscale.core.publish import check_file_output, publish_file
-from vprscale.dataset.store import open_complete_group
+from vprscale.dataset.store import open_complete_group, read_sequences, store_identity
 from vprscale.method.index import Index
 from vprscale.method.indexfile import load_index_meta
 from vprscale.method.online import OnlineMatcher
-from vprscale.protocol import centre_lag
+from vprscale.protocol import centre_lag, window_mask
 
 log = logging.getLogger(__name__)
 
@@ -112,12 +112,20 @@ class MatchWriter:
 
 
 def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper", out: str | Path | None = None,
-             quiet: bool = False, top: int | None = None, force: bool = False) -> dict[str, Any]:
+             quiet: bool = False, top: int | None = None, force: bool = False,
+             store: str | Path | None = None) -> dict[str, Any]:
     """Localise every frame of ``queries``; returns a summary, and writes the rows to ``out`` (a
     ``.parquet`` or ``.csv`` file, whole or not at all, an existing one replaced only with
     ``force`` and kept beside; ``"-"``: CSV on standard output) when given, with each window's
-    ``top`` best candidates as columns ``top_1 …`` when asked for."""
+    ``top`` best candidates as columns ``top_1 …`` when asked for. With the index's ``store``, a
+    map of many sequences: no window that crosses a sequence's end or a gap is ever answered."""
     meta = load_index_meta(index)
+    valid = None
+    if store is not None:
+        group = open_complete_group(store)
+        if store_identity(group) != (meta.get("store") or {}).get("identity"):
+            raise InputError(f"--store {store}: not the store {index} was built from")
+        valid = window_mask(read_sequences(group, "ref"), L)
     path = Path(queries)
     if not path.exists():
         raise InputError(f"{path}: no such query file or array")
@@ -137,7 +145,7 @@ def localise(index: str | Path, queries: str | Path, L: int, mode: str = "paper"
     if isinstance(L, int) and L > rows:
         raise InputError(f"--L {L}: longer than the {rows:,} frames of {path}")
     try:
-        matcher = OnlineMatcher(Index.load(index), L, mode, n_best=top or 1)
+        matcher = OnlineMatcher(Index.load(index), L, mode, n_best=top or 1, valid=valid)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     # the kernels compiled (a first run: numba's) before the matching is timed, on frames of no consequence

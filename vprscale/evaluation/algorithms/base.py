@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from vprscale.method.kernels import N_BEST
-from vprscale.protocol import SEQUENCE_MODES, Sequences
+from vprscale.protocol import SEQUENCE_MODES, WindowMask
 
 
 @dataclass
@@ -89,7 +89,7 @@ class Algorithm(ABC):
     timed_side_by_side: bool = False
     # A map of many sequences (None: one traverse): a centre whose window does not exist is never
     # a candidate, a scored centre or an answer (:func:`vprscale.protocol.window_mask` of it)
-    ref_windows: Sequences | None = None
+    ref_windows: WindowMask | None = None
 
     def runs_on(self, noise: str) -> bool:
         """Whether this method runs on query set ``noise`` (``noises``)."""
