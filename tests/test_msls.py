@@ -228,3 +228,16 @@ def msls_windows_test(folder: Path, seq_length: int) -> tuple[list[str], list[np
             keys.append(",".join(seq["key"]))
             idxs.append(idx)
     return keys, idxs
+
+
+@pytest.mark.slow
+def test_a_task_evaluation_is_read_by_results_not_drawn_by_report(msls, capsys):
+    out = msls / "eval-report"
+    assert main(["eval", str(msls / "data" / "msls.zarr"), str(msls / "data" / "msls.index"), "--task", "im2im",
+                 "--no-baseline", "--out", str(out), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["report", str(out), "--out", str(msls / "report")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "vprscale results" in err[0]
+    assert main(["results", str(out)]) == 0
+    assert "map_at_20" in capsys.readouterr().out

@@ -30,6 +30,7 @@ def _write(path: Path, text: str) -> Path:
 
 
 BASE = 'name = "t"\nout = "{out}"\n'
+TWO = '[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "i"\nkind = "index"\nstore = "a"\n'
 
 
 @pytest.mark.parametrize(("stages", "message"), [
@@ -60,6 +61,14 @@ BASE = 'name = "t"\nout = "{out}"\n'
      'compare = ["HNSW0"]\n', "stage 'e': key 'compare': --compare HNSW0: an HNSW graph of M = 0"),
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname = "e"\nkind = "eval"\nstore = "a"\n'
      'compare = ["seq:PQ3+rerank99999999999999"]\n', "+rerank99999999999999: re-ranks at least one"),
+    # parts: each runs from nothing, so it holds what its stages read; the report is assembled, not a part's
+    (TWO + '[[parts]]\nname = "p"\nstages = ["i"]\n', "parts[0] (p): 'i' reads 'a', which the part does not run"),
+    (TWO + '[[parts]]\nname = "p"\nstages = ["a", "zz"]\n', "parts[0] (p): no stage 'zz'"),
+    (TWO + '[[parts]]\nname = "p"\nstages = ["a"]\n', "stage 'i' is in no part"),
+    (TWO + '[[parts]]\nname = "p"\nstages = ["a", "i"]\n[[parts]]\nname = "p"\nstages = ["a"]\n',
+     "parts[1]: 'name' must be a new name"),
+    (TWO + '[[parts]]\nname = "p"\nstages = []\n', "parts[0]: 'stages' must be a non-empty list"),
+    (TWO + '[[parts]]\nname = "p"\nstages = ["a", "i"]\nwhen = "now"\n', "a part is a table of 'name' and 'stages'"),
 ])
 def test_bad_pipeline_is_refused_before_any_work(tmp_path, capsys, stages, message):
     out = tmp_path / "out"
@@ -540,3 +549,23 @@ def test_an_output_changed_in_place_with_its_times_put_back_reruns_its_stage(tmp
     os.utime(store / "data.bin", ns=(kept.st_atime_ns, kept.st_mtime_ns))
     decided = run_pipeline(path, dry_run=True)["stages"][0]
     assert decided["run"] and decided["reasons"] == [f"output {store} changed"]
+
+
+def test_a_part_runs_its_own_stages_and_each_part_has_an_estimate(tmp_path, capsys):
+    """``run --part``: the part's stages, no other; ``--dry-run`` lists every part's estimate from
+    nothing. The paper's parts cover its ladder."""
+    path = _write(tmp_path / "p.toml", BASE.format(out=tmp_path / "out") + TWO
+                  + '[[stages]]\nname = "b"\nkind = "build"\nscale = "1M"\n'
+                  + '[[parts]]\nname = "small"\nstages = ["a", "i"]\n[[parts]]\nname = "big"\nstages = ["b"]\n')
+    plan = run_pipeline(path, dry_run=True, part="small")
+    assert [s["name"] for s in plan["stages"]] == ["a", "i"]
+    assert [p["name"] for p in plan["parts"]] == ["small", "big"]
+    assert main(["run", str(path), "--part", "huge", "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert "--part huge: " in err and "parts: small, big" in err
+    assert main(["run", str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "part small: 2 stages" in out and "part big: 1 stages" in out
+    paper = load_pipeline(ROOT / "pipelines" / "paper.toml")
+    covered = {s for part in paper.parts for s in part.stages}
+    assert covered == {s.name for s in paper.stages if s.kind != "report"}

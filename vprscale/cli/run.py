@@ -13,6 +13,9 @@ def add(sub: argparse._SubParsersAction, cluster: argparse.ArgumentParser,
     p.add_argument("pipeline", help="a pipeline TOML file, or the name of a shipped one (quickstart, paper)")
     p.add_argument("stages", nargs="*", metavar="STAGE",
                    help="run only these stages (and, where out of date, the stages they read from)")
+    p.add_argument("--part", metavar="PART",
+                   help="run one of the pipeline's parts ([[parts]]: a group of stages that fits one job, from "
+                        "nothing); --dry-run lists every part with its estimate")
     p.add_argument("--downstream", action="store_true",
                    help="with STAGE names: also every stage that reads from them, directly or not")
     p.add_argument("--set", dest="settings", action="append", default=[], metavar="STAGE.KEY=VALUE",
@@ -49,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     summary = run_pipeline(args.pipeline, scheduler=args.scheduler, force=args.force, dry_run=args.dry_run,
                            save_costs=args.save_costs, stages=args.stages, downstream=args.downstream,
-                           settings=args.settings, budget=budget)
+                           settings=args.settings, budget=budget, part=args.part)
     if args.dry_run:
         return _plan(summary, args.budget)
     ran = [s["name"] for s in summary["stages"] if s["status"] == "ran"]
@@ -79,6 +82,11 @@ def _plan(summary: dict, budget: str | None) -> int:
             print(f"      ! its estimated peak, {_gb(peak)}, is more than this machine's {_gb(memory)} of memory: it "
                   "will start, and the system will likely stop it for memory part way; run it on a machine with "
                   f"at least {_gb(peak)} (the estimate is {s['estimate'].basis})")
+    for part in summary.get("parts", []):  # each from nothing: on a fresh machine, within one job
+        gap = f", {part['unmeasured']} of its stages never measured, left out" if part["unmeasured"] else ""
+        print(f"part {part['name']}: {len(part['stages'])} stages, from nothing {_duration(part['seconds'])} of wall "
+              f"time, peak memory {_gb(part['peak_bytes'])}{gap} (vprscale run {summary['name']} --part "
+              f"{part['name']})")
     total = summary["estimate"]
     running = [s for s in summary["stages"] if s["run"]]
     if running and total["unmeasured"] == len(running):  # nothing to add up: no figure, not a zero

@@ -60,6 +60,9 @@ def load_results(paths: list[str | Path]) -> tuple[pd.DataFrame, list[dict], lis
             df = pd.read_parquet(f)
         except (OSError, ValueError) as exc:  # pyarrow's errors for a truncated or foreign file
             raise InputError(f"{f}: not a readable Parquet file ({str(exc).splitlines()[0]})") from None
+        if "task" in df.columns:
+            raise InputError(f"{f.parent}: an evaluation of MSLS's tasks (eval --task); its recall@k and map@k are "
+                             f"read with vprscale results {f.parent} (the report draws the frame protocol's figures)")
         missing = {"scale", "noise", "method", "mode", "L", "d", "part", "radius", "recall"} - set(df.columns)
         if missing:
             raise InputError(f"{f}: not a vprscale results file (no column {', '.join(sorted(missing))})")

@@ -107,7 +107,7 @@ class TaskSet:
     may answer, and its positives (see the module's docstring)."""
 
     def __init__(self, group: zarr.Group, task: str, seq_length: int, subtask: str, threshold_m: float,
-                 query: str = "query") -> None:
+                 query: str = "query", workers: int = 1) -> None:
         if "ref_seq" not in group or f"{query}_seq" not in group:
             raise InputError("--task: the store holds no sequences; build it with --msls, or --ref-seq and --query-seq "
                              "(docs/bring-your-own.md)")
@@ -116,6 +116,7 @@ class TaskSet:
         if not threshold_m > 0:
             raise InputError(f"--threshold {threshold_m}: must be above 0 metres")
         self.task, self.subtask, self.threshold_m = task, subtask, float(threshold_m)
+        self.workers = workers  # threads of the k-d tree's searches
         self.q_len, self.db_len = lengths(task, seq_length)
         self.seq_length = 1 if task == "im2im" else seq_length
         self.db, self.q = Side.read(group, "ref"), Side.read(group, query)
@@ -166,7 +167,11 @@ class TaskSet:
                 tree, rows = self._tree(int(city))
                 sel = np.flatnonzero(self.q.city[block] == city)
                 frames = (block[sel, None] - hq + np.arange(self.q_len)[None, :]).ravel()
-                near = tree.query_ball_point(self.q.pos[frames], self.threshold_m)
+                if self.q_len == 1 and self.db_len == 1:  # a frame against frames: the count is the answer
+                    out[lo + sel] = tree.query_ball_point(self.q.pos[frames], self.threshold_m, return_length=True,
+                                                          workers=self.workers)
+                    continue
+                near = tree.query_ball_point(self.q.pos[frames], self.threshold_m, workers=self.workers)
                 counts = np.fromiter((len(x) for x in near), np.int64, len(near))
                 if not counts.sum():
                     continue

@@ -92,12 +92,30 @@ class Stage:
 
 
 @dataclass
+class Part:
+    """A group of a pipeline's stages that runs on its own, from nothing: every stage it reads
+    from is in it (a ladder too long for one machine's time limit runs as its parts)."""
+
+    name: str
+    stages: list[str]
+
+
+@dataclass
 class Pipeline:
     path: Path
     name: str
     out: Path
     workers: int
     stages: list[Stage] = field(default_factory=list)
+    parts: list[Part] = field(default_factory=list)
+
+    def part(self, name: str) -> Part:
+        """The part named ``name`` (one line naming the known ones if there is none)."""
+        found = next((p for p in self.parts if p.name == name), None)
+        if found is None:
+            known = ", ".join(p.name for p in self.parts) or "none: it declares no [[parts]]"
+            raise InputError(f"--part {name}: {self.path} has no such part (parts: {known})")
+        return found
 
 
 def _type_ok(value: Any, kind: str) -> bool:
@@ -139,7 +157,7 @@ def load_pipeline(path: str | Path) -> Pipeline:
     for key in ("name", "out", "stages"):
         if key not in data:
             raise InputError(f"{path}: missing key '{key}'")
-    unknown = set(data) - {"name", "out", "stages", "workers"}
+    unknown = set(data) - {"name", "out", "stages", "workers", "parts"}
     if unknown:
         raise InputError(f"{path}: unknown key(s) {sorted(unknown)}")
     workers = data.get("workers", 2)
@@ -171,8 +189,42 @@ def load_pipeline(path: str | Path) -> Pipeline:
         _check_params(where, kind, params, kinds)
         kinds[name] = kind
         pipe.stages.append(Stage(name, kind, params))
+    pipe.parts = _parts_of(path, data.get("parts", []), pipe.stages)
     _check_compared(pipe)
     return pipe
+
+
+def _parts_of(path: Path, raw: Any, stages: list[Stage]) -> list[Part]:
+    """The ``[[parts]]`` tables, checked: each a name and the stages it runs, holding every stage
+    they read from (a part runs from nothing); no report stage (the report is assembled from
+    what the parts keep); every other stage in some part."""
+    if not isinstance(raw, list):
+        raise InputError(f"{path}: key 'parts' must be an array of tables ([[parts]])")
+    by_name = {s.name: s for s in stages}
+    parts: list[Part] = []
+    for i, table in enumerate(raw):
+        where = f"{path}: parts[{i}]"
+        if not isinstance(table, dict) or set(table) != {"name", "stages"}:
+            raise InputError(f"{where}: a part is a table of 'name' and 'stages'")
+        name, names = table["name"], table["stages"]
+        if not isinstance(name, str) or not STAGE_NAME.fullmatch(name) or any(p.name == name for p in parts):
+            raise InputError(f"{where}: 'name' must be a new name of letters, digits, '.', '_' or '-', got {name!r}")
+        if not _type_ok(names, "list[str]") or not names:
+            raise InputError(f"{where}: 'stages' must be a non-empty list of stage names")
+        for stage in names:
+            if stage not in by_name:
+                raise InputError(f"{where} ({name}): no stage '{stage}'")
+            if by_name[stage].kind == "report":
+                raise InputError(f"{where} ({name}): '{stage}' is a report; it is assembled from what the parts keep")
+            missing = [r for r in references(by_name[stage]) if r not in names]
+            if missing:
+                raise InputError(f"{where} ({name}): '{stage}' reads '{missing[0]}', which the part does not run "
+                                 "(a part runs from nothing)")
+        parts.append(Part(name, [s.name for s in stages if s.name in names]))
+    loose = [s.name for s in stages if s.kind != "report" and parts and not any(s.name in p.stages for p in parts)]
+    if loose:
+        raise InputError(f"{path}: stage '{loose[0]}' is in no part")
+    return parts
 
 
 def _check_compared(pipe: Pipeline) -> None:
@@ -347,7 +399,7 @@ def decide(pipe: Pipeline, stages: list[Stage], asked: set[str], state: dict[str
 def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = False,
                  dry_run: bool = False, save_costs: bool = False, stages: Sequence[str] = (),
                  downstream: bool = False, settings: Sequence[str] = (), budget: float | None = None,
-                 ) -> dict[str, Any]:
+                 part: str | None = None) -> dict[str, Any]:
     """Run a pipeline; returns the run summary (also written to ``<out>/runs/<stamp>.json``).
 
     Each stage runs when something it depends on changed (:func:`decide` says what) and is
@@ -358,10 +410,15 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
     estimate. ``dry_run`` decides and reports, stage by stage, with each stage's estimated cost
     (:mod:`vprscale.jobs.estimates`) and, under a budget, the call that runs it, without running
     anything or writing a summary. ``save_costs`` writes the figures of the stages that ran beside
-    the pipeline file, for a dry run on a machine that has not run it yet.
+    the pipeline file, for a dry run on a machine that has not run it yet. ``part`` runs one of
+    the pipeline's parts (its stages, from nothing where they are not done).
     """
     pipe = load_pipeline(path)
     override(pipe, settings)
+    if part is not None:
+        if stages:
+            raise InputError(f"--part {part}: runs the part's own stages; give STAGE names or --part, not both")
+        stages = pipe.part(part).stages
     covered, asked = select(pipe, stages, downstream)
     state_file = pipe.out / "pipeline-state.json"
     graph = _import_graph()
@@ -373,7 +430,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         running = [d for d in decisions if d.run]
         calls = iter(budget_rules.plan_calls([d.pending() for d in running], budget) if budget else [])
         total = estimates.totals([d.estimate for d in running], [d.estimate for d in decisions])
-        return {"name": pipe.name, "dry_run": True, "estimate": total,
+        return {"name": pipe.name, "dry_run": True, "estimate": total, "parts": part_estimates(pipe),
                 "stages": [{"name": d.stage.name, "kind": d.stage.kind, "fingerprint": d.fingerprint, "run": d.run,
                             "reasons": d.reasons, "estimate": d.estimate,
                             **(dict(zip(("calls", "call"), next(calls), strict=True)) if d.run and budget else {})}
@@ -473,6 +530,20 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         summary["costs_file"] = str(estimates.save_costs(pipe.path, pipe.out,
                                                          [(s.name, s.kind, s.params) for s in pipe.stages], machine))
     return summary
+
+
+def part_estimates(pipe: Pipeline) -> list[dict[str, Any]]:
+    """Each part's estimate from nothing (every one of its stages run, whatever is done here): the
+    sum of its stages' times, their largest peak, and how many were never measured."""
+    kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
+    measured = estimates.read_measurements(pipe.out, pipe.path)
+    found = []
+    for part in pipe.parts:
+        costs = [estimates.estimate(s.name, s.kind, s.params, estimates.places(s.params, s.kind, kinds), measured,
+                                    estimates.layout(s.params, s.kind, kinds))
+                 for s in pipe.stages if s.name in part.stages]
+        found.append({"name": part.name, "stages": part.stages, **estimates.totals(costs, costs)})
+    return found
 
 
 def stage_record_path(pipe: Pipeline, stage: Stage) -> Path:
