@@ -382,7 +382,8 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             partial.publish()  # the three files appear together, by one rename
         if remote is not None:
             upload(out, remote, keep=True)  # with --force: the previous evaluation is kept beside
-    return {"out": str(remote or out), "rows": len(rows), "queries": len(queries), "z": z,
+    n_queries = sum(t.num_rows for t in queries) if task is not None else len(queries)
+    return {"out": str(remote or out), "rows": len(rows), "queries": n_queries, "z": z,
             "table": task_table(rows) if task is not None else _summary_table(rows),
             "windows": None if task is not None else summary.get("windows"), "predictions": written}
 
@@ -633,9 +634,18 @@ def _emit(rows: list, queries: list, key: dict, t: np.ndarray, truth: np.ndarray
                         "part": "deep1b" if parts[i] == 0 else "fas"})
 
 
-def _write_parquet(path: Path, rows: list[dict], columns: dict, record: dict) -> None:
-    """Rows with the store's columns; the provenance record in the file's key-value metadata."""
-    table = pa.Table.from_pylist([{**r, **columns} for r in rows])
+def _write_parquet(path: Path, rows: list[dict] | list[pa.Table], columns: dict, record: dict) -> None:
+    """Rows (dicts, or tables of them) with the store's columns; the provenance record in the
+    file's key-value metadata."""
+    if rows and isinstance(rows[0], pa.Table):
+        table = pa.concat_tables(rows, promote_options="permissive")
+        for i, f in enumerate(table.schema):  # a column no run filled (params, mode): text, as in the frame grid
+            if pa.types.is_null(f.type):
+                table = table.set_column(i, f.name, table.column(i).cast(pa.string()))
+        for name, value in columns.items():
+            table = table.append_column(name, pa.repeat(pa.scalar(value), table.num_rows))
+    else:
+        table = pa.Table.from_pylist([{**r, **columns} for r in rows])
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **parquet_metadata(record)})
     pq.write_table(table, path, compression="zstd")
 

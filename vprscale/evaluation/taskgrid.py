@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 
 from vprscale.core.progress import StepProgress
 from vprscale.evaluation.algorithms import registry
@@ -30,9 +31,9 @@ def export_path(base: Path, run: str, runs: int) -> Path:
 
 def run_task(req: Any, task: TaskSet, qs: Any, dim: int, indexes: list, base: Any, compared: list, pooled: list,
              plugged: list, method_k: list[int], cities: list[str], export: Path | None
-             ) -> tuple[list[dict], list[dict], list[str]]:
+             ) -> tuple[list[dict], list[pa.Table], list[str]]:
     """``(rows, queries, written)``: the task's rows of ``results`` (a row per method, mode, noise
-    and city, and ``all``), its rows of ``queries``, and the prediction files written."""
+    and city, and ``all``), its ``queries`` (a table per run), and the prediction files written."""
     L, t = task.match_length, task.centres
     frames = window_frames([t], [L])
     runner = Runner(req.workers, req.repeats)
@@ -47,7 +48,7 @@ def run_task(req: Any, task: TaskSet, qs: Any, dim: int, indexes: list, base: An
             for mode in a.modes(L, req.modes)]
     bar = StepProgress(f"evaluate {task.task}", len(runs), req.quiet)
     rows: list[dict] = []
-    queries: list[dict] = []
+    queries: list[pa.Table] = []
     written: list[str] = []
     state_of: tuple[Any, Any, Any] | None = None  # one method's frame state at a time
     for noise, alg, mode in runs:
@@ -88,10 +89,13 @@ def run_task(req: Any, task: TaskSet, qs: Any, dim: int, indexes: list, base: An
                          **{m: float(v[sel].mean()) for m, v in per_query.items()},
                          "nr_mean": float(answer.n_r[sel].mean()), **timing.columns(),
                          "ops_per_query": answer.ops_per_query})
-        for i in range(len(centres)):
-            queries.append({**key, "t": int(centres[i]), "part": names[city[i]],
-                            "n_positives": int(task.n_positives[sample][i]), "top": ranked[i].tolist(),
-                            **{m: float(v[i]) for m, v in per_query.items()}})
+        n = len(centres)  # the run's queries as columns (millions of queries: no row objects)
+        queries.append(pa.table({**{k: pa.repeat(pa.scalar(v), n) for k, v in key.items()},
+                                 "t": centres, "part": np.asarray(names, dtype=object)[city],
+                                 "n_positives": task.n_positives[sample],
+                                 "top": pa.FixedSizeListArray.from_arrays(np.ascontiguousarray(ranked).ravel(),
+                                                                          ranked.shape[1]),
+                                 **{m: np.asarray(v, np.float64) for m, v in per_query.items()}}))
     bar.close()
     return rows, queries, written
 
