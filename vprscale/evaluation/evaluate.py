@@ -252,7 +252,7 @@ def evaluate(req: EvalRequest) -> dict[str, Any]:
             raise InputError("--task: this store's query sets have their own lengths; evaluate one at a time, "
                              f"--noise NAME ({', '.join(req.noises)})")
         side = f"query_{req.noises[0]}" if "query_sets" in layout else "query"
-        task = TaskSet(group, req.task, req.seq_length, req.subtask, req.threshold_m, side, req.workers)
+        task = TaskSet(group, req.task, req.seq_length, req.subtask, req.threshold_m, side)
         if req.export_msls is None and not task.scored:
             raise InputError(f"--task {req.task}: {req.store} holds no positions (MSLS's test cities): nothing to "
                              "score; --export-msls FILE writes the predictions for MSLS's own server")

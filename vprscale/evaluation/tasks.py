@@ -14,22 +14,22 @@ recall@k is the share of queries with a positive among them, and map@k the mean 
 :func:`write_predictions` writes.
 
 The positives are never listed: a query's count comes from the database frames within the
-threshold (a k-d tree per city, :meth:`TaskSet.positives`) and the windows that hold them, and
-whether an answer is one from its frames' positions, so a task on 10M database frames needs
-no query × database matrix.
+threshold (a grid per city, :mod:`vprscale.evaluation.positives`) and the windows that hold
+them, and whether an answer is one from its frames' positions, so a task on 10M database
+frames needs no query × database matrix.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import zarr
 
 from vprscale.core.errors import InputError
 from vprscale.dataset.msls import SUBTASKS
+from vprscale.evaluation.positives import Grid, grid, window_counts
 from vprscale.protocol import Sequences
 
 TASKS = ("im2im", "seq2im", "im2seq", "seq2seq")
@@ -107,7 +107,7 @@ class TaskSet:
     may answer, and its positives (see the module's docstring)."""
 
     def __init__(self, group: zarr.Group, task: str, seq_length: int, subtask: str, threshold_m: float,
-                 query: str = "query", workers: int = 1) -> None:
+                 query: str = "query") -> None:
         if "ref_seq" not in group or f"{query}_seq" not in group:
             raise InputError("--task: the store holds no sequences; build it with --msls, or --ref-seq and --query-seq "
                              "(docs/bring-your-own.md)")
@@ -116,7 +116,6 @@ class TaskSet:
         if not threshold_m > 0:
             raise InputError(f"--threshold {threshold_m}: must be above 0 metres")
         self.task, self.subtask, self.threshold_m = task, subtask, float(threshold_m)
-        self.workers = workers  # threads of the k-d tree's searches
         self.q_len, self.db_len = lengths(task, seq_length)
         self.seq_length = 1 if task == "im2im" else seq_length
         self.db, self.q = Side.read(group, "ref"), Side.read(group, query)
@@ -131,7 +130,7 @@ class TaskSet:
         centres = np.flatnonzero(self.q.kept(self.q_len, subtask))
         self.scored = self.db.pos is not None and self.q.pos is not None
         if self.scored:
-            self._trees: dict[int, Any] = {}
+            self._grids: dict[int, Grid] = {}
             self._frames = np.cumsum(np.r_[0, db_kept.astype(np.int64)])  # kept centres before each row
             count = self.positives(centres)
             centres = centres[count > 0]  # MSLS evaluates only queries with a positive
@@ -141,54 +140,27 @@ class TaskSet:
                              + ("(and a positive within the threshold)" if self.scored else ""))
         self.centres = centres
 
-    def _tree(self, city: int) -> tuple[Any, np.ndarray]:
-        """The k-d tree of the city's database frames that lie in a kept window, and their rows."""
-        if city not in self._trees:
-            from scipy.spatial import cKDTree
-
+    def _grid(self, city: int) -> Grid:
+        """The grid of the city's database frames that lie in a kept window (:mod:`.positives`)."""
+        if city not in self._grids:
             half = self.db_len // 2
             covered = np.zeros(len(self.db_kept) + 1, np.int64)  # frames inside some kept window
             kept = np.flatnonzero(self.db_kept)
             np.add.at(covered, kept - half, 1)
             np.add.at(covered, kept + half + 1, -1)
             rows = np.flatnonzero((np.cumsum(covered)[:-1] > 0) & (self.db.city == city))
-            self._trees[city] = (cKDTree(self.db.pos[rows]), rows)
-        return self._trees[city]
+            self._grids[city] = grid(self.db.pos, rows, self.threshold_m)
+        return self._grids[city]
 
     def positives(self, centres: np.ndarray) -> np.ndarray:
-        """How many kept database windows are positives of each query window centred at ``centres``:
-        the kept centres within ``db_len // 2`` of a database frame near one of the query's frames."""
+        """How many kept database windows are positives of each query window centred at ``centres``."""
         out = np.zeros(len(centres), np.int64)
-        hq, hd = self.q_len // 2, self.db_len // 2
-        n_db = len(self.db_kept)
-        for lo in range(0, len(centres), QUERY_BLOCK):
-            block = centres[lo : lo + QUERY_BLOCK]
-            for city in np.unique(self.q.city[block]):
-                tree, rows = self._tree(int(city))
-                sel = np.flatnonzero(self.q.city[block] == city)
-                frames = (block[sel, None] - hq + np.arange(self.q_len)[None, :]).ravel()
-                if self.q_len == 1 and self.db_len == 1:  # a frame against frames: the count is the answer
-                    out[lo + sel] = tree.query_ball_point(self.q.pos[frames], self.threshold_m, return_length=True,
-                                                          workers=self.workers)
-                    continue
-                near = tree.query_ball_point(self.q.pos[frames], self.threshold_m, workers=self.workers)
-                counts = np.fromiter((len(x) for x in near), np.int64, len(near))
-                if not counts.sum():
-                    continue
-                query = np.repeat(np.repeat(sel, self.q_len), counts)  # (query, database frame) pairs
-                frame = rows[np.concatenate([np.asarray(x, np.int64) for x in near if len(x)])]
-                order = np.lexsort((frame, query))
-                query, frame = query[order], frame[order]
-                keep = np.r_[True, (query[1:] != query[:-1]) | (frame[1:] != frame[:-1])]
-                query, frame = query[keep], frame[keep]
-                # the windows holding a frame: kept centres in [f - hd, f + hd]; spans of one query
-                # that touch merge (all are 2 hd + 1 wide), and each merged span counts its centres
-                start = np.r_[True, (query[1:] != query[:-1]) | (frame[1:] - frame[:-1] > 2 * hd + 1)]
-                first = np.flatnonzero(start)
-                last = np.r_[first[1:] - 1, len(frame) - 1]
-                a = np.clip(frame[first] - hd, 0, n_db)
-                b = np.clip(frame[last] + hd + 1, 0, n_db)
-                np.add.at(out, lo + query[first], self._frames[b] - self._frames[a])
+        for city in np.unique(self.q.city[centres]):
+            sel = np.flatnonzero(self.q.city[centres] == city)
+            g = self._grid(int(city))
+            out[sel] = window_counts(self.q.pos, centres[sel] - self.q_len // 2, self.q_len, g.keys, g.starts,
+                                     g.members, g.origin, g.nx, g.ny, g.cell, self.db.pos, self._frames,
+                                     self.db_len // 2, self.threshold_m)
         return out
 
     def hits(self, centres: np.ndarray, answers: np.ndarray) -> np.ndarray:
