@@ -35,6 +35,7 @@ LENGTHS = (20, 200)  # frames of a drive
 GAP = 0.01  # chance that a frame of a drive is dropped (its frame number skipped)
 PANO = 0.03  # share of panoramas
 SIDE_M_PER_ROOT = 8.0  # a city's side in metres per square root of its database images (5M: 18 km)
+ROADS_PER_ROOT = 0.4  # its roads per square root of its images (5M: 894 roads of about 9 km)
 
 
 @dataclass
@@ -103,11 +104,11 @@ def write_msls(req: MslsSynth) -> list[Path]:
         for c, city in enumerate(req.cities):
             city_rng = np.random.default_rng([req.seed, c])
             look = Appearance(city_rng, req.dim)
-            # a road for every ~5,000 database images over a city whose side grows as the square root
-            # of its images: each street driven by a few database drives, as MSLS's are (a query frame
-            # then has some tens of database frames within 25 m, whatever the size)
+            # a city whose side and number of roads grow as the square root of its images: each street
+            # driven by about three database drives, as MSLS's are (a query frame then has some tens of
+            # database frames within 25 m, whatever the size)
             side_m = SIDE_M_PER_ROOT * np.sqrt(per_city[c])
-            roads = city_rng.uniform(0, side_m, size=(max(8, per_city[c] // 5000), 2, 2))
+            roads = city_rng.uniform(0, side_m, size=(max(8, int(ROADS_PER_ROOT * np.sqrt(per_city[c]))), 2, 2))
             for side, n in ((s, n) for cc, s, n in plan if cc == c):
                 folder = out / "train_val" / city / ("database", "query")[side]
                 folder.mkdir(parents=True)
