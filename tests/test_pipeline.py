@@ -569,3 +569,46 @@ def test_a_part_runs_its_own_stages_and_each_part_has_an_estimate(tmp_path, caps
     paper = load_pipeline(ROOT / "pipelines" / "paper.toml")
     covered = {s for part in paper.parts for s in part.stages}
     assert covered == {s.name for s in paper.stages if s.kind != "report"}
+
+
+@pytest.mark.slow
+@builds_20k
+def test_a_part_keeps_its_results_whole_and_without_this_machines_paths(tmp_path, monkeypatch):
+    """``run --part``: what the report needs is kept beside it (results, the curves' query columns,
+    the indexes' metadata and sizes, each stage's code digests), every path relative to where the
+    pipeline ran, and a part that fails keeps nothing over its previous results."""
+    monkeypatch.chdir(tmp_path)
+    text = ('name = "t"\nout = "data"\n' + '[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n'
+            '[[stages]]\nname = "i"\nkind = "index"\nstore = "b"\n'
+            '[[stages]]\nname = "e"\nkind = "eval"\nstore = "b"\nindex = "i"\nL = [1, 50]\nbaseline = false\n'
+            '[[stages]]\nname = "r"\nkind = "report"\nresults = ["e"]\nout = "reports/t"\n'
+            '[[parts]]\nname = "small"\nstages = ["b", "i", "e"]\n')
+    path = _write(tmp_path / "t.toml", text)
+    summary = run_pipeline(path, part="small")
+    kept = tmp_path / "reports" / "t" / "parts" / "small"
+    assert summary["status"] == "ok" and Path(summary["kept"]).resolve() == kept
+    record = json.loads((kept / "part.json").read_text())
+    assert record["run"]["from_nothing"] and record["run"]["wall_s"] > 0
+    assert [s["name"] for s in record["stages"]] == ["b", "i", "e"]
+    assert all(s["parts"]["code"] and s["fingerprint"] for s in record["stages"])
+    import pyarrow.parquet as pq
+
+    ran = pq.read_table(tmp_path / "data" / "20K-d15-k2.index" / "eval" / "results.parquet")
+    ours = pq.read_table(kept / "evals" / "e" / "results.parquet")
+    assert ours.drop_columns(["index", "store"]).equals(ran.drop_columns(["index", "store"]))
+    assert set(ours.column("store").to_pylist()) == {"data/20K.zarr"}
+    assert set(ours.column("index").to_pylist()) == {"reports/t/parts/small/indexes/20K-d15-k2.index"}
+    assert (kept / "indexes" / "20K-d15-k2.index" / "index.json").is_file()
+    sizes = json.loads((kept / "indexes" / "20K-d15-k2.index" / "files.json").read_text())
+    assert sizes["codes.parquet"] == (tmp_path / "data" / "20K-d15-k2.index" / "codes.parquet").stat().st_size
+    assert set(pq.read_schema(kept / "evals" / "e" / "queries.parquet").names) >= {"error", "score", "method"}
+    here = str(tmp_path.resolve())
+    for f in kept.rglob("*"):
+        if f.is_file():
+            assert here.encode() not in f.read_bytes(), f  # no path of this machine, in any file or metadata
+    # a part that fails keeps nothing: its previous results stand
+    before = (kept / "part.json").read_bytes()
+    shutil.rmtree(tmp_path / "data")
+    with pytest.raises(InputError):
+        run_pipeline(path, part="small", settings=["e.L=[100000]"])
+    assert (kept / "part.json").read_bytes() == before and not (kept.parent / ".small.partial").exists()

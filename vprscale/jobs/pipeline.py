@@ -55,6 +55,7 @@ from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import budget as budget_rules
 from vprscale.jobs import estimates, stagegraph
 from vprscale.jobs.child import vprscale_argv
+from vprscale.jobs.parts import keep_part, kept_root
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
@@ -435,6 +436,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                             "reasons": d.reasons, "estimate": d.estimate,
                             **(dict(zip(("calls", "call"), next(calls), strict=True)) if d.run and budget else {})}
                            for d in decisions]}
+    from_nothing = not pipe.out.exists() or not any(pipe.out.iterdir())  # what a part's record says of its start
+    t_start = time.perf_counter()
     check_writable(pipe.out, f"{pipe.path}: out")  # before any stage: its state, logs and summaries are written there
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     end = None if budget is None else time.time() + budget
@@ -515,6 +518,10 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 _write_json(state_file, state)
                 summary["stages"].append(entry)
             summary["status"] = "more to do" if "left" in summary else "ok"
+            if part is not None and summary["status"] == "ok":  # what lasts: kept beside the report, whole
+                summary["kept"] = str(_keep(pipe, pipe.part(part), state, outputs, summary, from_nothing,
+                                            time.perf_counter() - t_start))
+                print(f"kept part {part}'s results in {summary['kept']}", file=tee_err)
         except BaseException as exc:  # a signal too (Ctrl-C, a scheduler's SIGTERM): the record says so
             summary["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
             summary["error"] = f"{type(exc).__name__}: {exc}"
@@ -530,6 +537,19 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         summary["costs_file"] = str(estimates.save_costs(pipe.path, pipe.out,
                                                          [(s.name, s.kind, s.params) for s in pipe.stages], machine))
     return summary
+
+
+def _keep(pipe: Pipeline, part: Part, state: dict[str, Any], outputs: dict[str, dict[str, Any]],
+          summary: dict[str, Any], from_nothing: bool, wall_s: float) -> Path:
+    """Keep a finished part's results (:mod:`vprscale.jobs.parts`) beside the pipeline's report."""
+    report = next((s for s in pipe.stages if s.kind == "report"), None)
+    root = kept_root(report.params["out"] if report else pipe.out)
+    records = [{"name": n, **{k: v for k, v in state[n].items() if k != "signatures"}} for n in part.stages]
+    evals = {n: Path(outputs[n]["eval"]) for n in part.stages if "eval" in outputs.get(n, {})}
+    run = {"pipeline": str(pipe.path), "started": summary["started"], "wall_s": wall_s, "from_nothing": from_nothing,
+           "stages_run": [s["name"] for s in summary["stages"] if s.get("status") == "ran"],
+           **{k: summary["provenance"].get(k) for k in ("cpu", "cores", "vprscale", "commit", "dirty")}}
+    return keep_part(part.name, records, evals, root, run)
 
 
 def part_estimates(pipe: Pipeline) -> list[dict[str, Any]]:

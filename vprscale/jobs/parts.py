@@ -1,0 +1,131 @@
+"""What a part of a pipeline keeps (``vprscale run PIPELINE --part NAME``).
+
+A ladder too long for one job runs as parts (:class:`vprscale.jobs.pipeline.Part`), each from
+nothing on whatever machine the job lands on; its stores, indexes and encodings are rebuilt,
+deterministically, by the part that needs them and need not last. What must last is small, and
+is kept beside the pipeline's report, under ``<report out>/parts/<part>/``:
+
+- ``evals/<stage>/``: each evaluation's ``results.parquet`` (and ``results_m.parquet``,
+  ``nn.parquet``), the columns of ``queries.parquet`` the report's precision-recall curves read,
+  and ``eval.json``;
+- ``indexes/<index>/``: each index those results name, as the report reads it: ``index.json``,
+  ``components.parquet`` and ``files.json``, the bytes of each of its files;
+- ``part.json``: each stage's parameters, fingerprint, code digests (module by module), input
+  fingerprints, time, peak memory and disk, the commit and version it ran at, and the part's run:
+  its wall time, whether it started from an empty folder, the machine.
+
+No path of the machine is kept: every path is written relative to the directory the pipeline
+ran from (the repository's root). The folder is written beside its place and renamed into it
+whole, so a part stopped part way keeps nothing, and the part's previous results stand.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from vprscale.evaluation.prcurves import COLUMNS as CURVE_COLUMNS
+
+TABLES = ("results.parquet", "results_m.parquet", "nn.parquet")
+INDEX_FILES = ("index.json", "components.parquet")
+
+
+def kept_root(report_out: str | Path) -> Path:
+    """Where a pipeline's parts keep their results: beside its report."""
+    return Path(report_out) / "parts"
+
+
+class _Relative:
+    """Rewrites the absolute paths of this machine (under the directory the pipeline ran from)
+    as paths relative to it."""
+
+    def __init__(self) -> None:
+        self.prefix = str(Path.cwd().resolve()) + os.sep
+
+    def text(self, s: str) -> str:
+        return s.replace(self.prefix, "")
+
+    def json(self, value: Any) -> Any:
+        if isinstance(value, str):
+            return self.text(value)
+        if isinstance(value, list):
+            return [self.json(v) for v in value]
+        if isinstance(value, dict):
+            return {self.text(k): self.json(v) for k, v in value.items()}
+        return value
+
+
+def keep_part(part: str, stages: list[dict[str, Any]], evals: dict[str, Path], root: Path,
+              run: dict[str, Any]) -> Path:
+    """Write part ``part``'s results under ``root / part`` (published whole); returns the folder.
+
+    ``stages`` are the part's stage records (as the pipeline's state holds them), ``evals`` each
+    evaluation stage's output folder by stage name, ``run`` the part's run (wall time, whether it
+    started from nothing, machine)."""
+    rel = _Relative()
+    final = root / part
+    work = root / f".{part}.partial"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    indexes: dict[str, str] = {}  # an index folder → its name under indexes/
+    for name, folder in evals.items():
+        dst = work / "evals" / name
+        dst.mkdir(parents=True)
+        for table in TABLES:
+            if (folder / table).is_file():
+                _copy_table(folder / table, dst / table, rel, indexes, final)
+        if (folder / "queries.parquet").is_file():
+            _copy_table(folder / "queries.parquet", dst / "queries.parquet", rel, indexes, final, CURVE_COLUMNS)
+        (dst / "eval.json").write_text(json.dumps(rel.json(json.loads((folder / "eval.json").read_text())),
+                                                  indent=1))
+    for folder, kept in indexes.items():
+        _keep_index(Path(folder), work / "indexes" / kept, rel)
+    weight = sum(f.stat().st_size for f in work.rglob("*") if f.is_file())
+    record = {"part": part, "stages": rel.json(stages), "run": rel.json(run), "kept_bytes": weight}
+    (work / "part.json").write_text(json.dumps(record, indent=1, sort_keys=True))
+    old = root / f".{part}.previous"
+    shutil.rmtree(old, ignore_errors=True)
+    if final.exists():
+        final.rename(old)
+    work.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def _copy_table(src: Path, dst: Path, rel: _Relative, indexes: dict[str, str], final: Path,
+                columns: tuple[str, ...] | None = None) -> None:
+    """A results table with its paths made relative: an ``index`` column names the kept copy of
+    the index (``<final>/indexes/<name>``), registered in ``indexes``; a ``store`` column and the
+    provenance in the file's metadata lose this machine's prefix."""
+    names = pq.read_schema(src).names
+    table = pq.read_table(src, columns=[c for c in columns if c in names] if columns else None)
+    for i, field in enumerate(table.schema):
+        if field.name == "index":
+            paths = table.column(i).to_pylist()
+            for p in {p for p in paths if p}:
+                indexes.setdefault(p, Path(p).name)
+            kept = [None if p is None else rel.text(str(final / "indexes" / indexes[p])) for p in paths]
+            table = table.set_column(i, field.name, pa.array(kept, pa.string()))
+        elif field.name == "store" and pa.types.is_string(field.type):
+            table = table.set_column(i, field.name, pa.array([None if v is None else rel.text(v)
+                                                              for v in table.column(i).to_pylist()], pa.string()))
+    meta = {k: rel.text(v.decode()).encode() for k, v in (table.schema.metadata or {}).items()}
+    pq.write_table(table.replace_schema_metadata(meta), dst, compression="zstd")
+
+
+def _keep_index(src: Path, dst: Path, rel: _Relative) -> None:
+    """What the report reads of an index: its metadata, its components, and its files' bytes."""
+    dst.mkdir(parents=True)
+    if (src / "index.json").is_file():
+        (dst / "index.json").write_text(json.dumps(rel.json(json.loads((src / "index.json").read_text())), indent=1))
+    if (src / "components.parquet").is_file():
+        shutil.copyfile(src / "components.parquet", dst / "components.parquet")
+    sizes = {str(f.relative_to(src)): f.stat().st_size for f in sorted(src.rglob("*"))
+             if f.is_file() and f.relative_to(src).parts[0] != "eval" and ".previous" not in str(f.relative_to(src))}
+    (dst / "files.json").write_text(json.dumps(sizes, indent=1, sort_keys=True))
