@@ -68,19 +68,23 @@ def parse_cities(text: str) -> list[str]:
     return cities
 
 
-def _csv(path: Path, need: tuple[str, ...]) -> Any:
+def _csv(path: Path, need: tuple[str, ...], optional: tuple[str, ...] = ()) -> Any:
+    """The columns ``need`` (and those of ``optional`` it has) of one of MSLS's CSV files, and
+    no others: MSLS's own have a dozen, and a city's millions of rows of them would be held."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
     if not path.is_file():
         raise InputError(f"{path}: missing (MSLS keeps it beside every database and query folder)")
     try:
-        table = pacsv.read_csv(path)
+        names = pacsv.open_csv(path).schema.names
+        missing = [c for c in need if c not in names]
+        if missing:
+            raise InputError(f"{path}: no {', '.join(missing)} column (it has {', '.join(names)})")
+        keep = [c for c in (*need, *optional) if c in names]
+        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(include_columns=keep))
     except (OSError, pa.ArrowInvalid) as exc:
         raise InputError(f"{path}: cannot be read as CSV ({str(exc).splitlines()[0]})") from None
-    missing = [c for c in need if c not in table.column_names]
-    if missing:
-        raise InputError(f"{path}: no {', '.join(missing)} column (it has {', '.join(table.column_names)})")
     for name in need:
         if table[name].null_count:
             row = int(np.flatnonzero(np.asarray(table[name].is_null()))[0])
@@ -113,7 +117,7 @@ def read_side(root: Path, cities: list[str], side: str) -> Side:
         folder = city_folder(root, city) / side
         info = _csv(folder / "seq_info.csv", ("key", "frame_number", "sequence_key"))
         n = info.num_rows
-        sub = _csv(folder / "subtask_index.csv", ("all",))
+        sub = _csv(folder / "subtask_index.csv", ("all",), SUBTASKS[1:])
         if sub.num_rows != n:
             raise InputError(f"{folder / 'subtask_index.csv'}: {sub.num_rows:,} rows, seq_info.csv has {n:,}")
         bits = np.zeros(n, np.uint8)
@@ -126,7 +130,7 @@ def read_side(root: Path, cities: list[str], side: str) -> Side:
                              "build them apart")
         pos, pano = None, np.zeros(n, bool)
         if has_positions:
-            post = _csv(folder / "postprocessed.csv", ("easting", "northing"))
+            post = _csv(folder / "postprocessed.csv", ("easting", "northing"), ("key",))
             raw = _csv(folder / "raw.csv", ("pano",))
             for name, table in (("postprocessed.csv", post), ("raw.csv", raw)):
                 if table.num_rows != n:
