@@ -606,6 +606,18 @@ def test_a_part_keeps_its_results_whole_and_without_this_machines_paths(tmp_path
     for f in kept.rglob("*"):
         if f.is_file():
             assert here.encode() not in f.read_bytes(), f  # no path of this machine, in any file or metadata
+    # a report drawn into the folder keeps what the parts kept there, and so does one drawn again
+    kept_eval = str(kept / "evals" / "e")
+    assert main(["report", kept_eval, "--out", "reports/t", "-q"]) == 0
+    assert main(["report", kept_eval, "--out", "reports/t", "--force", "-q"]) == 0
+    assert (kept / "part.json").is_file() and (tmp_path / "reports" / "t" / "report.md").is_file()
+    from vprscale.evaluation.report import _whole_index_bytes  # an index's bytes, from its kept copy
+    from vprscale.method.indexmeta import read_index_meta
+
+    copy = kept / "indexes" / "20K-d15-k2.index"
+    whole = _whole_index_bytes({**read_index_meta(copy), "path": str(copy)})
+    assert whole == sum(read_index_meta(copy)["parts"].values()) > 100_000
+    assert not (tmp_path / "reports" / "t.previous" / "parts").exists()
     # a part that fails keeps nothing: its previous results stand
     before = (kept / "part.json").read_bytes()
     shutil.rmtree(tmp_path / "data")

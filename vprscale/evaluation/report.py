@@ -273,9 +273,9 @@ def _whole_index_bytes(meta: dict) -> int | None:
     """Every file of the index directory, measured as ``vprscale index`` measures it (its
     metadata included); the parts recorded at indexing time where the directory is gone."""
     path = Path(meta.get("path", ""))
-    if (path / "index.json").is_file():
+    if (path / "index.json").is_file() and not (path / KEPT_SIZES).is_file():
         return sum(index_parts(path).values())
-    return sum(meta["parts"].values()) if "parts" in meta else None
+    return sum(meta["parts"].values()) if "parts" in meta else _kept_bytes(path)
 
 
 def _provenance_block(evals: list[dict], record: dict[str, Any] | None = None) -> list[str]:
@@ -343,7 +343,7 @@ def _check_replaceable(out: Path, force: bool) -> None:
     ``force``: a report is a product people link to, and one command must not silently redraw it."""
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: is a file, not a directory")
-    if not out.is_dir() or not any(out.iterdir()):
+    if not out.is_dir() or not any(p.name != stagerecord.PARTS for p in out.iterdir()):  # or only what parts kept
         return
     md = out / "report.md"
     try:
@@ -387,8 +387,12 @@ def _write_local(results: list[str | Path], out: Path, extra_indexes: list[str] 
         except BaseException:
             shutil.rmtree(work, ignore_errors=True)
             raise
-        if out.exists():
+        if (out / stagerecord.PARTS).is_dir():  # what a pipeline's parts kept stays with its report
+            (out / stagerecord.PARTS).rename(work / stagerecord.PARTS)
+        if out.exists() and any(out.iterdir()):
             keep_beside(out)
+        elif out.exists():
+            out.rmdir()
         work.rename(out)
     return {"report": str(out / "report.md"), "figures": [str(out / Path(f).name) for f in rep["figures"]]}
 
@@ -554,11 +558,24 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
 
 
 def _disk(path: str | Path) -> float:
-    """Bytes under a directory (NaN where it is not on this machine)."""
+    """Bytes under a directory (NaN where it is not on this machine): of a kept copy of an index
+    (what a pipeline's part keeps), the bytes its files had."""
     p = Path(path)
     if not path or not p.is_dir():
         return math.nan
-    return float(sum(f.stat().st_size for f in p.rglob("*") if f.is_file()))
+    kept = _kept_bytes(p)
+    return float(kept if kept is not None else sum(f.stat().st_size for f in p.rglob("*") if f.is_file()))
+
+
+KEPT_SIZES = "files.json"  # in a kept copy of an index: the bytes of each of its files (vprscale.jobs.parts)
+
+
+def _kept_bytes(path: Path) -> int | None:
+    """The bytes a kept copy of an index records for its files (None: not a kept copy)."""
+    try:
+        return int(sum(json.loads((path / KEPT_SIZES).read_text()).values()))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return None
 
 
 def _stratification_note(res: pd.DataFrame, scales: list[str]) -> list[str]:

@@ -23,6 +23,7 @@ from vprscale.core.errors import InputError
 from vprscale.core.plaintext import markdown_code
 
 FILE = "stages.json"  # its name in a report
+PARTS = "parts"  # a report's folder of what its pipeline's parts kept (vprscale run --part), kept with it
 _NONE = type(None)
 _FIELDS: dict[str, tuple[type, ...]] = {
     "name": (str,), "kind": (str,), "code": (str,), "differs": (list,), "commit": (str, _NONE),

@@ -30,15 +30,18 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from vprscale.core.manifest import write_manifest
 from vprscale.evaluation.prcurves import COLUMNS as CURVE_COLUMNS
+from vprscale.evaluation.stagerecord import PARTS
 
 TABLES = ("results.parquet", "results_m.parquet", "nn.parquet")
 INDEX_FILES = ("index.json", "components.parquet")
 
 
 def kept_root(report_out: str | Path) -> Path:
-    """Where a pipeline's parts keep their results: beside its report."""
-    return Path(report_out) / "parts"
+    """Where a pipeline's parts keep their results: in its report's folder, which a report
+    drawn again keeps them in."""
+    return Path(report_out) / PARTS
 
 
 class _Relative:
@@ -84,8 +87,10 @@ def keep_part(part: str, stages: list[dict[str, Any]], evals: dict[str, Path], r
             _copy_table(folder / "queries.parquet", dst / "queries.parquet", rel, indexes, final, CURVE_COLUMNS)
         (dst / "eval.json").write_text(json.dumps(rel.json(json.loads((folder / "eval.json").read_text())),
                                                   indent=1))
+        write_manifest(dst)  # a kept evaluation checks out as any evaluation does, for the report that reads it
     for folder, kept in indexes.items():
         _keep_index(Path(folder), work / "indexes" / kept, rel)
+        write_manifest(work / "indexes" / kept)
     weight = sum(f.stat().st_size for f in work.rglob("*") if f.is_file())
     record = {"part": part, "stages": rel.json(stages), "run": rel.json(run), "kept_bytes": weight}
     (work / "part.json").write_text(json.dumps(record, indent=1, sort_keys=True))
@@ -128,4 +133,4 @@ def _keep_index(src: Path, dst: Path, rel: _Relative) -> None:
         shutil.copyfile(src / "components.parquet", dst / "components.parquet")
     sizes = {str(f.relative_to(src)): f.stat().st_size for f in sorted(src.rglob("*"))
              if f.is_file() and f.relative_to(src).parts[0] != "eval" and ".previous" not in str(f.relative_to(src))}
-    (dst / "files.json").write_text(json.dumps(sizes, indent=1, sort_keys=True))
+    (dst / "files.json").write_text(json.dumps(sizes, indent=1, sort_keys=True))  # what report.KEPT_SIZES reads
