@@ -82,6 +82,26 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
                                     indent=0) + "\n")
 
 
+EXACT_METHOD = (  # a method of the small contract: exact squared L2 by brute force (tests' own, small data)
+    "import numpy as np\n"
+    "class Exact:\n"
+    "    def fit(self, ref):\n"
+    "        self.ref = np.asarray(ref.compute(), np.float64)\n"
+    "    def query(self, frames, k):\n"
+    "        d = ((np.asarray(frames, np.float64)[:, None, :] - self.ref[None]) ** 2).sum(-1)\n"
+    "        ids = np.argsort(d, axis=1, kind='stable')[:, :k]\n"
+    "        return ids, np.take_along_axis(d, ids, 1)\n"
+    "    def pair_distances(self, frames, ref_ids):\n"
+    "        return ((np.asarray(frames, np.float64) - self.ref[ref_ids]) ** 2).sum(1)\n")
+
+
+def exact_method_in(folder: Path, module: str, monkeypatch: pytest.MonkeyPatch) -> str:
+    """:data:`EXACT_METHOD` written as ``folder/<module>.py`` and importable: its ``--method`` name."""
+    (folder / f"{module}.py").write_text(EXACT_METHOD)
+    monkeypatch.syspath_prepend(str(folder))
+    return f"{module}:Exact"
+
+
 def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Codes ``argmin_k |y_j − c_jk|`` (ties: the smaller k) and errors ``Σ_j min_k |y_j − c_jk|`` of
     already projected rows, through the method's own kernel with the identity projection."""

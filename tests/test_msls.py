@@ -14,6 +14,8 @@ import pytest
 
 from vprscale.cli import main
 
+from .conftest import exact_method_in
+
 CITIES = "cph,sf"
 SUBTASK_NAMES = ["all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d"]
 
@@ -126,19 +128,7 @@ def test_msls_scores_vprscale_s_predictions_as_vprscale_does(msls, task, seq_len
     if task.startswith("seq"):  # a pooled descriptor's windows: only MSLS's database windows
         argv += ["--compare", "seq:PQ4"]
     if task == "seq2seq":  # a method of your own answers the tasks too
-        (msls / "exactmsls.py").write_text(
-            "import numpy as np\n"
-            "class Exact:\n"
-            "    def fit(self, ref):\n"
-            "        self.ref = np.asarray(ref.compute(), np.float64)\n"
-            "    def query(self, frames, k):\n"
-            "        d = ((np.asarray(frames, np.float64)[:, None, :] - self.ref[None]) ** 2).sum(-1)\n"
-            "        ids = np.argsort(d, axis=1, kind='stable')[:, :k]\n"
-            "        return ids, np.take_along_axis(d, ids, 1)\n"
-            "    def pair_distances(self, frames, ref_ids):\n"
-            "        return ((np.asarray(frames, np.float64) - self.ref[ref_ids]) ** 2).sum(1)\n")
-        monkeypatch.syspath_prepend(str(msls))
-        argv += ["--method", "exactmsls:Exact", "--method-k", "8"]
+        argv += ["--method", exact_method_in(msls, "exactmsls", monkeypatch), "--method-k", "8"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     results = pq.read_table(out / "results.parquet").to_pandas()

@@ -14,6 +14,8 @@ from vprscale.compared.baseline import baseline_batch
 from vprscale.method.kernels import ranked_lists, window_proposals
 from vprscale.protocol import Sequences, query_centres
 
+from .conftest import exact_method_in
+
 DIM = 24
 
 
@@ -105,20 +107,8 @@ def _drives(tmp_path, sequences: bool = True):
 
 @pytest.fixture
 def exact_method(tmp_path, monkeypatch):
-    (tmp_path / "exactseq.py").write_text(
-        "import numpy as np\n"
-        "class Exact:\n"
-        "    def fit(self, ref):\n"
-        "        self.ref = np.asarray(ref.compute(), np.float64)\n"
-        "    def query(self, frames, k):\n"
-        "        d = ((np.asarray(frames, np.float64)[:, None, :] - self.ref[None]) ** 2).sum(-1)\n"
-        "        ids = np.argsort(d, axis=1, kind='stable')[:, :k]\n"
-        "        return ids, np.take_along_axis(d, ids, 1)\n"
-        "    def pair_distances(self, frames, ref_ids):\n"
-        "        return ((np.asarray(frames, np.float64) - self.ref[ref_ids]) ** 2).sum(1)\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)
-    return "exactseq:Exact"
+    return exact_method_in(tmp_path, "exactseq", monkeypatch)
 
 
 def _evaluate(tmp_path, name: str, method: str, capsys) -> tuple[pd.DataFrame, str]:
