@@ -624,3 +624,37 @@ def test_a_part_keeps_its_results_whole_and_without_this_machines_paths(tmp_path
     with pytest.raises(InputError):
         run_pipeline(path, part="small", settings=["e.L=[100000]"])
     assert (kept / "part.json").read_bytes() == before and not (kept.parent / ".small.partial").exists()
+
+
+@pytest.mark.slow
+@builds_20k
+def test_a_report_is_assembled_from_kept_parts_on_a_machine_without_their_data(tmp_path, monkeypatch, capsys):
+    """``vprscale run PIPELINE REPORT`` of a pipeline in parts: the report is drawn from what the
+    parts kept (no stage of theirs runs, ``data/`` may be gone), says each stage's code state, and
+    is the same bytes drawn twice; a part not kept is named, with the command that keeps it."""
+    monkeypatch.chdir(tmp_path)
+    text = ('name = "t"\nout = "data"\n' + '[[stages]]\nname = "b"\nkind = "build"\nscale = "20K"\n'
+            '[[stages]]\nname = "i"\nkind = "index"\nstore = "b"\n'
+            '[[stages]]\nname = "e"\nkind = "eval"\nstore = "b"\nindex = "i"\nL = [1, 50]\nbaseline = false\n'
+            '[[stages]]\nname = "i14"\nkind = "index"\nstore = "b"\nd = 14\n'
+            '[[stages]]\nname = "r"\nkind = "report"\nresults = ["e"]\nindexes = ["i14"]\nout = "reports/t"\n'
+            '[[parts]]\nname = "main"\nstages = ["b", "i", "e"]\n[[parts]]\nname = "narrow"\nstages = ["b", "i14"]\n')
+    path = _write(tmp_path / "t.toml", text)
+    for part in ("main", "narrow"):
+        assert run_pipeline(path, part=part)["status"] == "ok"
+    shutil.rmtree(tmp_path / "data")  # a fresh machine: only the kept parts
+    report = tmp_path / "reports" / "t"
+    summary = run_pipeline(path, stages=["r"])
+    assert [s["name"] for s in summary["stages"]] == ["r"] and not (tmp_path / "data" / "20K.zarr").exists()
+    record = json.loads((report / "stages.json").read_text())
+    assert {s["name"] for s in record["stages"]} == {"b", "i", "e", "i14"}
+    first = {f.name: f.read_bytes() for f in report.iterdir() if f.is_file()}
+    assert "fig4d_balance.png" in first and b"20K" in first["report.md"]
+    run_pipeline(path, stages=["r"], force=True)
+    again = {f.name: f.read_bytes() for f in report.iterdir() if f.is_file()}
+    assert again == first  # the same kept results, the same report, byte for byte
+    assert (report / "parts" / "main" / "part.json").is_file()
+    shutil.rmtree(report / "parts" / "narrow")
+    with pytest.raises(InputError, match="stage 'i14' has no kept results; run its part first: vprscale run t "
+                                         "--part narrow"):
+        run_pipeline(path, stages=["r"], force=True)

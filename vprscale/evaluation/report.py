@@ -282,9 +282,14 @@ def _provenance_block(evals: list[dict], record: dict[str, Any] | None = None) -
     """Who made this report and the results in it: commits, machines, commands; mixed commits said so,
     or, for a pipeline's report, the code state stage by stage (:mod:`vprscale.evaluation.stagerecord`)."""
     me = provenance()
-    lines = ["## Provenance", "",
-             f"- report: vprscale {me['vprscale']}, commit {_commit(me)}, {me['time']}, on {me['cpu']} "
-             f"({me['cores']} cores), {markdown_code(_here(me['command']))}"]
+    if record is None:
+        drawn = (f"- report: vprscale {me['vprscale']}, commit {_commit(me)}, {me['time']}, on {me['cpu']} "
+                 f"({me['cores']} cores), {markdown_code(_here(me['command']))}")
+    else:  # drawn from a pipeline's results, as its parts kept them: the same bytes wherever it is drawn
+        drawn = (f"- report: vprscale {me['vprscale']}, drawn from the stages of pipeline "
+                 f"{markdown(record['pipeline'])} below (when, where and at which commit it was drawn: the "
+                 "pipeline's run summary)")
+    lines = ["## Provenance", "", drawn]
     commits = set()
     for e in evals:
         rec = e.get("provenance")

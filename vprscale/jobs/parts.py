@@ -64,19 +64,20 @@ class _Relative:
         return value
 
 
-def keep_part(part: str, stages: list[dict[str, Any]], evals: dict[str, Path], root: Path,
-              run: dict[str, Any]) -> Path:
+def keep_part(part: str, stages: list[dict[str, Any]], evals: dict[str, Path], index_stages: list[Path],
+              root: Path, run: dict[str, Any]) -> Path:
     """Write part ``part``'s results under ``root / part`` (published whole); returns the folder.
 
     ``stages`` are the part's stage records (as the pipeline's state holds them), ``evals`` each
-    evaluation stage's output folder by stage name, ``run`` the part's run (wall time, whether it
-    started from nothing, machine)."""
+    evaluation stage's output folder by stage name, ``index_stages`` the indexes its index stages
+    made (a report may read one no evaluation names: Fig. 4d's), ``run`` the part's run (wall
+    time, whether it started from nothing, machine)."""
     rel = _Relative()
     final = root / part
     work = root / f".{part}.partial"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    indexes: dict[str, str] = {}  # an index folder → its name under indexes/
+    indexes = {str(p): Path(p).name for p in index_stages}  # an index folder → its name under indexes/
     for name, folder in evals.items():
         dst = work / "evals" / name
         dst.mkdir(parents=True)
@@ -134,3 +135,19 @@ def _keep_index(src: Path, dst: Path, rel: _Relative) -> None:
     sizes = {str(f.relative_to(src)): f.stat().st_size for f in sorted(src.rglob("*"))
              if f.is_file() and f.relative_to(src).parts[0] != "eval" and ".previous" not in str(f.relative_to(src))}
     (dst / "files.json").write_text(json.dumps(sizes, indent=1, sort_keys=True))  # what report.KEPT_SIZES reads
+
+
+def kept_stages(root: Path) -> dict[str, tuple[dict[str, Any], dict[str, Any]]]:
+    """What every kept part holds, by stage name: ``(record, outputs)``, the stage's record as
+    its part kept it and where its kept results are (an evaluation's folder, an index's copy)."""
+    found: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {}
+    for record_file in sorted(root.glob("*/part.json")):
+        folder = record_file.parent
+        for stage in json.loads(record_file.read_text())["stages"]:
+            outputs = dict(stage.get("outputs") or {})
+            if (folder / "evals" / stage["name"]).is_dir():
+                outputs["eval"] = str(folder / "evals" / stage["name"])
+            if outputs.get("index") and (folder / "indexes" / Path(outputs["index"]).name).is_dir():
+                outputs["index"] = str(folder / "indexes" / Path(outputs["index"]).name)
+            found.setdefault(stage["name"], (stage, outputs))
+    return found

@@ -55,7 +55,7 @@ from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import budget as budget_rules
 from vprscale.jobs import estimates, stagegraph
 from vprscale.jobs.child import vprscale_argv
-from vprscale.jobs.parts import keep_part, kept_root
+from vprscale.jobs.parts import keep_part, kept_root, kept_stages
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
@@ -373,14 +373,15 @@ class Decision:
 
 
 def decide(pipe: Pipeline, stages: list[Stage], asked: set[str], state: dict[str, Any], force: bool,
-           graph: Any, digests: DigestCache) -> list[Decision]:
+           graph: Any, digests: DigestCache, known: dict[str, str] | None = None) -> list[Decision]:
     """Each covered stage's decision, in order: a stage's fingerprint is of what it reads, not
-    of what it made, so the whole plan is known before anything runs."""
+    of what it made, so the whole plan is known before anything runs. ``known``: fingerprints of
+    stages not covered (a report's, from the parts that kept them)."""
     kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
     measured = estimates.read_measurements(pipe.out, pipe.path)
     stopped = state.get(STOPPED, {})
     decisions: list[Decision] = []
-    fingerprints: dict[str, str] = {}
+    fingerprints: dict[str, str] = dict(known or {})
     for stage in stages:
         parts = _parts(stage, fingerprints, graph, digests)
         fp = fingerprints[stage.name] = _digest(parts)
@@ -420,7 +421,18 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         if stages:
             raise InputError(f"--part {part}: runs the part's own stages; give STAGE names or --part, not both")
         stages = pipe.part(part).stages
+    kept: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {}
+    if pipe.parts and part is None and not dry_run:
+        reports = [s.name for s in pipe.stages if s.kind == "report"]
+        if not stages:  # the whole ladder: its parts in turn, each kept, then the report drawn from them
+            return _run_parts(pipe, path, reports, scheduler, force, save_costs, settings, budget)
+        if not set(stages) <= set(reports):
+            raise InputError(f"{pipe.path}: a pipeline in parts runs a part (--part NAME) or its report "
+                             f"({', '.join(reports)}), assembled from what the parts kept")
+        kept = _kept_inputs(pipe, stages)
     covered, asked = select(pipe, stages, downstream)
+    if kept:  # the report alone: what it reads comes from the kept parts, not from stages run here
+        covered = [s for s in covered if s.name in asked]
     state_file = pipe.out / "pipeline-state.json"
     graph = _import_graph()
     digests = DigestCache(pipe.out / DIGESTS)
@@ -451,14 +463,15 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                                    pipe.path.read_bytes()).hexdigest()[:16]})}
     with exclusive(pipe.out / "pipeline"), open(runs / f"{stamp}.log", "w") as log:
         state = _read_state(state_file)  # as it is now that the run holds the lock
-        outputs: dict[str, dict[str, Any]] = {}
+        outputs: dict[str, dict[str, Any]] = {n: out for n, (_, out) in kept.items()}
         kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
         # the run's log file gets everything; the console only what the logging level lets through
         tee_err = _Tee(*([sys.stderr] if logging.getLogger(__name__).isEnabledFor(logging.INFO) else []), log)
         started_any = False
         summary["covered"] = len(covered)
         try:
-            decisions = decide(pipe, covered, asked, state, force, graph, digests)  # a bad source fails the run
+            decisions = decide(pipe, covered, asked, state, force, graph, digests,
+                               {n: rec["fingerprint"] for n, (rec, _) in kept.items()})  # a bad source fails the run
             digests.save()
             if budget is not None:
                 budget_rules.check([d.pending() for d in decisions if d.run], budget)
@@ -486,7 +499,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 _write_json(state_file, state)
                 deadline_given = end if stage.kind in budget_rules.CHECKPOINTED else None
                 if stage.kind == "report":
-                    _write_stage_record(pipe, stage, state, graph)
+                    _write_stage_record(pipe, stage, {**state, **{n: rec for n, (rec, _) in kept.items()}}, graph)
                 try:
                     out = _run_stage(pipe, stage, outputs, scheduler, tee_err, deadline_given)
                 except BudgetSpent as stop:
@@ -539,6 +552,39 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
     return summary
 
 
+def _run_parts(pipe: Pipeline, path: str | Path, reports: list[str], scheduler: str | None, force: bool,
+               save_costs: bool, settings: Sequence[str], budget: float | None) -> dict[str, Any]:
+    """A pipeline in parts run whole: each part in turn (each kept), then its report from them;
+    under a budget, the calls left stop where it is spent (the first not finished is returned)."""
+    end = None if budget is None else time.time() + budget
+    for p in pipe.parts:
+        left = None if end is None else max(1.0, end - time.time())
+        done = run_pipeline(path, scheduler, force, False, save_costs, (), False, settings, left, part=p.name)
+        if done["status"] != "ok":
+            return done
+    left = None if end is None else max(1.0, end - time.time())
+    return run_pipeline(path, scheduler, force, False, save_costs, reports, False, settings, left)
+
+
+def _kept_inputs(pipe: Pipeline, reports: Sequence[str]) -> dict[str, tuple[dict[str, Any], dict[str, Any]]]:
+    """What a report of a pipeline in parts reads, from the kept parts: every stage it reads,
+    directly or not, by name (its record and where its kept results are); a stage no part has
+    kept is one line naming the part that keeps it."""
+    report = next(s for s in pipe.stages if s.name in reports)
+    kept = kept_stages(kept_root(report.params["out"]))
+    by_name = {s.name: s for s in pipe.stages}
+    for name in reports:
+        needed = list(references(by_name[name]))
+        while needed:
+            ref = needed.pop()
+            if ref not in kept:
+                owner = next((p.name for p in pipe.parts if ref in p.stages), "?")
+                raise InputError(f"{pipe.path}: stage '{ref}' has no kept results; run its part first: vprscale run "
+                                 f"{pipe.name} --part {owner}")
+            needed += references(by_name[ref])
+    return kept
+
+
 def _keep(pipe: Pipeline, part: Part, state: dict[str, Any], outputs: dict[str, dict[str, Any]],
           summary: dict[str, Any], from_nothing: bool, wall_s: float) -> Path:
     """Keep a finished part's results (:mod:`vprscale.jobs.parts`) beside the pipeline's report."""
@@ -546,10 +592,11 @@ def _keep(pipe: Pipeline, part: Part, state: dict[str, Any], outputs: dict[str, 
     root = kept_root(report.params["out"] if report else pipe.out)
     records = [{"name": n, **{k: v for k, v in state[n].items() if k != "signatures"}} for n in part.stages]
     evals = {n: Path(outputs[n]["eval"]) for n in part.stages if "eval" in outputs.get(n, {})}
+    index_stages = [Path(outputs[n]["index"]) for n in part.stages if "index" in outputs.get(n, {})]
     run = {"pipeline": str(pipe.path), "started": summary["started"], "wall_s": wall_s, "from_nothing": from_nothing,
            "stages_run": [s["name"] for s in summary["stages"] if s.get("status") == "ran"],
            **{k: summary["provenance"].get(k) for k in ("cpu", "cores", "vprscale", "commit", "dirty")}}
-    return keep_part(part.name, records, evals, root, run)
+    return keep_part(part.name, records, evals, index_stages, root, run)
 
 
 def part_estimates(pipe: Pipeline) -> list[dict[str, Any]]:
