@@ -565,7 +565,7 @@ def test_a_part_runs_its_own_stages_and_each_part_has_an_estimate(tmp_path, caps
     assert "--part huge: " in err and "parts: small, big" in err
     assert main(["run", str(path), "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert "part small: 2 stages" in out and "part big: 1 stages" in out
+    assert "part small: not kept; 2 stages" in out and "part big: not kept; 1 stages" in out
     paper = load_pipeline(ROOT / "pipelines" / "paper.toml")
     covered = {s for part in paper.parts for s in part.stages}
     assert covered == {s.name for s in paper.stages if s.kind != "report"}
@@ -654,7 +654,12 @@ def test_a_report_is_assembled_from_kept_parts_on_a_machine_without_their_data(t
     again = {f.name: f.read_bytes() for f in report.iterdir() if f.is_file()}
     assert again == first  # the same kept results, the same report, byte for byte
     assert (report / "parts" / "main" / "part.json").is_file()
+    plan = {p["name"]: p["kept"] for p in run_pipeline(path, dry_run=True)["parts"]}
+    assert plan == {"main": "current", "narrow": "current"}
+    plan = {p["name"]: p["kept"] for p in run_pipeline(path, dry_run=True, settings=["e.L=[1]"])["parts"]}
+    assert plan["main"] == "stale: stage e's parameters changed" and plan["narrow"] == "current"
     shutil.rmtree(report / "parts" / "narrow")
+    assert {p["name"]: p["kept"] for p in run_pipeline(path, dry_run=True)["parts"]}["narrow"] == "not kept"
     with pytest.raises(InputError, match="stage 'i14' has no kept results; run its part first: vprscale run t "
                                          "--part narrow"):
         run_pipeline(path, stages=["r"], force=True)

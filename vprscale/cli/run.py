@@ -84,9 +84,9 @@ def _plan(summary: dict, budget: str | None) -> int:
                   f"at least {_gb(peak)} (the estimate is {s['estimate'].basis})")
     for part in summary.get("parts", []):  # each from nothing: on a fresh machine, within one job
         gap = f", {part['unmeasured']} of its stages never measured, left out" if part["unmeasured"] else ""
-        print(f"part {part['name']}: {len(part['stages'])} stages, from nothing {_duration(part['seconds'])} of wall "
-              f"time, peak memory {_gb(part['peak_bytes'])}{gap} (vprscale run {summary['name']} --part "
-              f"{part['name']})")
+        print(f"part {part['name']}: {part['kept']}; {len(part['stages'])} stages, from nothing "
+              f"{_duration(part['seconds'])} of wall time, peak memory {_gb(part['peak_bytes'])}{gap} "
+              f"(vprscale run {summary['name']} --part {part['name']})")
     total = summary["estimate"]
     running = [s for s in summary["stages"] if s["run"]]
     if running and total["unmeasured"] == len(running):  # nothing to add up: no figure, not a zero

@@ -443,7 +443,7 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         running = [d for d in decisions if d.run]
         calls = iter(budget_rules.plan_calls([d.pending() for d in running], budget) if budget else [])
         total = estimates.totals([d.estimate for d in running], [d.estimate for d in decisions])
-        return {"name": pipe.name, "dry_run": True, "estimate": total, "parts": part_estimates(pipe),
+        return {"name": pipe.name, "dry_run": True, "estimate": total, "parts": part_estimates(pipe, graph),
                 "stages": [{"name": d.stage.name, "kind": d.stage.kind, "fingerprint": d.fingerprint, "run": d.run,
                             "reasons": d.reasons, "estimate": d.estimate,
                             **(dict(zip(("calls", "call"), next(calls), strict=True)) if d.run and budget else {})}
@@ -599,18 +599,48 @@ def _keep(pipe: Pipeline, part: Part, state: dict[str, Any], outputs: dict[str, 
     return keep_part(part.name, records, evals, index_stages, root, run)
 
 
-def part_estimates(pipe: Pipeline) -> list[dict[str, Any]]:
+def part_estimates(pipe: Pipeline, graph: Any) -> list[dict[str, Any]]:
     """Each part's estimate from nothing (every one of its stages run, whatever is done here): the
-    sum of its stages' times, their largest peak, and how many were never measured."""
+    sum of its stages' times, their largest peak, and how many were never measured; and what it
+    kept (:func:`part_state`)."""
     kinds = {s.name: (s.kind, s.params) for s in pipe.stages}
     measured = estimates.read_measurements(pipe.out, pipe.path)
+    report = next((s for s in pipe.stages if s.kind == "report"), None)
+    kept = {}
+    for folder in sorted(kept_root(report.params["out"] if report else pipe.out).glob("*/part.json")):
+        try:
+            kept[folder.parent.name] = json.loads(folder.read_text())
+        except (OSError, ValueError):
+            continue  # unreadable: said as not kept
     found = []
     for part in pipe.parts:
         costs = [estimates.estimate(s.name, s.kind, s.params, estimates.places(s.params, s.kind, kinds), measured,
                                     estimates.layout(s.params, s.kind, kinds))
                  for s in pipe.stages if s.name in part.stages]
-        found.append({"name": part.name, "stages": part.stages, **estimates.totals(costs, costs)})
+        found.append({"name": part.name, "stages": part.stages, **estimates.totals(costs, costs),
+                      "kept": part_state(pipe, part, kept.get(part.name), graph)})
     return found
+
+
+def part_state(pipe: Pipeline, part: Part, record: dict[str, Any] | None, graph: Any) -> str:
+    """``current`` when the part's kept stages ran this vprscale's code with these parameters,
+    else why not (``not kept``, or ``stale: …`` naming the stage and what changed)."""
+    if record is None:
+        return "not kept"
+    ran = {r.get("name"): r for r in record.get("stages", [])}
+    for stage in (s for s in pipe.stages if s.name in part.stages):
+        kept_parts = (ran.get(stage.name) or {}).get("parts") or {}
+        if not kept_parts:
+            return f"stale: stage {stage.name} not in what it kept"
+        if kept_parts.get("params") != json.loads(json.dumps(redact(stage.params), sort_keys=True, default=str)):
+            return f"stale: stage {stage.name}'s parameters changed"
+        now = stage_code(stage.kind, graph)
+        changed = sorted(m for m in set(now) | set(kept_parts.get("code", {}))
+                         if now.get(m) != kept_parts.get("code", {}).get(m))
+        if changed:
+            more = ", …" if len(changed) > 3 else ""
+            return f"stale: stage {stage.name}'s code changed ({', '.join(changed[:3])}{more})"
+    return "current"
 
 
 def stage_record_path(pipe: Pipeline, stage: Stage) -> Path:
