@@ -426,10 +426,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
         reports = [s.name for s in pipe.stages if s.kind == "report"]
         if not stages:  # the whole ladder: its parts in turn, each kept, then the report drawn from them
             return _run_parts(pipe, path, reports, scheduler, force, save_costs, settings, budget)
-        if not set(stages) <= set(reports):
-            raise InputError(f"{pipe.path}: a pipeline in parts runs a part (--part NAME) or its report "
-                             f"({', '.join(reports)}), assembled from what the parts kept")
-        kept = _kept_inputs(pipe, stages)
+        if set(stages) <= set(reports):  # its report: assembled from what the parts kept
+            kept = _kept_inputs(pipe, stages)
     covered, asked = select(pipe, stages, downstream)
     if kept:  # the report alone: what it reads comes from the kept parts, not from stages run here
         covered = [s for s in covered if s.name in asked]
