@@ -589,6 +589,7 @@ def test_a_part_keeps_its_results_whole_and_without_this_machines_paths(tmp_path
     assert summary["status"] == "ok" and Path(summary["kept"]).resolve() == kept
     record = json.loads((kept / "part.json").read_text())
     assert record["run"]["from_nothing"] and record["run"]["wall_s"] > 0
+    assert isinstance(record["run"]["caches_empty"], bool)  # the FAS fit this test seeds: not empty
     assert [s["name"] for s in record["stages"]] == ["b", "i", "e"]
     assert all(s["parts"]["code"] and s["fingerprint"] for s in record["stages"])
     import pyarrow.parquet as pq

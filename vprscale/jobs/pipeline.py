@@ -46,7 +46,7 @@ from vprscale.core.deadline import BudgetSpent
 from vprscale.core.digests import DigestCache
 from vprscale.core.errors import InputError, JobFailed
 from vprscale.core.manifest import check_manifest, read_manifest
-from vprscale.core.objects import redact
+from vprscale.core.objects import cache_root, redact
 from vprscale.core.provenance import provenance
 from vprscale.core.publish import check_writable, exclusive
 from vprscale.dataset.recipe import load_recipe, read_toml, shipped
@@ -446,7 +446,9 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                             "reasons": d.reasons, "estimate": d.estimate,
                             **(dict(zip(("calls", "call"), next(calls), strict=True)) if d.run and budget else {})}
                            for d in decisions]}
-    from_nothing = not pipe.out.exists() or not any(pipe.out.iterdir())  # what a part's record says of its start
+    # what a part's record says of its start: no output folder, and whether vprscale's cache held anything
+    from_nothing = not pipe.out.exists() or not any(pipe.out.iterdir())
+    caches_empty = not cache_root().is_dir() or not any(f.is_file() for f in cache_root().rglob("*"))
     t_start = time.perf_counter()
     check_writable(pipe.out, f"{pipe.path}: out")  # before any stage: its state, logs and summaries are written there
     stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -530,7 +532,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                 summary["stages"].append(entry)
             summary["status"] = "more to do" if "left" in summary else "ok"
             if part is not None and summary["status"] == "ok":  # what lasts: kept beside the report, whole
-                summary["kept"] = str(_keep(pipe, pipe.part(part), state, outputs, summary, from_nothing,
+                summary["kept"] = str(_keep(pipe, pipe.part(part), state, outputs, summary,
+                                            {"from_nothing": from_nothing, "caches_empty": caches_empty},
                                             time.perf_counter() - t_start))
                 print(f"kept part {part}'s results in {summary['kept']}", file=tee_err)
         except BaseException as exc:  # a signal too (Ctrl-C, a scheduler's SIGTERM): the record says so
@@ -584,14 +587,14 @@ def _kept_inputs(pipe: Pipeline, reports: Sequence[str]) -> dict[str, tuple[dict
 
 
 def _keep(pipe: Pipeline, part: Part, state: dict[str, Any], outputs: dict[str, dict[str, Any]],
-          summary: dict[str, Any], from_nothing: bool, wall_s: float) -> Path:
+          summary: dict[str, Any], start: dict[str, bool], wall_s: float) -> Path:
     """Keep a finished part's results (:mod:`vprscale.jobs.parts`) beside the pipeline's report."""
     report = next((s for s in pipe.stages if s.kind == "report"), None)
     root = kept_root(report.params["out"] if report else pipe.out)
     records = [{"name": n, **{k: v for k, v in state[n].items() if k != "signatures"}} for n in part.stages]
     evals = {n: Path(outputs[n]["eval"]) for n in part.stages if "eval" in outputs.get(n, {})}
     index_stages = [Path(outputs[n]["index"]) for n in part.stages if "index" in outputs.get(n, {})]
-    run = {"pipeline": str(pipe.path), "started": summary["started"], "wall_s": wall_s, "from_nothing": from_nothing,
+    run = {"pipeline": str(pipe.path), "started": summary["started"], "wall_s": wall_s, **start,
            "stages_run": [s["name"] for s in summary["stages"] if s.get("status") == "ran"],
            **{k: summary["provenance"].get(k) for k in ("cpu", "cores", "vprscale", "commit", "dirty")}}
     return keep_part(part.name, records, evals, index_stages, root, run)
