@@ -80,7 +80,6 @@ class Sequences:
         run = np.cumsum(cut) - 1
         self.run_start = starts[run]  # first row of each row's run
         self.run_stop = np.append(starts[1:], self.n)[run]  # one past its last row
-        self.sequences = int(len(np.unique(sequence))) if self.n else 0
         self._masks: dict[int, np.ndarray] = {}
 
     def window_ok(self, t: np.ndarray, L: int) -> np.ndarray:

@@ -135,10 +135,10 @@ def read_side(root: Path, cities: list[str], side: str) -> Side:
             for name, table in (("postprocessed.csv", post), ("raw.csv", raw)):
                 if table.num_rows != n:
                     raise InputError(f"{folder / name}: {table.num_rows:,} rows, seq_info.csv has {n:,}")
-            if "key" in post.column_names and not pc.all(pc.equal(post["key"].cast(pa.string()),
-                                                                  info["key"].cast(pa.string()))).as_py():
-                row = int(np.flatnonzero(~np.asarray(pc.equal(post["key"].cast(pa.string()),
-                                                              info["key"].cast(pa.string()))))[0])
+            same = (np.asarray(pc.equal(post["key"].cast(pa.string()), info["key"].cast(pa.string())))
+                    if "key" in post.column_names else None)
+            if same is not None and not same.all():
+                row = int(np.flatnonzero(~same)[0])
                 raise InputError(f"{folder / 'postprocessed.csv'}: row {row:,} is not seq_info.csv's image")
             pos = np.stack([post["easting"].to_numpy(zero_copy_only=False),
                             post["northing"].to_numpy(zero_copy_only=False)], axis=1).astype(np.float64)

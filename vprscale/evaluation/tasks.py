@@ -131,7 +131,13 @@ class TaskSet:
         self.scored = self.db.pos is not None and self.q.pos is not None
         if self.scored:
             self._grids: dict[int, Grid] = {}
-            self._frames = np.cumsum(np.r_[0, db_kept.astype(np.int64)])  # kept centres before each row
+            half = self.db_len // 2  # the database frames inside some kept window, once for every city
+            edges = np.zeros(len(db_kept) + 1, np.int64)
+            kept = np.flatnonzero(db_kept)
+            np.add.at(edges, kept - half, 1)
+            np.add.at(edges, kept + half + 1, -1)
+            self._covered = np.cumsum(edges)[:-1] > 0
+            self._kept_before = np.cumsum(np.r_[0, db_kept.astype(np.int64)])  # kept centres before each row
             count = self.positives(centres)
             centres = centres[count > 0]  # MSLS evaluates only queries with a positive
             self.n_positives = count[count > 0]
@@ -143,12 +149,7 @@ class TaskSet:
     def _grid(self, city: int) -> Grid:
         """The grid of the city's database frames that lie in a kept window (:mod:`.positives`)."""
         if city not in self._grids:
-            half = self.db_len // 2
-            covered = np.zeros(len(self.db_kept) + 1, np.int64)  # frames inside some kept window
-            kept = np.flatnonzero(self.db_kept)
-            np.add.at(covered, kept - half, 1)
-            np.add.at(covered, kept + half + 1, -1)
-            rows = np.flatnonzero((np.cumsum(covered)[:-1] > 0) & (self.db.city == city))
+            rows = np.flatnonzero(self._covered & (self.db.city == city))
             self._grids[city] = grid(self.db.pos, rows, self.threshold_m)
         return self._grids[city]
 
@@ -159,7 +160,7 @@ class TaskSet:
             sel = np.flatnonzero(self.q.city[centres] == city)
             g = self._grid(int(city))
             out[sel] = window_counts(self.q.pos, centres[sel] - self.q_len // 2, self.q_len, g.keys, g.starts,
-                                     g.members, g.origin, g.nx, g.ny, g.cell, self.db.pos, self._frames,
+                                     g.members, g.origin, g.nx, g.ny, g.cell, self.db.pos, self._kept_before,
                                      self.db_len // 2, self.threshold_m)
         return out
 
