@@ -657,6 +657,28 @@ def test_a_report_is_assembled_from_kept_parts_on_a_machine_without_their_data(t
     assert (report / "parts" / "main" / "part.json").is_file()
     plan = {p["name"]: p["kept"] for p in run_pipeline(path, dry_run=True)["parts"]}
     assert plan == {"main": "current", "narrow": "current"}
+    md = first["report.md"].decode()
+    assert "parts: 2 kept; **one code state**" in md and "refreshes it" not in md
+    rows = {cells[0]: cells for cells in ([c.strip() for c in line.strip("|").split("|")]
+                                          for line in md.splitlines() if line.startswith(("| main |", "| narrow |")))}
+    # part, stages, commit, wall min, from nothing, caches empty, machine, kept KB, this vprscale's code
+    assert rows["main"][1] == "3" and rows["main"][4] == "yes" and rows["narrow"][4] == "no"  # main built data/
+    assert rows["main"][8] == rows["narrow"][8] == "yes"
+    # a part kept at other code (its record as an older vprscale would have left it): named, with its command
+    kept = report / "parts" / "main" / "part.json"
+    original = kept.read_text()
+    older = json.loads(original)
+    for stage in older["stages"]:
+        if stage["name"] == "e":
+            stage["parts"]["code"]["vprscale"] = "0" * 16
+    kept.write_text(json.dumps(older))
+    run_pipeline(path, stages=["r"], force=True)
+    md = (report / "report.md").read_text()
+    assert "**not one code state**" in md
+    assert "part **main** ran other code than this vprscale's: `vprscale run t --part main` refreshes it" in md
+    assert "part **narrow** ran other code" not in md
+    assert run_pipeline(path, dry_run=True)["parts"][0]["kept"] == "stale: stage e's code changed (vprscale)"
+    kept.write_text(original)
     plan = {p["name"]: p["kept"] for p in run_pipeline(path, dry_run=True, settings=["e.L=[1]"])["parts"]}
     assert plan["main"] == "stale: stage e's parameters changed" and plan["narrow"] == "current"
     shutil.rmtree(report / "parts" / "narrow")

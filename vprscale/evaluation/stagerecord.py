@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from vprscale.core.errors import InputError
-from vprscale.core.plaintext import markdown_code
+from vprscale.core.plaintext import markdown, markdown_code
 
 FILE = "stages.json"  # its name in a report
 PARTS = "parts"  # a report's folder of what its pipeline's parts kept (vprscale run --part), kept with it
@@ -28,12 +28,20 @@ _NONE = type(None)
 _FIELDS: dict[str, tuple[type, ...]] = {
     "name": (str,), "kind": (str,), "code": (str,), "differs": (list,), "commit": (str, _NONE),
     "dirty": (bool, _NONE), "vprscale": (str, _NONE), "finished": (str, _NONE), "seconds": (int, float, _NONE),
-    "peak_rss_bytes": (int, _NONE), "bytes_on_disk": (int, _NONE), "places": (int, _NONE)}
+    "peak_rss_bytes": (int, _NONE), "bytes_on_disk": (int, _NONE), "places": (int, _NONE), "part": (str, _NONE)}
+_PART_FIELDS: dict[str, tuple[type, ...]] = {
+    "name": (str,), "stages": (list,), "kept_bytes": (int, _NONE), "wall_s": (int, float, _NONE),
+    "from_nothing": (bool, _NONE), "caches_empty": (bool, _NONE), "cpu": (str, _NONE), "cores": (int, _NONE),
+    "commit": (str, _NONE)}
 
 
-def write_record(path: Path, pipeline: str, stages: list[dict[str, Any]]) -> None:
-    """Write the record of ``pipeline``'s ``stages`` (each with the fields of :data:`_FIELDS`)."""
-    record = {"pipeline": pipeline, "stages": [{k: s.get(k) for k in _FIELDS} for s in stages]}
+def write_record(path: Path, pipeline: str, stages: list[dict[str, Any]], one_code_state: bool | None = None,
+                 parts: list[dict[str, Any]] | None = None) -> None:
+    """Write the record of ``pipeline``'s ``stages`` (each with the fields of :data:`_FIELDS`):
+    ``one_code_state`` whether every module ran at one digest in every stage, ``parts`` the kept
+    parts' runs (:data:`_PART_FIELDS`) of a pipeline in parts."""
+    record = {"pipeline": pipeline, "stages": [{k: s.get(k) for k in _FIELDS} for s in stages],
+              "one_code_state": one_code_state, "parts": [{k: p.get(k) for k in _PART_FIELDS} for p in parts or []]}
     check(record, str(path))
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(record, indent=1) + "\n")
@@ -66,6 +74,12 @@ def check(record: Any, where: str) -> None:
                                  "wrong type")
         if not all(isinstance(m, str) for m in stage["differs"]):
             raise InputError(f"{where}: stages[{i}] ({stage['name']!r}): 'differs' must list module names")
+    if not isinstance(record.get("one_code_state"), bool | _NONE) or not isinstance(record.get("parts", []), list):
+        raise InputError(f"{where}: 'one_code_state' must be true or false, 'parts' a list")
+    for i, part in enumerate(record.get("parts", [])):
+        if not isinstance(part, dict) or any(not isinstance(part.get(k), kind) or (
+                isinstance(part.get(k), bool) and bool not in kind) for k, kind in _PART_FIELDS.items()):
+            raise InputError(f"{where}: parts[{i}] is not a kept part's run (a name, its stages, its wall time)")
 
 
 def provenance_lines(record: dict[str, Any], table: Callable[[list[str], list[list[Any]]], str]) -> list[str]:
@@ -84,8 +98,38 @@ def provenance_lines(record: dict[str, Any], table: Callable[[list[str], list[li
                      f"({shown}): its figures are not this code's")
     rows = [[s["name"], s["kind"], s["code"], _commit(s), (s["finished"] or "–")[:16].replace("T", " "),
              "yes" if not s["differs"] else f"no ({len(s['differs'])} modules)"] for s in stages]
-    return [*lines, "", "Each stage's code (a digest of the modules its job runs) and the commit it ran at:", "",
+    return [*lines, *_part_lines(record, table), "",
+            "Each stage's code (a digest of the modules its job runs) and the commit it ran at:", "",
             table(["stage", "kind", "code", "commit", "finished (UTC)", "this vprscale's code"], rows), ""]
+
+
+def _part_lines(record: dict[str, Any], table: Callable[[list[str], list[list[Any]]], str]) -> list[str]:
+    """A pipeline in parts: whether its parts are one code state, and each part's run (from
+    nothing or not, its wall time, what it kept) with the command that refreshes a part whose
+    code is not this vprscale's."""
+    parts = record.get("parts") or []
+    if not parts:
+        return []
+    one = record.get("one_code_state")
+    differs = {s["part"] for s in record["stages"] if s["differs"] and s.get("part")}
+    pipeline = markdown_code(record["pipeline"])
+    lines = [f"- parts: {len(parts)} kept; " + (
+        "**one code state**: every module ran at one digest in every stage of every part" if one else
+        "**not one code state**: some module ran at different digests in different stages" if one is False else
+        "whether they are one code state was not recorded")]
+    lines += [f"  - part **{markdown(p['name'])}** ran other code than this vprscale's: "
+              f"{_refresh(record['pipeline'], p['name'])} refreshes it" for p in parts if p["name"] in differs]
+    rows = [[markdown(p["name"]), len(p["stages"]), _commit({"commit": p["commit"], "dirty": False}),
+             _number(None if p["wall_s"] is None else p["wall_s"] / 60, ",.1f"),
+             _yes(p["from_nothing"]), _yes(p["caches_empty"]),
+             markdown(f"{p['cpu']} ({p['cores']} cores)") if p["cpu"] else "–",
+             _number(None if p["kept_bytes"] is None else p["kept_bytes"] / 1e3, ",.0f"),
+             "yes" if p["name"] not in differs else f"no: {_refresh(record['pipeline'], p['name'])}"]
+            for p in parts]
+    return [*lines, "", f"Each part of {pipeline}, run on its own ({_refresh(record['pipeline'], 'NAME')}) "
+            "and kept beside this report (parts/NAME/):", "",
+            table(["part", "stages", "commit", "wall min", "from nothing", "caches empty", "machine", "kept KB",
+                   "this vprscale's code"], rows)]
 
 
 def time_table(record: dict[str, Any], table: Callable[[list[str], list[list[Any]]], str]) -> list[str]:
@@ -100,6 +144,14 @@ def time_table(record: dict[str, Any], table: Callable[[list[str], list[list[Any
             f"As the pipeline recorded them ({FILE} beside this report): a stage's time is its wall time summed "
             f"over the calls it took; {total / 3600:.2f} hours in all, one stage after another.", "",
             table(["stage", "kind", "places", "time s", "peak GiB", "disk GiB"], rows), ""]
+
+
+def _yes(flag: bool | None) -> str:
+    return "–" if flag is None else "yes" if flag else "no"
+
+
+def _refresh(pipeline: str, part: str) -> str:
+    return markdown_code(f"vprscale run {pipeline} --part {part}")
 
 
 def _commit(stage: dict[str, Any]) -> str:

@@ -658,16 +658,37 @@ def _write_stage_record(pipe: Pipeline, report: Stage, state: dict[str, Any], gr
         if stage.name in read:
             read |= set(references(stage))
     entries = []
+    ran: dict[str, set[str]] = {}  # module → the digests the stages ran of it
     for stage in (s for s in pipe.stages if s.name in read):
         done = state[stage.name]
         code, now = done["parts"]["code"], stage_code(stage.kind, graph)
+        for module, digest in code.items():
+            ran.setdefault(module, set()).add(digest)
         out = done.get("outputs", {})
         entries.append({"name": stage.name, "kind": stage.kind, "code": _digest(code),
                         "differs": sorted(m for m in set(code) | set(now) if code.get(m) != now.get(m)),
                         **{k: done.get(k) for k in ("commit", "dirty", "vprscale", "finished", "seconds")},
                         "peak_rss_bytes": out.get("peak_rss_bytes"), "bytes_on_disk": out.get("bytes_on_disk"),
-                        "places": estimates.places(stage.params, stage.kind, kinds)})
-    stagerecord.write_record(stage_record_path(pipe, report), pipe.name, entries)
+                        "places": estimates.places(stage.params, stage.kind, kinds),
+                        "part": next((p.name for p in pipe.parts if stage.name in p.stages), None)})
+    stagerecord.write_record(stage_record_path(pipe, report), pipe.name, entries,
+                             one_code_state=all(len(d) == 1 for d in ran.values()), parts=_part_runs(pipe, report))
+
+
+def _part_runs(pipe: Pipeline, report: Stage) -> list[dict[str, Any]]:
+    """Each kept part's run as its ``part.json`` recorded it (wall time, whether from nothing,
+    machine, what it kept weighs), in the pipeline file's order; none for a pipeline without parts."""
+    root = kept_root(report.params["out"])
+    runs = []
+    for part in pipe.parts:
+        try:
+            kept = json.loads((root / part.name / "part.json").read_text())
+        except (OSError, ValueError):
+            continue  # not kept (the report refused already) or unreadable: nothing to state
+        run = kept.get("run", {})
+        runs.append({"name": part.name, "stages": list(part.stages), "kept_bytes": kept.get("kept_bytes"),
+                     **{k: run.get(k) for k in ("wall_s", "from_nothing", "caches_empty", "cpu", "cores", "commit")}})
+    return runs
 
 
 def stage_graph(path: str | Path, form: str, settings: Sequence[str] = (), stages: Sequence[str] = (),
