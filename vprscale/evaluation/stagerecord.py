@@ -32,7 +32,7 @@ _FIELDS: dict[str, tuple[type, ...]] = {
 _PART_FIELDS: dict[str, tuple[type, ...]] = {
     "name": (str,), "stages": (list,), "kept_bytes": (int, _NONE), "wall_s": (int, float, _NONE),
     "from_nothing": (bool, _NONE), "caches_empty": (bool, _NONE), "cpu": (str, _NONE), "cores": (int, _NONE),
-    "commit": (str, _NONE)}
+    "commit": (str, _NONE), "dirty": (bool, _NONE)}
 
 
 def write_record(path: Path, pipeline: str, stages: list[dict[str, Any]], one_code_state: bool | None = None,
@@ -119,7 +119,7 @@ def _part_lines(record: dict[str, Any], table: Callable[[list[str], list[list[An
         "whether they are one code state was not recorded")]
     lines += [f"  - part **{markdown(p['name'])}** ran other code than this vprscale's: "
               f"{_refresh(record['pipeline'], p['name'])} refreshes it" for p in parts if p["name"] in differs]
-    rows = [[markdown(p["name"]), len(p["stages"]), _commit({"commit": p["commit"], "dirty": False}),
+    rows = [[markdown(p["name"]), len(p["stages"]), _commit(p),
              _number(None if p["wall_s"] is None else p["wall_s"] / 60, ",.1f"),
              _yes(p["from_nothing"]), _yes(p["caches_empty"]),
              markdown(f"{p['cpu']} ({p['cores']} cores)") if p["cpu"] else "–",

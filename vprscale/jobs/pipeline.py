@@ -687,7 +687,8 @@ def _part_runs(pipe: Pipeline, report: Stage) -> list[dict[str, Any]]:
             continue  # not kept (the report refused already) or unreadable: nothing to state
         run = kept.get("run", {})
         runs.append({"name": part.name, "stages": list(part.stages), "kept_bytes": kept.get("kept_bytes"),
-                     **{k: run.get(k) for k in ("wall_s", "from_nothing", "caches_empty", "cpu", "cores", "commit")}})
+                     **{k: run.get(k) for k in ("wall_s", "from_nothing", "caches_empty", "cpu", "cores", "commit",
+                                                     "dirty")}})
     return runs
 
 
