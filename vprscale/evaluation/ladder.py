@@ -84,12 +84,12 @@ def ladder_section(res: pd.DataFrame, indexes: list[dict[str, Any]], scales: lis
         whole = whole_bytes(index) if index else None
         paper = [cells["paper", L] for L in LENGTHS]
         ours = next((c for c in (cells["paper", longest], cells["aligned", longest]) if c is not None), None)
-        cap = None if ours is None or "bytes_per_place" not in ours else ours.bytes_per_place
+        cap = math.nan if ours is None else float(ours.get("bytes_per_place", math.nan))
         rows.append([markdown(scale), mains[scale],
                      "–" if not whole else f"{whole / index['n_ref']:.2f}",
                      *(_pct(None if c is None else c.recall) for c in cells.values()),
                      " / ".join(_us(c) for c in paper),
-                     _best_code(main, cap if cap is None or math.isfinite(cap) else None, longest)])
+                     _best_code(main, cap if math.isfinite(cap) else None, longest)])
     if len(rows) < 2:
         return []
     heads = ["scale", "d", "index B/place",
