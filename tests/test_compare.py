@@ -351,6 +351,37 @@ def test_a_method_keeps_its_colour_and_its_modes_their_line_styles():
     assert len({series_marker(series_label("faiss:PQ3", mode, None)) for mode in ("aligned", "paper", "single")}) == 3
 
 
+def test_a_report_draws_each_method_in_one_colour_whatever_else_a_figure_draws(tmp_path):
+    """The comparison figure draws three codes, the nearest-neighbour figure two of them: with the
+    report's palette of all its methods, HNSW32 is the same colour in both (a palette of each
+    figure's own methods would give it the third colour in one and the second in the other)."""
+    from matplotlib.colors import to_hex
+
+    from vprscale.evaluation.comparison import fig_compare, method_colours, series_label
+    from vprscale.evaluation.nnreport import _figure
+
+    palette = method_colours(["CoarseHash", "AQ8", "HNSW32", "baseline"])
+    rows = [{"scale": "1M", "noise": "qm1", "method": m, "mode": "aligned", "L": 50,
+             "d": 20 if m == "coarsehash" else None, "recall": 0.5, "bytes_per_place": 3.0, "us_per_query": 5.0}
+            for m in ("coarsehash", "faiss:AQ8", "faiss:HNSW32")]
+    points = pd.DataFrame(rows).assign(qps=2e5)
+    points["series"] = [series_label(m, "aligned", d) for m, d in zip(points.method, points.d, strict=True)]
+    nn = pd.DataFrame({"scale": "1M", "noise": "qm1", "method": ["coarsehash", "faiss:HNSW32"],
+                       "bytes_per_place": [3.0, 40.0], "recall_at_1": [0.3, 0.6], "recall_at_100": [0.5, 0.9]})
+    drawn = {}
+    keep = lambda fig, out, name: drawn.setdefault(name, fig)  # noqa: E731
+    fig_compare(points, ["1M"], "qm1", tmp_path, keep, palette)
+    _figure(nn, tmp_path, keep, palette)
+
+    def colour(fig, label: str) -> str:
+        return {to_hex(line.get_color()) for ax in fig.axes for line in ax.get_lines()
+                if line.get_label().startswith(label)}
+
+    assert colour(drawn["fig_compare_qm1"], "HNSW32") == colour(drawn["fig_nn"], "HNSW32") == {
+        to_hex(palette["HNSW32"])}
+    assert colour(drawn["fig_nn"], "CoarseHash") == {to_hex(palette["CoarseHash"])}
+
+
 def test_the_legend_names_methods_and_modes_apart_and_panels_share_axes(tmp_path):
     """Nine families (three methods in three modes) take a legend of six entries outside the
     panels: each method in its colour, each mode by its marker and line; panels share axes."""

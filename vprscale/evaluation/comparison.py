@@ -22,6 +22,7 @@ read from the results; nothing is written in advance of the data.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -128,7 +129,7 @@ def best_first(rows: pd.DataFrame) -> pd.DataFrame:
 def series_label(method: str, mode: str, d: Any) -> str:
     """``PQ3 (aligned)``; CoarseHash with its width, ``CoarseHash d=24 (aligned)``, unless ``d`` is None."""
     if method != OURS:
-        return f"{method.removeprefix('faiss:')} ({mode})"
+        return f"{method_name(method)} ({mode})"
     return f"CoarseHash{'' if d is None else f' d={int(d)}'} ({mode})"
 
 
@@ -163,16 +164,31 @@ def method_and_mode(series: str) -> tuple[str, str]:
     return re.sub(r" d=\d+$", "", method), mode.rstrip(")")
 
 
-def series_colours(families: list[str]) -> dict[str, Any]:
-    """Each series' colour: its method's, one distinct colour per method, CoarseHash's first,
-    the others by name (a method has the same colour in every figure of a report, whatever its
-    mode or CoarseHash's width; :func:`series_line` tells the modes apart); no greys (the grid's
-    colour). Sixteen colours before one repeats: a colour per series would repeat at a report's
-    thirty-odd families (ten methods in up to three modes)."""
-    methods = sorted({method_and_mode(f)[0] for f in families}, key=lambda m: (m != "CoarseHash", m))
+def method_name(method: str) -> str:
+    """A method as figures name it: ``CoarseHash``, ``PQ3`` (a FAISS factory string), ``seq:PQ3``."""
+    return "CoarseHash" if method == OURS else method.removeprefix("faiss:")
+
+
+def method_colours(methods: Iterable[str], given: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One distinct colour per method (named as :func:`method_name` names it): ``given``'s,
+    then the others', CoarseHash's first and the rest by name; no greys (the grid's colour).
+    A report draws every figure from one such table of all its methods, so a method keeps its
+    colour from figure to figure whatever else each draws. Sixteen colours before one repeats:
+    a colour per series would repeat at a report's thirty-odd families (ten methods in up to
+    three modes)."""
     tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
     palette = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
-    by_method = {m: palette[i % len(palette)] for i, m in enumerate(methods)}
+    colours = dict(given or {})
+    for m in sorted(set(methods) - set(colours), key=lambda m: (m != "CoarseHash", m)):
+        colours[m] = palette[len(colours) % len(palette)]
+    return colours
+
+
+def series_colours(families: list[str], palette: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Each series' colour: its method's in ``palette`` (the report's :func:`method_colours`;
+    a method missing there, or no palette, gets the next), whatever its mode or CoarseHash's
+    width (:func:`series_line` tells the modes apart)."""
+    by_method = method_colours((method_and_mode(f)[0] for f in families), palette)
     return {f: by_method[method_and_mode(f)[0]] for f in families}
 
 
@@ -213,12 +229,13 @@ def _grid(points: pd.DataFrame, scales: list[str], noise: str) -> tuple[list[str
     return [s for s in scales if s in set(here.scale)], sorted(here.L.unique())
 
 
-def fig_compare(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
+def fig_compare(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save,
+                palette: dict[str, Any] | None = None) -> str:
     """Recall against queries per second per core at one noise level, each series' Pareto front
     drawn and labelled; returns the figure's name."""
     scales, lengths = _grid(points, scales, noise)
     families = _families(points)
-    colours = series_colours(families)
+    colours = series_colours(families, palette)
     fig, axes = panels(len(lengths), len(scales), 5.2, 3.8)
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
@@ -242,10 +259,11 @@ def fig_compare(points: pd.DataFrame, scales: list[str], noise: str, out: Path, 
     return name
 
 
-def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
+def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save,
+                      palette: dict[str, Any] | None = None) -> str:
     """Recall against bytes per place at one noise level (each series' best operating point),
     per scale and L, on an axis spanning the data; returns the figure's name."""
-    scales, lengths, colours, best = _setup(points, scales, noise)
+    scales, lengths, colours, best = _setup(points, scales, noise, palette)
     lo, hi = best.bytes_per_place.min(), best.bytes_per_place.max()
     fig, axes = panels(len(lengths), len(scales), 5.2, 3.4)
     for r, L in enumerate(lengths):
@@ -268,14 +286,15 @@ def fig_compare_bytes(points: pd.DataFrame, scales: list[str], noise: str, out: 
     return name
 
 
-def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str:
+def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out: Path, save,
+                       palette: dict[str, Any] | None = None) -> str:
     """Each series' best recall against L (one panel per scale) and against scale (one per L),
     at one noise level; returns the figure's name."""
-    scales, lengths, _, best = _setup(points, scales, noise)
+    scales, lengths, _, best = _setup(points, scales, noise, palette)
     # CoarseHash is compared at each scale's own width (d = ⌈log2 N_ref⌉): against scale it is
     # one line per mode, in its one colour (the tables give d)
     best = best.assign(series=[series_label(m, mode, None) for m, mode in zip(best.method, best["mode"], strict=True)])
-    colours = series_colours(list(best.series))
+    colours = series_colours(list(best.series), palette)
     order = {s: i for i, s in enumerate(scales)}
     fig, axes = plt.subplots(2, max(len(scales), len(lengths)), figsize=(4.6 * max(len(scales), len(lengths)), 7),
                              squeeze=False, sharey=True, layout="constrained")
@@ -313,12 +332,12 @@ def fig_compare_trends(points: pd.DataFrame, scales: list[str], noise: str, out:
     return name
 
 
-def _setup(points: pd.DataFrame, scales: list[str], noise: str
+def _setup(points: pd.DataFrame, scales: list[str], noise: str, palette: dict[str, Any] | None
            ) -> tuple[list[str], list[int], dict[str, Any], pd.DataFrame]:
     """What a best-point figure of one noise level draws: the scales and lengths, the colours,
     and each series' best operating point per scale and L."""
     scales, lengths = _grid(points, scales, noise)
-    return scales, lengths, series_colours(_families(points)), _best_points(points[points.noise == noise])
+    return scales, lengths, series_colours(_families(points), palette), _best_points(points[points.noise == noise])
 
 
 def _best_points(points: pd.DataFrame) -> pd.DataFrame:
@@ -396,12 +415,14 @@ def _times(ratio: float) -> str:
     return f"{ratio:,.0f}×" if ratio >= 10 else f"{ratio:.2f}×"
 
 
-def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table) -> list[str]:
-    """The report's comparison section (figure, words, table); empty when nothing was compared."""
+def compare_section(res: pd.DataFrame, scales: list[str], out: Path, save, table,
+                    palette: dict[str, Any] | None = None) -> list[str]:
+    """The report's comparison section (figures in ``palette``'s colours, words, table); empty
+    when nothing was compared."""
     points = _points(res)
     if points.empty or not points.method.ne(OURS).any():
         return []
-    figures = [draw(points, scales, noise, out, save) for noise in noise_order(points.noise)
+    figures = [draw(points, scales, noise, out, save, palette) for noise in noise_order(points.noise)
                for draw in (fig_compare, fig_compare_bytes, fig_compare_trends)]
     rows: list[list[Any]] = []
     for p in points.sort_values(["scale", "noise", "L", "method", "mode"], key=_scale_key(scales)).itertuples():

@@ -29,6 +29,7 @@ import html
 import re
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -72,10 +73,11 @@ def _json(rows: pd.DataFrame) -> str:
 
 
 def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[str], title: str, out: Path,
-               report_md: str = "") -> Path:
+               report_md: str = "", palette: dict[str, Any] | None = None) -> Path:
     """Write ``out/report.html`` from the results ``res``, the rows in metres ``metres`` (empty
     when no evaluation counted them), the report's provenance lines and the whole of ``report.md``
-    (``report_md``, its figures read from ``out``), which the page holds below its own figures."""
+    (``report_md``, its figures read from ``out``), which the page holds below its own figures;
+    each method in its colour of ``palette``, the PNG figures'."""
     from plotly.offline import get_plotlyjs
 
     here = resources.files(__package__)
@@ -84,7 +86,7 @@ def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[s
     rows_m = page_rows(metres, METRES_COLUMNS) if len(metres) else rows.iloc[:0]
     figures = FIGURES + ((METRES_FIGURE,) if len(rows_m) else ())
     families = list(dict.fromkeys([*rows.series, *rows_m.series]))
-    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in series_colours(families).items()}
+    colours = {method_and_mode(f)[0]: to_hex(c) for f, c in series_colours(families, palette).items()}
     provenance = "".join(f"<li>{inline(line.removeprefix('- '))}</li>" for line in provenance_lines
                          if line.startswith("- "))
     script = (script.replace("@COLOURS@", script_json(colours)).replace("@SYMBOLS@", script_json(SYMBOLS))

@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from vprscale.evaluation.comparison import series_colours
+from vprscale.evaluation.comparison import method_colours, method_name
 from vprscale.evaluation.nearest import DEPTHS, PUBLISHED
 
 PUBLISHED_MARKERS = ("s", "D", "p", "h")  # one hollow marker per published point
@@ -25,20 +25,21 @@ def load_nn(runs: list[str]) -> pd.DataFrame:
 
 
 def nn_section(nn: pd.DataFrame, scales: list[str], out: Path, save: Callable[[Any, Path, str], None],
-               table: Callable[[list[str], list[list[Any]]], str]) -> list[str]:
+               table: Callable[[list[str], list[list[Any]]], str],
+               palette: dict[str, Any] | None = None) -> list[str]:
     """The section (empty when no evaluation has ``nn.parquet``): per scale, noise and method its
     bytes per place, R@1, R@10, R@100 and CPU µs per query on one core; the published rows below,
-    each with its thread count and its time per core; and ``fig_nn``."""
+    each with its thread count and its time per core; and ``fig_nn`` (in ``palette``'s colours)."""
     if nn.empty:
         return []
     order = {s: i for i, s in enumerate(scales)}
     nn = nn.assign(pos=nn.scale.map(order).fillna(len(order))).sort_values(["pos", "noise", "bytes_per_place"])
-    rows = [[p.scale, p.noise.upper(), p.method, p.family, p.params, f"{p.bytes_per_place:.2f}",
+    rows = [[p.scale, p.noise.upper(), method_name(p.method), p.family, p.params, f"{p.bytes_per_place:.2f}",
              *(f"{getattr(p, f'recall_at_{r}'):.3f}" for r in DEPTHS), f"{p.us_per_query:,.1f}", p.n_queries]
             for p in nn.itertuples()]
     published = [[p["method"], f"{p['bytes_per_place']:.0f}", f"{p['recall_at_1']:.3f}", p["threads"],
                   f"{p['us_per_query'] * p['threads']:,.0f}", p["source"]] for p in PUBLISHED]
-    _figure(nn, out, save)
+    _figure(nn, out, save, palette)
     return ["## Nearest-neighbour recall", "",
             "The share of Deep1B query rows whose exact nearest reference (brute force over every reference) is "
             "among a method's R best: CoarseHash's address lists expanded by Hamming distance, each FAISS code's "
@@ -54,15 +55,16 @@ def nn_section(nn: pd.DataFrame, scales: list[str], out: Path, save: Callable[[A
             "![nearest-neighbour recall against bytes per search entry](fig_nn.png)", ""]
 
 
-def _figure(nn: pd.DataFrame, out: Path, save: Callable[[Any, Path, str], None]) -> None:
+def _figure(nn: pd.DataFrame, out: Path, save: Callable[[Any, Path, str], None],
+            palette: dict[str, Any] | None) -> None:
     """R@1 and R@100 against bytes per search entry, one panel per scale and noise; the published
     points hollow, each its own marker named in the legend (labels beside points that lie close
     together ran into each other), the legend outside the panels, plain numbers on the log axis."""
     keys = list(dict.fromkeys(zip(nn.scale, nn.noise, strict=True)))
     fig, axes = plt.subplots(1, len(keys), figsize=(4.6 * len(keys) + 3.2, 3.8), squeeze=False, sharey=True,
                              layout="constrained")
-    methods = list(dict.fromkeys(nn.method))
-    colours = dict(zip(methods, series_colours([f"{m} (single)" for m in methods]).values(), strict=True))
+    nn = nn.assign(method=nn.method.map(method_name))
+    colours = method_colours(nn.method, palette)
     for ax, (scale, noise) in zip(axes[0], keys, strict=True):
         g = nn[(nn.scale == scale) & (nn.noise == noise)]
         for p in g.itertuples():

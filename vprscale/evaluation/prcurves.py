@@ -60,7 +60,8 @@ def _first_points(q: pd.DataFrame) -> pd.DataFrame:
     return merged
 
 
-def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> str | None:
+def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save,
+           palette: dict[str, Any] | None = None) -> str | None:
     """Precision against recall at one noise level, per scale (columns) and L (rows); the
     figure's name, or None when there is nothing to draw.
 
@@ -74,7 +75,7 @@ def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> s
     if not scales or not lengths:
         return None
     families = list(dict.fromkeys(q.sort_values("method", key=lambda c: c.ne("coarsehash")).series))
-    colours = series_colours(families)
+    colours = series_colours(families, palette)
     fig, axes = panels(len(lengths), len(scales), 4.4, 3.5, sharey=True)
     for r, L in enumerate(lengths):
         for c, scale in enumerate(scales):
@@ -104,12 +105,14 @@ def fig_pr(q: pd.DataFrame, scales: list[str], noise: str, out: Path, save) -> s
 PR_SCORES = ("auc_pr_correct", "ap", "precision_at_r100")  # columns an older evaluation may lack
 
 
-def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path, save, table) -> list[str]:
-    """The report's section: the figure, and the table of every method and operating point."""
+def pr_section(res: pd.DataFrame, runs: list[str], scales: list[str], out: Path, save, table,
+               palette: dict[str, Any] | None = None) -> list[str]:
+    """The report's section: the figure (in ``palette``'s colours), and the table of every method
+    and operating point."""
     if "auc_pr" not in res.columns:
         return []
     q = load_queries(runs)
-    drawn = [] if q.empty else [fig_pr(q, scales, noise, out, save) for noise in noise_order(q.noise)]
+    drawn = [] if q.empty else [fig_pr(q, scales, noise, out, save, palette) for noise in noise_order(q.noise)]
     sub = named_modes(res[(res.part == "all") & (res.radius == RADIUS)])
     rows: list[list[Any]] = []
     order = {s: i for i, s in enumerate(scales)}

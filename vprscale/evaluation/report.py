@@ -30,7 +30,12 @@ from vprscale.core.publish import check_writable, exclusive, keep_beside, refuse
 from vprscale.dataset.recipe import known_scales  # noqa: E402
 from vprscale.evaluation import stagerecord  # noqa: E402
 from vprscale.evaluation.accounting import method_ops, time_cell  # noqa: E402
-from vprscale.evaluation.comparison import compare_section, method_family  # noqa: E402
+from vprscale.evaluation.comparison import (  # noqa: E402
+    compare_section,
+    method_colours,
+    method_family,
+    method_name,
+)
 from vprscale.evaluation.htmlreport import write_html
 from vprscale.evaluation.ladder import ladder_section
 from vprscale.evaluation.metres import load_metres, metres_section  # noqa: E402
@@ -436,15 +441,20 @@ def _draw(results: list[str | Path], out: Path, extra_indexes: list[str] | None,
     has_storage = fig_storage([i for i in indexes if i["store"].get("rescale") is not False], out, figures)
     has_balance = fig_balance(indexes, out, figures)
     save = lambda fig, o, name: _save(fig, o, name, figures)  # noqa: E731
-    compared = compare_section(res, scales, out, save, _md_table)
+    runs = list(dict.fromkeys(res.run))
+    nn = load_nn(runs)
+    # one colour per method for every figure of the report, whichever of them each draws
+    palette = method_colours(map(method_name, {*res.method, *(nn.method if len(nn) else [])}))
+    compared = compare_section(res, scales, out, save, _md_table, palette)
     compared += operating_section(res, scales, _md_table)
-    compared += pr_section(res, list(dict.fromkeys(res.run)), scales, out, save, _md_table)
-    metres = load_metres(list(dict.fromkeys(res.run)))
+    compared += pr_section(res, runs, scales, out, save, _md_table, palette)
+    metres = load_metres(runs)
     compared += metres_section(metres, scales, _md_table)
-    compared += nn_section(load_nn(list(dict.fromkeys(res.run))), scales, out, save, _md_table)
+    compared += nn_section(nn, scales, out, save, _md_table, palette)
     text = _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_balance, compared, record)
     (out / "report.md").write_text(text)
-    write_html(res, metres, _provenance_block(evals, record), REPORT_TITLE.removeprefix("# "), out, text)
+    write_html(res, metres, _provenance_block(evals, record), REPORT_TITLE.removeprefix("# "), out, text,
+               palette)
     if record is not None:
         stagerecord.write_record(out / stagerecord.FILE, record["pipeline"], record["stages"],
                                  record.get("one_code_state"), record.get("parts"))
