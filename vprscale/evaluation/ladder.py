@@ -31,7 +31,8 @@ LENGTHS = (50, 100)
 MODES = ("paper", "aligned")
 
 
-def _pct(x: float | None) -> str:
+def percent(x: float | None) -> str:
+    """A share as the report's tables print it: ``87.5``; ``–`` where there is none."""
     return "–" if x is None or x != x else f"{100 * x:.1f}"
 
 
@@ -61,7 +62,7 @@ def _best_code(rows: pd.DataFrame, bytes_cap: float | None, L: int) -> str:
     params = b.get("params")
     at = f" {params}" if isinstance(params, str) and params else ""
     name = series_label(b.method, b["mode"], None).replace(" (", f"{at} (", 1)
-    return (f"{markdown(name)}: {_pct(b.recall)} % at {b.bytes_per_place:.2f} B/place, "
+    return (f"{markdown(name)}: {percent(b.recall)} % at {b.bytes_per_place:.2f} B/place, "
             f"{b.us_per_query:,.1f} µs")
 
 
@@ -87,7 +88,7 @@ def ladder_section(res: pd.DataFrame, indexes: list[dict[str, Any]], scales: lis
         cap = math.nan if ours is None else float(ours.get("bytes_per_place", math.nan))
         rows.append([markdown(scale), mains[scale],
                      "–" if not whole else f"{whole / index['n_ref']:.2f}",
-                     *(_pct(None if c is None else c.recall) for c in cells.values()),
+                     *(percent(None if c is None else c.recall) for c in cells.values()),
                      " / ".join(_us(c) for c in paper),
                      _best_code(main, cap if math.isfinite(cap) else None, longest)])
     if len(rows) < 2:

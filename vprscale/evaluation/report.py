@@ -37,7 +37,7 @@ from vprscale.evaluation.comparison import (  # noqa: E402
     method_name,
 )
 from vprscale.evaluation.htmlreport import write_html
-from vprscale.evaluation.ladder import ladder_section
+from vprscale.evaluation.ladder import ladder_section, percent
 from vprscale.evaluation.metres import load_metres, metres_section  # noqa: E402
 from vprscale.evaluation.nnreport import load_nn, nn_section  # noqa: E402
 from vprscale.evaluation.operating import operating_section
@@ -263,10 +263,6 @@ def _family(rows: pd.DataFrame, method: str) -> str:
     return str(rows.family.iloc[0]) if "family" in rows.columns else method_family(method)
 
 
-def _pct(x: float) -> str:
-    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.1f}"
-
-
 def _ratio(x: float) -> str:
     return f"{x:,.0f}×" if x >= 10 else f"{x:.2f}×"
 
@@ -484,7 +480,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
             r = g.set_index("radius")["recall"]
             mode = None if pd.isna(mode) else mode
             rows.append([scale, noise.upper(), L, _label(method, mode), _family(g, method), int(g.n_queries.iloc[0]),
-                         *(_pct(r.get(x)) for x in (0, 5, 10, 20))])
+                         *(percent(r.get(x)) for x in (0, 5, 10, 20))])
     md += ["## Recall (%) at radii 0 / 5 / 10 / 20 frames (all queries)", "",
            _md_table(["scale", "noise", "L", "method", "family", "queries", "≤0 frames", "≤5 frames", "≤10 frames",
                       "≤20 frames"], rows), ""]
@@ -497,7 +493,7 @@ def _markdown(res, evals, indexes, scales, mains, has_sweep, has_storage, has_ba
                   & (res.method == "coarsehash")]
         for (noise, mode, L), g in sub.groupby(["noise", "mode", "L"]):
             parts = g.set_index("part")
-            rows.append([scale, noise.upper(), L, mode, *(_pct(parts.recall.get(p)) for p in ("all", *shown)),
+            rows.append([scale, noise.upper(), L, mode, *(percent(parts.recall.get(p)) for p in ("all", *shown)),
                          f"{parts.nr_mean.get('all'):.1f}", f"{parts.nr_median.get('all'):.0f}",
                          f"{parts.nr_p95.get('all'):.0f}"])
     title = "Per part, and candidate counts N_r" if shown else "Candidate counts N_r"
