@@ -35,7 +35,7 @@ TWO = '[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\n[[stages]]\nname =
 
 @pytest.mark.parametrize(("stages", "message"), [
     ('[[stages]]\nname = "a"\nkind = "bake"\n', "stage 'a': unknown stage kind 'bake'"),
-    ('[[stages]]\nname = "a"\nkind = "build"\n', "stage 'a': missing key 'scale'"),
+    ('[[stages]]\nname = "a"\nkind = "build"\n', "stage 'a': give one of 'scale' (a recipe), 'ref'"),
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = 20\n', "stage 'a': key 'scale' must be a string"),
     ('[[stages]]\nname = "a"\nkind = "build"\nscale = "20K"\nrescale = "no"\n', "key 'rescale' must be true or false"),
     ('[[stages]]\nname = "a"\nkind = "index"\nstore = "nothing"\n',

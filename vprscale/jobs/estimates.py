@@ -81,7 +81,7 @@ def _recipe(stage_params: dict[str, Any], kind: str, stages: dict[str, tuple[str
             return None
         kind, params = stages[ref]
         seen += 1
-    if kind != "build":
+    if kind != "build" or "scale" not in params:  # your own descriptors and MSLS: no recipe
         return None
     try:
         return load_recipe(params["scale"])

@@ -53,7 +53,7 @@ from vprscale.dataset.recipe import load_recipe, read_toml, shipped
 from vprscale.evaluation import stagerecord
 from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import budget as budget_rules
-from vprscale.jobs import estimates, stagegraph
+from vprscale.jobs import buildstages, estimates, stagegraph
 from vprscale.jobs.child import vprscale_argv
 from vprscale.jobs.parts import keep_part, kept_root, kept_stages
 
@@ -66,9 +66,7 @@ DIGESTS = ".input-digests.json"  # under out: the content digests of the pipelin
 # "list[int]", "list[str]", "stage" (the name of an earlier stage), "list[stage]".
 SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
     "synth": {"deep1b_rows": ("int", True), "fas_dim": ("int", False), "seed": ("int", False)},
-    "build": {"scale": ("str", True), "source": ("stage", False), "deep1b": ("str", False), "base": ("str", False),
-              "fas": ("str", False),
-              "fas_dim": ("int", False), "rescale": ("bool", False)},
+    "build": buildstages.KEYS,  # a recipe's, your own descriptors' or MSLS's (one form a stage)
     "index": {"store": ("stage", True), "d": ("int", False), "k": ("int", False)},
     "encode": {"store": ("stage", True), "compare": ("list[str]", True)},
     "eval": {"store": ("stage", True), "index": ("stage", False), "encodings": ("list[stage]", False),
@@ -78,7 +76,9 @@ SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
              "faiss_k": ("list[int]", False), "faiss_nprobe": ("list[int]", False), "compare_queries": ("int", False),
              "flat_noise": ("list[str]", False), "radius_m": ("list[float]", False),
              "methods": ("list[str]", False), "method_k": ("list[int]", False), "repeats": ("int", False),
-             "nn": ("bool", False), "nn_queries": ("int", False)},
+             "nn": ("bool", False), "nn_queries": ("int", False),
+             "task": ("str", False), "seq_length": ("int", False), "subtask": ("str", False),
+             "threshold": ("float", False)},
     "report": {"results": ("list[stage]", True), "indexes": ("list[stage]", False), "out": ("str", True)},
 }
 PRODUCERS = {"source": {"synth"}, "store": {"build"}, "index": {"index"}, "results": {"eval"},
@@ -190,9 +190,18 @@ def load_pipeline(path: str | Path) -> Pipeline:
         _check_params(where, kind, params, kinds)
         kinds[name] = kind
         pipe.stages.append(Stage(name, kind, params))
+    for stage in pipe.stages:
+        tasks = [r for r in stage.params.get("results", []) if "task" in _stage(pipe, r).params]
+        if stage.kind == "report" and tasks:
+            raise InputError(f"{path}: stage '{stage.name}': key 'results': '{tasks[0]}' evaluates MSLS's task, "
+                             "whose recall@k and map@k table is its results.parquet; a report draws the frame grid")
     pipe.parts = _parts_of(path, data.get("parts", []), pipe.stages)
     _check_compared(pipe)
     return pipe
+
+
+def _stage(pipe: Pipeline, name: str) -> Stage:
+    return next(s for s in pipe.stages if s.name == name)
 
 
 def _parts_of(path: Path, raw: Any, stages: list[Stage]) -> list[Part]:
@@ -239,6 +248,8 @@ def _check_compared(pipe: Pipeline) -> None:
         store = kinds.get(stage.params.get("store", ""))
         if not stage.params.get("compare") or store is None or store[0] != "build":
             continue
+        if "scale" not in store[1]:
+            continue  # your own rows' width is known when they are read: the evaluation checks the codes then
         try:
             dim = load_recipe(store[1]["scale"]).dim
         except InputError:
@@ -275,6 +286,28 @@ def _check_params(where: str, kind: str, params: dict[str, Any], earlier: dict[s
                 if earlier.get(ref) not in PRODUCERS[key]:
                     raise InputError(f"{where}: key '{key}' must name an earlier "
                                      f"{' or '.join(sorted(PRODUCERS[key]))} stage, got '{ref}'")
+    if kind == "build":
+        buildstages.check_build(where, params)
+    if kind == "eval":
+        _check_task(where, params)
+
+
+def _check_task(where: str, params: dict[str, Any]) -> None:
+    """MSLS's task keys: a known task and subtask, the task's keys only with ``task``, and not the
+    frame grid's lengths (a task sets its own)."""
+    from vprscale.dataset.msls import SUBTASKS
+    from vprscale.evaluation.tasks import TASKS
+
+    if "task" in params and params["task"] not in TASKS:
+        raise InputError(f"{where}: key 'task' must be one of {', '.join(TASKS)}, got {params['task']!r}")
+    if params.get("subtask", "all") not in SUBTASKS:
+        raise InputError(f"{where}: key 'subtask' must be one of {', '.join(SUBTASKS)}, got {params['subtask']!r}")
+    if "task" not in params:
+        stray = next((k for k in ("seq_length", "subtask", "threshold") if k in params), None)
+        if stray:
+            raise InputError(f"{where}: key '{stray}' is MSLS's task's; give 'task' too")
+    elif "L" in params:
+        raise InputError(f"{where}: key 'L': a task sets its own lengths ('seq_length')")
 
 
 def references(stage: Stage) -> list[str]:
@@ -824,6 +857,8 @@ def _inputs(stage: Stage, digests: DigestCache) -> dict[str, Any]:
         return {f"method:{m}": _method_source(m) for m in stage.params.get("methods", [])}
     if stage.kind != "build":
         return {}
+    if buildstages.form(stage.params) != "scale":
+        return buildstages.build_inputs(f"stage '{stage.name}'", stage.params, digests)
     from vprscale.dataset.corpora import parse_base
     from vprscale.dataset.recipe import recipe_path
     from vprscale.dataset.sources.deep1b import open_deep1b
@@ -952,6 +987,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         # --force: the stage's own folder, which the pipeline decided is out of date
         return ["synth", "--out", str(pipe.out / stage.name), "--deep1b-rows", str(p["deep1b_rows"]),
                 "--fas-dim", str(p.get("fas_dim", 4096)), "--seed", str(p.get("seed", 0)), "--force"]
+    if stage.kind == "build" and buildstages.form(p) != "scale":
+        return buildstages.build_command(p, stage.name, pipe.out) + cluster
     if stage.kind == "build":
         src = outputs.get(p.get("source", ""), {})
         cmd = ["build", "--scale", p["scale"], "--out", str(pipe.out), "--force",
@@ -971,8 +1008,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
     if stage.kind == "eval":
         cmd = ["eval", outputs[p["store"]]["store"]] + ([outputs[p["index"]]["index"]] if "index" in p else [])
         cmd += (["--noise", ",".join(p["noise"])] if "noise" in p else []) + (
-                ["--flat-noise", ",".join(p["flat_noise"])] if "flat_noise" in p else []) + [
-                "--L", ",".join(map(str, p.get("L", [1, 50, 100]))),
+                ["--flat-noise", ",".join(p["flat_noise"])] if "flat_noise" in p else []) + (
+                [] if "task" in p else ["--L", ",".join(map(str, p.get("L", [1, 50, 100])))]) + [
                 "--modes", ",".join(p.get("modes", ["paper", "aligned"])),
                 "--baseline" if p.get("baseline", True) else "--no-baseline"]
         cmd += (["--z", str(p["z"])] if "z" in p else []) + (["--d", ",".join(map(str, p["d_sweep"]))]
@@ -982,7 +1019,8 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         for method in p.get("methods", []):
             cmd += ["--method", method]
         cmd += ["--nn"] if p.get("nn") else []
-        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats", "radius_m", "nn_queries"):
+        for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats", "radius_m", "nn_queries",
+                    "task", "seq_length", "subtask", "threshold"):
             value = ",".join(map(str, p[key])) if isinstance(p.get(key), list) else str(p.get(key))
             cmd += ["--" + key.replace("_", "-"), value] if key in p else []
         # --force: the pipeline decided this evaluation is out of date (the old one is kept beside)
