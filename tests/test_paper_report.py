@@ -43,3 +43,19 @@ def test_the_committed_paper_report_is_what_its_kept_parts_draw(tmp_path):
         return
     assert run.returncode == 0, run.stderr
     assert _files(clone / "reports" / "paper") == before
+    # README quotes the ladder as the report has it, row for row
+    assert _ladder_table(committed / "report.md") in (ROOT / "README.md").read_text()
+
+
+def _ladder_table(report: Path) -> str:
+    """The rows of the report's "ladder at a glance" table, header included."""
+    lines = report.read_text().splitlines()
+    start = lines.index("## The ladder at a glance")
+    rows = []
+    for line in lines[start + 1:]:
+        if line.startswith("|"):
+            rows.append(line)
+        elif rows:
+            break
+    assert len(rows) >= 4  # header, rule and at least two scales
+    return "\n".join(rows)
