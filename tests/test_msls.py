@@ -235,13 +235,28 @@ def msls_windows_test(folder: Path, seq_length: int) -> tuple[list[str], list[np
 
 
 @pytest.mark.slow
-def test_a_task_evaluation_is_read_by_results_not_drawn_by_report(msls, capsys):
+def test_a_task_evaluation_is_reported_apart_from_the_frame_grid(msls, capsys):
+    """``report`` draws a task's scores as ``vprscale results`` reads them, every method and city,
+    and refuses in one line to mix them with an evaluation of the frame grid."""
     out = msls / "eval-report"
     assert main(["eval", str(msls / "data" / "msls.zarr"), str(msls / "data" / "msls.index"), "--task", "im2im",
                  "--no-baseline", "--out", str(out), "-q"]) == 0
+    assert main(["report", str(out), "--out", str(msls / "report"), "-q"]) == 0
+    md = (msls / "report" / "report.md").read_text()
+    res = pd.read_parquet(out / "results.parquet")
+    assert "### im2im, subtask all, positives within 25 m" in md
+    for row in res.itertuples():  # every row, as results.parquet holds it
+        line = next(x for x in md.splitlines() if x.startswith(f"| CoarseHash d={int(row.d)} (single) | {row.part} |"))
+        assert f"| {100 * row.recall_at_1:.1f} |" in line and f"| {row.map_at_20:.3f} |" in line
+    assert (msls / "report" / "fig_tasks.png").is_file() and (msls / "report" / "task_table.csv").is_file()
+    grid = msls / "eval-grid"
+    assert main(["eval", str(msls / "data" / "msls.zarr"), str(msls / "data" / "msls.index"), "--L", "1,3",
+                 "--no-baseline", "--out", str(grid), "-q"]) == 0
     capsys.readouterr()
-    assert main(["report", str(out), "--out", str(msls / "report")]) == 2
+    assert main(["report", str(out), str(grid), "--out", str(msls / "report2")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "vprscale results" in err[0]
+    assert len(err) == 1 and "a report draws one or the other" in err[0]
+    assert not (msls / "report2").exists()
+    capsys.readouterr()
     assert main(["results", str(out)]) == 0
     assert "map_at_20" in capsys.readouterr().out

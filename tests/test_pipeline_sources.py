@@ -148,10 +148,20 @@ def test_a_pipeline_builds_msls_and_evaluates_its_task(tmp_path, capsys, monkeyp
     assert task == {**task, "task": "seq2seq", "seq_length": 3, "subtask": "all"}
     # one of the chosen cities' tables changed: the build re-runs
     table = tmp_path / "MSLS" / "train_val" / "sf" / "query" / "raw.csv"
-    table.write_text(table.read_text() + "\n")
+    text = table.read_text()
+    table.write_text(text + "\n")
     assert "input msls changed" in _plan("msls.toml", capsys)["cities"]
-    # a report of a task evaluation is refused when the file is read
-    (tmp_path / "bad.toml").write_text(MSLS + '[[stages]]\nname = "report"\nkind = "report"\nresults = ["seq2seq"]\n'
-                                       'out = "reports/msls"\n')
+    table.write_text(text)
+    assert _plan("msls.toml", capsys)["cities"].startswith("skip")
+    # a report stage draws the task's report; one that mixes it with the frame grid is refused when read
+    report = '[[stages]]\nname = "report"\nkind = "report"\nresults = ["seq2seq"]\nout = "reports/msls"\n'
+    (tmp_path / "msls.toml").write_text(MSLS + report)
+    assert main(["run", "msls.toml"]) == 0
+    md = (tmp_path / "reports" / "msls" / "report.md").read_text()
+    assert "### seq2seq, 3 frames, subtask all, positives within 25 m" in md
+    assert (tmp_path / "reports" / "msls" / "fig_tasks.png").is_file()
+    grid = '[[stages]]\nname = "grid"\nkind = "eval"\nstore = "cities"\nindex = "index"\nL = [1, 3]\n'
+    (tmp_path / "bad.toml").write_text(MSLS + grid + report.replace('["seq2seq"]', '["seq2seq", "grid"]'))
+    capsys.readouterr()
     assert main(["run", "bad.toml", "--dry-run"]) == 2
-    assert "'seq2seq' evaluates MSLS's task" in capsys.readouterr().err
+    assert "'seq2seq' evaluates MSLS's task, 'grid' the frame grid" in capsys.readouterr().err

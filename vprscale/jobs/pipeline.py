@@ -190,11 +190,13 @@ def load_pipeline(path: str | Path) -> Pipeline:
         _check_params(where, kind, params, kinds)
         kinds[name] = kind
         pipe.stages.append(Stage(name, kind, params))
-    for stage in pipe.stages:
-        tasks = [r for r in stage.params.get("results", []) if "task" in _stage(pipe, r).params]
-        if stage.kind == "report" and tasks:
+    for stage in pipe.stages:  # a report draws MSLS's tasks or the frame grid, not both
+        results = stage.params.get("results", []) if stage.kind == "report" else []
+        tasks = [r for r in results if "task" in _stage(pipe, r).params]
+        grid = [r for r in results if r not in tasks]
+        if tasks and grid:
             raise InputError(f"{path}: stage '{stage.name}': key 'results': '{tasks[0]}' evaluates MSLS's task, "
-                             "whose recall@k and map@k table is its results.parquet; a report draws the frame grid")
+                             f"'{grid[0]}' the frame grid; a report draws one or the other")
     pipe.parts = _parts_of(path, data.get("parts", []), pipe.stages)
     _check_compared(pipe)
     return pipe
