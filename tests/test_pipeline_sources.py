@@ -165,3 +165,23 @@ def test_a_pipeline_builds_msls_and_evaluates_its_task(tmp_path, capsys, monkeyp
     capsys.readouterr()
     assert main(["run", "bad.toml", "--dry-run"]) == 2
     assert "'seq2seq' evaluates MSLS's task, 'grid' the frame grid" in capsys.readouterr().err
+
+
+def test_two_evaluations_of_one_index_each_keep_their_own_results(own_files, tmp_path, capsys,  # noqa: F811
+                                                                  monkeypatch):
+    """Both would write INDEX/eval: each writes <out>/<stage> instead, the report reads both, and
+    a second run finds everything up to date (the first is not lost to the second, nor re-run)."""
+    monkeypatch.chdir(tmp_path)
+    pipeline = _own_pipeline(tmp_path, own_files)
+    more = ('[[stages]]\nname = "eval-long"\nkind = "eval"\nstore = "walk"\nindex = "index"\nnoise = ["night"]\n'
+            'L = [40]\nbaseline = false\nrepeats = 1\n'
+            '[[stages]]\nname = "report"\nkind = "report"\nresults = ["eval", "eval-long"]\nout = "reports/walk"\n')
+    with open(pipeline, "a") as fh:
+        fh.write(more)
+    assert main(["run", pipeline, "-q"]) == 0
+    out = tmp_path / "data" / "walk"
+    assert {*pd.read_parquet(out / "eval" / "results.parquet").L} == {1, 20}
+    assert {*pd.read_parquet(out / "eval-long" / "results.parquet").L} == {40}
+    recall = pd.read_csv(tmp_path / "reports" / "walk" / "recall_table.csv")
+    assert {*recall.L} == {1, 20, 40}
+    assert all(v.startswith("skip") for v in _plan(pipeline, capsys).values())

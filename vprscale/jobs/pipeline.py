@@ -1021,6 +1021,7 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         for method in p.get("methods", []):
             cmd += ["--method", method]
         cmd += ["--nn"] if p.get("nn") else []
+        cmd += ["--out", str(pipe.out / stage.name)] if _shares_output(pipe, stage) else []
         for key in ("faiss_k", "faiss_nprobe", "method_k", "compare_queries", "repeats", "radius_m", "nn_queries",
                     "task", "seq_length", "subtask", "threshold"):
             value = ",".join(map(str, p[key])) if isinstance(p.get(key), list) else str(p.get(key))
@@ -1033,6 +1034,17 @@ def stage_command(pipe: Pipeline, stage: Stage, outputs: dict[str, dict[str, Any
         cmd += ["--index", outputs[i]["index"]]
     # --force: the pipeline decided this report is out of date (the old one is kept beside)
     return cmd + ["--force"]
+
+
+def _shares_output(pipe: Pipeline, stage: Stage) -> bool:
+    """Whether another eval stage would write this one's default folder (``INDEX/eval``, or a
+    sweep's beside the store): both evaluate one index. Such stages each write ``<out>/<stage>``,
+    or the last would replace the others' results; a stage alone on its index keeps the default,
+    where ``vprscale results INDEX`` and ``sql INDEX`` find it."""
+    def target(s: Stage) -> tuple[str, str]:
+        return (s.params["index"], "") if "index" in s.params else ("", s.params["store"])
+
+    return sum(s.kind == "eval" and target(s) == target(stage) for s in pipe.stages) > 1
 
 
 _OUTPUT_KEYS = {"synth": ("dir", "fvecs", "fbin", "fas"), "build": ("store",), "index": ("index",),
