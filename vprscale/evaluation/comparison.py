@@ -170,17 +170,17 @@ def method_name(method: str) -> str:
 
 
 def method_colours(methods: Iterable[str], given: dict[str, Any] | None = None) -> dict[str, Any]:
-    """One distinct colour per method (named as :func:`method_name` names it): ``given``'s,
-    then the others', CoarseHash's first and the rest by name; no greys (the grid's colour).
-    A report draws every figure from one such table of all its methods, so a method keeps its
-    colour from figure to figure whatever else each draws. Sixteen colours before one repeats:
-    a colour per series would repeat at a report's thirty-odd families (ten methods in up to
-    three modes)."""
+    """One colour per method (named as :func:`method_name` names it): ``given``'s, then the
+    others', the rest by name; no greys (the grid's colour). CoarseHash's is its own: the
+    seventeen others repeat only past seventeen methods (a ladder's report compares about
+    thirty, each scale's codes at its own size). A report draws every figure from one such
+    table of all its methods, so a method keeps its colour from figure to figure whatever else
+    each draws."""
     tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
-    palette = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
+    ours, *others = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
     colours = dict(given or {})
-    for m in sorted(set(methods) - set(colours), key=lambda m: (m != "CoarseHash", m)):
-        colours[m] = palette[len(colours) % len(palette)]
+    for m in sorted(set(methods) - set(colours)):
+        colours[m] = ours if m == "CoarseHash" else others[sum(k != "CoarseHash" for k in colours) % len(others)]
     return colours
 
 
