@@ -90,6 +90,10 @@ def test_a_pipeline_builds_your_own_descriptors_and_a_changed_file_re_runs_what_
     (("L = [1, 20]", "L = [1, 20]\ntask = \"seq2seq\""), "key 'L': a task sets its own lengths ('seq_length')"),
     (("L = [1, 20]", "L = [1, 20]\nsubtask = \"o2n\""), "key 'subtask' is MSLS's task's; give 'task' too"),
     (("L = [1, 20]", "task = \"seq2sq\""), "key 'task' must be one of im2im, seq2im, im2seq, seq2seq, got 'seq2sq'"),
+    (('[[stages]]\nname = "index"', '[[stages]]\nname = "20K"\nkind = "build"\nref = "ref.npy"\n'
+                                    'query = ["day=day.fbin"]\ngt = ["gt.npy"]\n[[stages]]\nname = "b"\n'
+                                    'kind = "build"\nscale = "20K"\n[[stages]]\nname = "index"'),
+     "stages '20K' and 'b' both write 20K.zarr"),
 ])
 def test_a_bad_build_or_task_stage_is_one_line_before_anything_runs(own_files, tmp_path, capsys, monkeypatch,  # noqa: F811
                                                                    edit, message):

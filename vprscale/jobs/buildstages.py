@@ -25,9 +25,8 @@ from vprscale.dataset.sources.rows import open_rows
 # the keys of each form, by the key that chooses it
 FORMS: dict[str, tuple[str, ...]] = {
     "scale": ("scale", "source", "deep1b", "base", "fas", "fas_dim", "rescale"),
-    "ref": ("ref", "query", "gt", "gt_radius_m", "part", "ref_pos", "query_pos", "ref_seq", "query_seq", "name",
-            "stride"),
-    "msls": ("msls", "cities", "descriptors", "keys", "gt_radius_m", "name"),
+    "ref": ("ref", "query", "gt", "gt_radius_m", "part", "ref_pos", "query_pos", "ref_seq", "query_seq", "stride"),
+    "msls": ("msls", "cities", "descriptors", "keys", "gt_radius_m"),
 }
 _WORDS = {"scale": "from a recipe ('scale')", "ref": "of your own descriptors ('ref')", "msls": "of MSLS ('msls')"}
 # the types of the forms' keys (pipeline.SCHEMA's build keys)
@@ -36,7 +35,7 @@ KEYS: dict[str, tuple[str, bool]] = {
     "fas": ("str", False), "fas_dim": ("int", False), "rescale": ("bool", False),
     "ref": ("str", False), "query": ("list[str]", False), "gt": ("list[str]", False), "gt_radius_m": ("float", False),
     "part": ("list[str]", False), "ref_pos": ("str", False), "query_pos": ("list[str]", False),
-    "ref_seq": ("str", False), "query_seq": ("list[str]", False), "name": ("str", False), "stride": ("int", False),
+    "ref_seq": ("str", False), "query_seq": ("list[str]", False), "stride": ("int", False),
     "msls": ("str", False), "cities": ("list[str]", False), "descriptors": ("str", False), "keys": ("str", False),
 }
 _ROWS = ("ref", "query", "descriptors")  # rows in any --ref form, by path or URL
@@ -67,13 +66,25 @@ def check_build(where: str, params: dict[str, Any]) -> None:
         raise InputError(f"{where}: an MSLS build needs 'cities' and 'descriptors'")
 
 
+def check_stores(where: str, builds: list[tuple[str, dict[str, Any]]]) -> None:
+    """No two build stages write one store (``<out>/<name>.zarr``): a store of your own descriptors
+    or of MSLS is named for its stage, a recipe's for its scale."""
+    seen: dict[str, str] = {}
+    for stage, params in builds:
+        name = params["scale"] + ("" if params.get("rescale", True) else "-norescale") if form(
+            params) == "scale" else stage
+        if name in seen:
+            raise InputError(f"{where}: stages '{seen[name]}' and '{stage}' both write {name}.zarr (a store of your "
+                             "own descriptors or of MSLS is named for its stage)")
+        seen[name] = stage
+
+
 def build_command(params: dict[str, Any], stage: str, out: Path) -> list[str]:
     """The ``vprscale build`` arguments of a build of your own descriptors or of MSLS; the store is
-    ``<out>/<name>.zarr``, named for the stage unless ``name`` says otherwise (two stages never
-    write one store)."""
+    ``<out>/<stage>.zarr``, named for the stage (:func:`check_stores`: no other writes it)."""
     cmd = ["build"]
     for key in FORMS[form(params)]:
-        if key == "name" or key not in params:
+        if key not in params:
             continue
         value = params[key]
         flag = "--" + key.replace("_", "-")
@@ -81,7 +92,7 @@ def build_command(params: dict[str, Any], stage: str, out: Path) -> list[str]:
             cmd += [flag, ",".join(value)]
         else:
             cmd += [a for v in (value if isinstance(value, list) else [value]) for a in (flag, str(v))]
-    return cmd + ["--name", params.get("name", stage), "--out", str(out), "--force"]
+    return cmd + ["--name", stage, "--out", str(out), "--force"]
 
 
 def build_inputs(where: str, params: dict[str, Any], digests: DigestCache) -> dict[str, Any]:

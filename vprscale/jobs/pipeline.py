@@ -190,6 +190,7 @@ def load_pipeline(path: str | Path) -> Pipeline:
         _check_params(where, kind, params, kinds)
         kinds[name] = kind
         pipe.stages.append(Stage(name, kind, params))
+    buildstages.check_stores(str(path), [(s.name, s.params) for s in pipe.stages if s.kind == "build"])
     for stage in pipe.stages:  # a report draws MSLS's tasks or the frame grid, not both
         results = stage.params.get("results", []) if stage.kind == "report" else []
         tasks = [r for r in results if "task" in _stage(pipe, r).params]
