@@ -171,13 +171,14 @@ def method_name(method: str) -> str:
 
 def method_colours(methods: Iterable[str], given: dict[str, Any] | None = None) -> dict[str, Any]:
     """One colour per method (named as :func:`method_name` names it): ``given``'s, then the
-    others', the rest by name; no greys (the grid's colour). CoarseHash's is its own: the
-    seventeen others repeat only past seventeen methods (a ladder's report compares about
-    thirty, each scale's codes at its own size). A report draws every figure from one such
-    table of all its methods, so a method keeps its colour from figure to figure whatever else
-    each draws."""
+    others', the rest by name; no greys (the grid's colour). CoarseHash's is its own; the
+    others are tab20's strong shades, its light ones, then tab20b's, 37 before one repeats (a
+    ladder's report compares about thirty methods, each scale's codes at its own size). A
+    report draws every figure from one such table of all its methods, so a method keeps its
+    colour from figure to figure whatever else each draws."""
     tab20 = plt.get_cmap("tab20").colors  # pairs of a strong and a light shade; 14 and 15 are the greys
     ours, *others = [tab20[i] for i in (*range(0, 20, 2), *range(1, 20, 2)) if i not in (14, 15)]
+    others += plt.get_cmap("tab20b").colors
     colours = dict(given or {})
     for m in sorted(set(methods) - set(colours)):
         colours[m] = ours if m == "CoarseHash" else others[sum(k != "CoarseHash" for k in colours) % len(others)]
