@@ -185,6 +185,11 @@ def method_colours(methods: Iterable[str], given: dict[str, Any] | None = None) 
     return colours
 
 
+def report_palette(methods: Iterable[str]) -> dict[str, Any]:
+    """A report's one table of colours, of its results' ``method`` values (``faiss:PQ3``)."""
+    return method_colours(map(method_name, set(methods)))
+
+
 def series_colours(families: list[str], palette: dict[str, Any] | None = None) -> dict[str, Any]:
     """Each series' colour: its method's in ``palette`` (the report's :func:`method_colours`;
     a method missing there, or no palette, gets the next), whatever its mode or CoarseHash's
