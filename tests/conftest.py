@@ -102,6 +102,16 @@ def exact_method_in(folder: Path, module: str, monkeypatch: pytest.MonkeyPatch) 
     return f"{module}:Exact"
 
 
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")  # report pages' tests need it
+
+
+def chromium(*args: str) -> subprocess.CompletedProcess:
+    """Headless Chromium on a page, its console on stderr, every host unresolvable (no network)."""
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
+             "--virtual-time-budget=10000", "--host-resolver-rules=MAP * ~NOTFOUND"]
+    return subprocess.run([CHROMIUM, *flags, *args], capture_output=True, text=True, timeout=120, check=True)
+
+
 def quantize(y: np.ndarray, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Codes ``argmin_k |y_j − c_jk|`` (ties: the smaller k) and errors ``Σ_j min_k |y_j − c_jk|`` of
     already projected rows, through the method's own kernel with the identity projection."""

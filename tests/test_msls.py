@@ -3,7 +3,9 @@ evaluated with its definitions, and the prediction files vprscale writes score, 
 own published scoring (re-implemented here from mapillary_sls's msls.py and eval.py, apart
 from vprscale's code), exactly what vprscale reports."""
 
+import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,7 @@ import pytest
 
 from vprscale.cli import main
 
-from .conftest import exact_method_in
+from .conftest import CHROMIUM, chromium, exact_method_in
 
 CITIES = "cph,sf"
 SUBTASK_NAMES = ["all", "s2w", "w2s", "o2n", "n2o", "d2n", "n2d"]
@@ -249,6 +251,15 @@ def test_a_task_evaluation_is_reported_apart_from_the_frame_grid(msls, capsys):
         line = next(x for x in md.splitlines() if x.startswith(f"| CoarseHash d={int(row.d)} (single) | {row.part} |"))
         assert f"| {100 * row.recall_at_1:.1f} |" in line and f"| {row.map_at_20:.3f} |" in line
     assert (msls / "report" / "fig_tasks.png").is_file() and (msls / "report" / "task_table.csv").is_file()
+    page = (msls / "report" / "report.html").read_text()
+    rows = json.loads(page.split('<script id="rows" type="application/json">', 1)[1].split("</script>", 1)[0])
+    assert len(rows) == 4 * len(res)  # every row of results.parquet at each k
+    for row in res.itertuples():
+        for k in (1, 5, 10, 20):
+            r = next(r for r in rows if r["series"] == f"CoarseHash d={int(row.d)} (single)" and r["part"] == row.part
+                     and r["k"] == k)
+            assert r["recall"] == getattr(row, f"recall_at_{k}") and r["map"] == getattr(row, f"map_at_{k}")
+    assert "im2im, subtask all, positives within 25 m</h" in page  # report.md below, whole
     grid = msls / "eval-grid"
     assert main(["eval", str(msls / "data" / "msls.zarr"), str(msls / "data" / "msls.index"), "--L", "1,3",
                  "--no-baseline", "--out", str(grid), "-q"]) == 0
@@ -260,3 +271,29 @@ def test_a_task_evaluation_is_reported_apart_from_the_frame_grid(msls, capsys):
     capsys.readouterr()
     assert main(["results", str(out)]) == 0
     assert "map_at_20" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")
+def test_the_task_report_page_draws_each_city_it_is_asked_for(msls):
+    """The tasks' report.html, opened by headless Chromium from the file alone: no error, both
+    figures drawn over every query at first (a point a method and k), and a city's rows alone
+    when the address asks for that city."""
+    out = msls / "eval-page"
+    assert main(["eval", str(msls / "data" / "msls.zarr"), str(msls / "data" / "msls.index"), "--task", "im2im",
+                 "--compare", "PQ4", "--no-baseline", "--out", str(out), "-q"]) == 0
+    assert main(["report", str(out), "--out", str(msls / "page"), "-q"]) == 0
+    res = pd.read_parquet(out / "results.parquet")
+    page = (msls / "page" / "report.html").as_uri()
+    for part in ("all", *CITIES.split(",")):
+        loaded = chromium("--dump-dom", page + ("" if part == "all" else f"#part={part}"))
+        assert ":CONSOLE" not in loaded.stderr, loaded.stderr
+        dom = loaded.stdout
+        assert 'data-drawn="yes"' in dom and '<pre id="page-errors" hidden=""></pre>' in dom
+        for fig in ("fig-recall", "fig-map"):
+            block = dom.split(f'id="{fig}"', 1)[1].split('class="figure"', 1)[0]
+            assert int(re.search(r'data-points="(\d+)"', block).group(1)) == 4 * int((res.part == part).sum()) > 0
+            assert block.count('class="point"') > 0  # Plotly drew them
+            table = dom.split(f'id="{fig}-table"', 1)[1].split("</table>", 1)[0]
+            assert set(re.findall(r'data-part="([^"]+)"', table)) == {part}
+            series = set(re.findall(r'data-series="([^"]+)"', table))
+            assert {s.split(" ")[0] for s in series} == {"CoarseHash", "PQ4"}

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,8 @@ import pytest
 from vprscale.cli import main
 from vprscale.core.manifest import write_manifest
 from vprscale.evaluation.report import write_report
+
+from .conftest import CHROMIUM, chromium
 
 
 def _publish(folder, summary):
@@ -104,9 +105,6 @@ def test_a_report_shows_paths_of_this_machine_relative(tmp_path, monkeypatch):
     assert str(tmp_path) not in (tmp_path / "one" / "recall_table.csv").read_text()
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
 @pytest.fixture(scope="module")
 def two_noise_report(tiny_store, tiny_index, tmp_path_factory):
     """A report of CoarseHash, the baseline and one FAISS code on both noise levels, with radii
@@ -116,13 +114,6 @@ def two_noise_report(tiny_store, tiny_index, tmp_path_factory):
                  "--compare", "PQ4np", "--repeats", "1", "--radius-m", "5,25", "--out", str(tmp / "e")]) == 0
     assert main(["report", str(tmp / "e"), "--out", str(tmp / "r")]) == 0
     return tmp / "e", tmp / "r"
-
-
-def _chromium(*args: str) -> subprocess.CompletedProcess:
-    """Headless Chromium on a page, its console on stderr, every host unresolvable (no network)."""
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
-             "--virtual-time-budget=10000", "--host-resolver-rules=MAP * ~NOTFOUND"]
-    return subprocess.run([CHROMIUM, *flags, *args], capture_output=True, text=True, timeout=120, check=True)
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (.ci/run installs it)")
@@ -142,7 +133,7 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     evaluation, report = two_noise_report
     page = report / "report.html"
     text = page.read_text()
-    loaded = _chromium("--dump-dom", page.as_uri() + "#noise=all&L=all")  # every row, as the address asks
+    loaded = chromium("--dump-dom", page.as_uri() + "#noise=all&L=all")  # every row, as the address asks
     assert ":CONSOLE" not in loaded.stderr, loaded.stderr
     dom = loaded.stdout
     assert 'data-drawn="yes"' in dom and '<pre id="page-errors" hidden=""></pre>' in dom
@@ -158,13 +149,13 @@ def test_report_html_draws_every_figure_of_every_noise_level_in_a_browser(two_no
     rows_m = _json.loads(text.split('<script id="rows-m" type="application/json">', 1)[1].split("</script>", 1)[0])
     res_m = pd.read_parquet(evaluation / "results_m.parquet")
     assert len(rows_m) == len(res_m) > 0 and {r["radius_m"] for r in rows_m} == {5, 25}
-    opened = _chromium("--dump-dom", page.as_uri()).stdout  # the opening view: one noise level, a legend
+    opened = chromium("--dump-dom", page.as_uri()).stdout  # the opening view: one noise level, a legend
     table = opened.split('id="fig-radius-table"', 1)[1].split("</table>", 1)[0]
     assert 'data-noise="qm1"' in table and 'data-noise="qm2"' not in table
     assert opened.split('id="fig-qps"', 1)[1].split('id="fig-bytes"', 1)[0].count('class="legend"') == 1
-    asked = _chromium("--dump-dom", page.as_uri() + "#noise=qm2").stdout.split('id="fig-radius-table"', 1)[1]
+    asked = chromium("--dump-dom", page.as_uri() + "#noise=qm2").stdout.split('id="fig-radius-table"', 1)[1]
     assert 'data-noise="qm2"' in asked.split("</table>", 1)[0] and 'data-noise="qm1"' not in asked.split("</table>")[0]
-    _chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri() + "#noise=all&L=all")
+    chromium("--window-size=1300,2600", f"--screenshot={tmp_path / 'shot.png'}", page.as_uri() + "#noise=all&L=all")
     shot = np.asarray(Image.open(tmp_path / "shot.png").convert("RGB")).reshape(-1, 3).astype(int)
     colours = _json.loads(re.search(r"var COLOURS = (\{.*?\}), SYMBOLS", text).group(1))
     assert set(colours) == {"CoarseHash", "baseline", "PQ4np"}
@@ -205,7 +196,7 @@ def test_every_label_is_text_in_the_report_and_its_page(two_noise_report, tmp_pa
     assert "<img src=x" not in body and "</script><script>document" not in body and "\x1b" not in body
     if CHROMIUM is None:
         return
-    dom = _chromium("--dump-dom", (report / "report.html").as_uri()).stdout
+    dom = chromium("--dump-dom", (report / "report.html").as_uri()).stdout
     assert 'data-drawn="yes"' in dom and "data-pwned" not in dom and 'src="x"' not in dom  # no element made
     assert "&lt;img src=x onerror=" in dom  # shown as text, in the figures' tables
 
@@ -255,6 +246,6 @@ def test_report_html_holds_the_whole_report(two_noise_report):
     assert "**" not in provenance and "<code>" in provenance
     if CHROMIUM is None:
         return
-    dom = _chromium("--dump-dom", report.joinpath("report.html").as_uri()).stdout
+    dom = chromium("--dump-dom", report.joinpath("report.html").as_uri()).stdout
     assert 'data-drawn="yes"' in dom and dom.count('<figure class="static"') == len(figures)
     assert dom.count('class="legend"') >= 3  # each interactive figure's legend, on first view

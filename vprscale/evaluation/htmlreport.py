@@ -19,8 +19,11 @@ browser:
   (:mod:`vprscale.evaluation.mdhtml`), so the page alone is the report.
 
 Errors in the page are written into it (``#page-errors``), so a headless browser can tell a
-page that drew from one that failed. Colours and markers are the PNG figures' (one colour
-per method, one marker per mode: :mod:`vprscale.evaluation.comparison`).
+page that drew from one that failed. :func:`fill_page` is the page without its figures: the
+report of MSLS's tasks (:mod:`vprscale.evaluation.taskreport`) fills it with its own script, and
+both scripts share ``report_common.js`` (filters kept in the address, tables, CSV downloads).
+Colours and markers are the PNG figures' (one colour per method, one marker per mode:
+:mod:`vprscale.evaluation.comparison`).
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ from vprscale.core.plaintext import script_json
 from vprscale.evaluation.comparison import method_and_mode, series_colours, with_series
 from vprscale.evaluation.mdhtml import inline, render
 
-PAGE, SCRIPT = "report_page.html", "report_page.js"  # the page's template and script (package data)
+# The page's template, its script and what that shares with the tasks' page (package data)
+PAGE, SCRIPT, COMMON = "report_page.html", "report_page.js", "report_common.js"
 # The columns the page holds per recall row (those an evaluation has)
 COLUMNS = ("scale", "noise", "method", "series", "family", "mode", "L", "d", "params", "radius", "recall", "recall_lo",
            "recall_hi", "recall_at_20", "bytes_per_place", "us_per_query", "qps_per_core", "n_queries", "run")
@@ -72,28 +76,43 @@ def _json(rows: pd.DataFrame) -> str:
     return script_json(records, separators=(",", ":"))
 
 
+INTRO = ("Every recall row of the results over all queries, drawn in the page: hover a point for its method, "
+         "parameters and figures; the filters choose what is drawn; each figure's table is under it, and downloads "
+         "as CSV. Recall is the share of query centres matched within the radius (frames; 20 frames = 100 m on "
+         "FAS), with its 95 % Wilson interval.")
+
+
 def write_html(res: pd.DataFrame, metres: pd.DataFrame, provenance_lines: list[str], title: str, out: Path,
                report_md: str = "", palette: dict[str, Any] | None = None) -> Path:
     """Write ``out/report.html`` from the results ``res``, the rows in metres ``metres`` (empty
     when no evaluation counted them), the report's provenance lines and the whole of ``report.md``
     (``report_md``, its figures read from ``out``), which the page holds below its own figures;
     each method in its colour of ``palette``, the PNG figures'."""
-    from plotly.offline import get_plotlyjs
-
-    here = resources.files(__package__)
-    template, script = (here / PAGE).read_text("utf-8"), (here / SCRIPT).read_text("utf-8")
     rows = page_rows(res)
     rows_m = page_rows(metres, METRES_COLUMNS) if len(metres) else rows.iloc[:0]
     figures = FIGURES + ((METRES_FIGURE,) if len(rows_m) else ())
     families = list(dict.fromkeys([*rows.series, *rows_m.series]))
     colours = {method_and_mode(f)[0]: to_hex(c) for f, c in series_colours(families, palette).items()}
-    provenance = "".join(f"<li>{inline(line.removeprefix('- '))}</li>" for line in provenance_lines
-                         if line.startswith("- "))
+    script = (resources.files(__package__) / SCRIPT).read_text("utf-8")
     script = (script.replace("@COLOURS@", script_json(colours)).replace("@SYMBOLS@", script_json(SYMBOLS))
               .replace("@FIGURES@", script_json(figures)))
-    values = {"TITLE": html.escape(title), "PROVENANCE": provenance, "SCRIPT": script, "ROWS": _json(rows),
-              "REPORT": render(report_md, out),
-              "ROWSM": _json(rows_m),
+    return fill_page(out, title, INTRO, provenance_lines, script, rows, rows_m, report_md)
+
+
+def fill_page(out: Path, title: str, intro: str, provenance_lines: list[str], script: str, rows: pd.DataFrame,
+              rows_m: pd.DataFrame, report_md: str) -> Path:
+    """Write ``out/report.html``: the page's template around ``script`` (which draws from the
+    embedded ``rows`` and ``rows_m``), the provenance lines on top and the whole of ``report_md``
+    below, plotly.js inside; every value inserted as text or JSON that cannot close a script."""
+    from plotly.offline import get_plotlyjs
+
+    here = resources.files(__package__)
+    template, common = (here / PAGE).read_text("utf-8"), (here / COMMON).read_text("utf-8")
+    provenance = "".join(f"<li>{inline(line.removeprefix('- '))}</li>" for line in provenance_lines
+                         if line.startswith("- "))
+    values = {"TITLE": html.escape(title), "INTRO": html.escape(intro), "PROVENANCE": provenance,
+              "SCRIPT": f"{common}\n{script}",
+              "ROWS": _json(rows), "ROWSM": _json(rows_m), "REPORT": render(report_md, out),
               "PLOTLY": get_plotlyjs().replace("</script", "<\\/script")}
     page = re.sub(r"@([A-Z]+)@", lambda m: values[m.group(1)], template)  # one pass: inserted text is not rescanned
     path = out / "report.html"

@@ -24,39 +24,15 @@
     if (key === "radius") { return opts.indexOf(20) >= 0 ? "20" : String(opts[opts.length - 1]); }
     return "all";
   }
-  var asked = {};
-  location.hash.replace(/^#/, "").split("&").forEach(function (kv) {
-    var i = kv.indexOf("=");
-    if (i > 0) { asked[decodeURIComponent(kv.slice(0, i))] = decodeURIComponent(kv.slice(i + 1)); }
-  });
-  function remember() {
-    var kv = FILTERS.map(function (f) { return encodeURIComponent(f[0]) + "=" + encodeURIComponent(chosen(f[0])); });
-    history.replaceState(null, "", "#" + kv.join("&"));
-  }
-  var bar = document.getElementById("filters");
-  FILTERS.forEach(function (f) {
-    var label = document.createElement("label"), sel = document.createElement("select");
-    label.textContent = f[1];
-    sel.id = "filter-" + f[0];
-    var opts = f[0] === "radius" ? values("radius") : ["all"].concat(values(f[0]));
-    opts.forEach(function (v) { var o = document.createElement("option"); o.value = v; o.textContent = v; sel.appendChild(o); });
-    var wanted = asked[f[0]];
-    sel.value = wanted !== undefined && opts.map(String).indexOf(wanted) >= 0 ? wanted : opening(f[0], opts);
-    sel.addEventListener("change", function () { remember(); draw(); });
-    label.appendChild(sel);
-    bar.appendChild(label);
-  });
-  function chosen(key) { return document.getElementById("filter-" + key).value; }
+  ReportPage.filterBar(FILTERS, function (key) { return key === "radius" ? values("radius") : ["all"].concat(values(key)); },
+                       opening, function () { draw(); });
+  var chosen = ReportPage.chosen, esc = ReportPage.esc;
   function kept(r, withRadius) {
     for (var i = 0; i < FILTERS.length - 1; i++) {
       var k = FILTERS[i][0], v = chosen(k);
       if (v !== "all" && String(r[k]) !== v) { return false; }
     }
     return !withRadius || String(r.radius) === chosen("radius");
-  }
-  // Plotly reads a subset of HTML in hover texts and legend names: values reach them escaped
-  function esc(v) {
-    return String(v).replace(/&/g, "&amp;").replace(/</g, "&lt;").replace(/>/g, "&gt;").replace(/"/g, "&quot;");
   }
   function pct(v) { return v === null ? "–" : (100 * v).toFixed(1); }
   function hover(r) {
@@ -67,45 +43,9 @@
       pct(r.recall_hi) + ")<br>" + (r.us_per_query === null ? "–" : r.us_per_query.toFixed(2)) + " µs/query, " +
       (r.bytes_per_place === null ? "–" : r.bytes_per_place.toFixed(2)) + " B/place, " + r.n_queries + " queries";
   }
-  function csv(rows) {
-    var cols = Object.keys(rows[0] || ROWS[0] || {});
-    var quote = function (v) { v = v === null ? "" : String(v); return /[",\n]/.test(v) ? '"' + v.replace(/"/g, '""') + '"' : v; };
-    return [cols.join(",")].concat(rows.map(function (r) { return cols.map(function (c) { return quote(r[c]); }).join(","); })).join("\n") + "\n";
-  }
-  function download(name, rows) {
-    var a = document.createElement("a");
-    a.href = URL.createObjectURL(new Blob([csv(rows)], {type: "text/csv"}));
-    a.download = name;
-    document.body.appendChild(a); a.click(); a.remove();
-  }
-  var holder = document.getElementById("figures"), drawn = {};
-  FIGURES.forEach(function (f) {
-    var h = document.createElement("h2"); h.textContent = f[1]; holder.appendChild(h);
-    var div = document.createElement("div"); div.id = f[0]; div.className = "figure"; holder.appendChild(div);
-    var btn = document.createElement("button"); btn.textContent = "Download this figure's table (CSV)";
-    btn.id = f[0] + "-csv"; btn.addEventListener("click", function () { download(f[0] + ".csv", drawn[f[0]] || []); });
-    holder.appendChild(btn);
-    var det = document.createElement("details"), sum = document.createElement("summary");
-    sum.textContent = "The table behind this figure"; det.appendChild(sum);
-    var tab = document.createElement("table"); tab.id = f[0] + "-table"; det.appendChild(tab); holder.appendChild(det);
-  });
-  document.getElementById("download-all").addEventListener("click", function () { download("recall_rows.csv", ROWS); });
+  var drawn = {};
+  ReportPage.places(FIGURES, drawn, "recall_rows.csv", ROWS);
 
-  function table(id, rows, cols) {  // built node by node: every value is text, never markup
-    var tab = document.getElementById(id + "-table"), head = document.createElement("tr");
-    tab.replaceChildren(head);
-    cols.forEach(function (c) { var th = document.createElement("th"); th.textContent = c; head.appendChild(th); });
-    rows.forEach(function (r) {
-      var tr = document.createElement("tr");
-      tr.dataset.noise = r.noise; tr.dataset.series = r.series;
-      cols.forEach(function (c) {
-        var v = r[c], td = document.createElement("td");
-        td.textContent = v === null ? "–" : typeof v === "number" && !Number.isInteger(v) ? v.toPrecision(4) : String(v);
-        tr.appendChild(td);
-      });
-      tab.appendChild(tr);
-    });
-  }
   function traces(rows, x, lines) {
     var groups = {};
     rows.forEach(function (r) {
@@ -139,7 +79,7 @@
         "L or method above to see fewer (hover names each line)", xref: "paper", yref: "paper", x: 0, y: 1.06,
         showarrow: false, font: {size: 11, color: "#555"}, xanchor: "left"}] : [];
       Plotly.react(f[0], drawnTraces, layout, {responsive: true, displaylogo: false});
-      table(f[0], rows, metres ? TABLE_M : TABLE);
+      ReportPage.table(f[0], rows, metres ? TABLE_M : TABLE, ["noise", "series"]);
       document.getElementById(f[0]).dataset.points = String(rows.length);
     });
     document.body.dataset.drawn = "yes";

@@ -4,20 +4,27 @@ A task's evaluation has no frame grid to draw (no noise levels, radii or L sweep
 is a ranked list a query, scored by MSLS's recall@k and map@k at k = 1, 5, 10, 20. The report
 gives, per task, sequence length and subtask, each method's scores over every query and city
 by city, with its bytes per place and time per query per core; and ``fig_tasks``: recall@k
-against k over every query, one panel per task, as MSLS's papers draw it.
+against k over every query, one panel per task, as MSLS's papers draw it; and ``report.html``,
+the frame report's page for these rows (:mod:`vprscale.evaluation.htmlreport`): recall@k and
+mAP@k against k drawn in the browser, every point hoverable, filtered by task, city and method,
+each figure's table under it as CSV, the whole of ``report.md`` below.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
+from matplotlib.colors import to_hex
 
+from vprscale.core.plaintext import script_json
 from vprscale.evaluation.comparison import (
     OURS,
     TITLE_SIZE,
+    method_and_mode,
     panels,
     series_colours,
     series_line,
@@ -25,9 +32,14 @@ from vprscale.evaluation.comparison import (
     shared_legend,
     with_series,
 )
+from vprscale.evaluation.htmlreport import SYMBOLS, fill_page
 from vprscale.evaluation.tasks import KS
 
 KEY = ["task", "seq_length", "subtask", "threshold_m"]
+SCRIPT = "task_page.js"  # the page's script (package data)
+INTRO = ("Every score of the evaluations, drawn in the page: recall@k and mAP@k against k, a line per method "
+         "(mode); hover a point for its figures; the filters choose the task, the queries (all, or a city's) and "
+         "the method; each figure's table is under it, and downloads as CSV.")
 
 
 def task_title(task: str, seq_length: int, subtask: str, threshold_m: float) -> str:
@@ -82,6 +94,25 @@ def fig_tasks(res: pd.DataFrame, out: Path, save: Callable[[Any, Path, str], Non
     fig.suptitle("MSLS's tasks: recall@k, every query")
     save(fig, out, "fig_tasks")
     return "fig_tasks"
+
+
+def write_task_html(res: pd.DataFrame, provenance_lines: list[str], title: str, out: Path, report_md: str,
+                    palette: dict[str, Any] | None) -> Path:
+    """``out/report.html`` of the task scores ``res``: one row a task, method (mode), queries and k,
+    each method in its colour of ``palette``, the PNG figure's."""
+    res = _ordered(with_series(res.copy()))
+    rows = pd.DataFrame([{"task": task_title(*(getattr(p, c) for c in KEY)), "method": method_and_mode(p.series)[0],
+                          "series": p.series,
+                          "mode": p.mode, "part": p.part, "k": k, "recall": getattr(p, f"recall_at_{k}"),
+                          "map": getattr(p, f"map_at_{k}"), "bytes_per_place": p.bytes_per_place,
+                          "us_per_query": p.us_per_query, "n_queries": int(p.n_queries)}
+                         for p in res.itertuples() for k in KS])
+    colours = {method_and_mode(f)[0]: to_hex(c)
+               for f, c in series_colours(list(dict.fromkeys(res.series)), palette).items()}
+    script = (resources.files(__package__) / SCRIPT).read_text("utf-8")
+    script = (script.replace("@COLOURS@", script_json(colours)).replace("@SYMBOLS@", script_json(SYMBOLS))
+              .replace("@KS@", script_json(list(KS))))
+    return fill_page(out, title, INTRO, provenance_lines, script, rows, rows.iloc[:0], report_md)
 
 
 def _ordered(res: pd.DataFrame) -> pd.DataFrame:
