@@ -13,6 +13,7 @@ import pytest
 
 from vprscale.cli import main
 from vprscale.core.manifest import write_manifest
+from vprscale.evaluation.accounting import time_cell
 from vprscale.evaluation.report import write_report
 
 from .conftest import CHROMIUM, chromium
@@ -227,6 +228,33 @@ def test_the_headline_ratio_is_against_the_fastest_point_of_the_same_recall():
     assert "finds most, ITQ16,LSH k=12 (aligned), finds 99.9 % in 545.4 µs." in line
     (line,) = _words(points[(points.method == "coarsehash") | (points.recall < 0.99)], ["20K"])  # none reaches it
     assert "No compared point reaches it" in line and "faster" not in line
+
+
+def test_times_are_set_against_each_other_from_the_run_that_measured_both(tiny_store, tiny_index, tmp_path):
+    """A point two runs evaluated (CoarseHash alone, then again beside the baseline and a code, as
+    a d sweep and a scale's evaluations in two parts do) is shown once, and its speed-ups are
+    quoted from the run that measured both points: CoarseHash's time in the compute table and in
+    the summary is that run's, and no ratio is left out for coming from different runs."""
+    alone, beside = tmp_path / "alone", tmp_path / "beside"
+    common = ["eval", str(tiny_store), str(tiny_index), "--L", "1,5", "--noise", "qm1", "--repeats", "1", "-q"]
+    assert main([*common, "--no-baseline", "--out", str(alone)]) == 0
+    assert main([*common, "--compare", "PQ4np", "--out", str(beside)]) == 0
+    write_report([alone, beside], tmp_path / "r")  # the first given keeps its rows of the shared points
+    text = (tmp_path / "r" / "report.md").read_text()
+    assert "different run" not in text
+    res = pd.read_parquet(beside / "results.parquet")
+    ours = res[(res.method == "coarsehash") & (res.part == "all") & (res.noise == "qm1")]
+    compute = text.split("## Compute per query", 1)[1].split("\n## ", 1)[0]
+    for L in (1, 5):
+        row = ours[(ours.L == L) & (ours.radius == 0) & ours["mode"].fillna("paper").eq("paper")].iloc[0]
+        line = next(x for x in compute.splitlines() if x.startswith(f"| {row.scale} | {L} |"))
+        assert f"| {time_cell(row)} |" in line and line.rstrip(" |").endswith("×"), line
+    summary = [x for x in text.splitlines() if x.startswith(f"- {ours.scale.iloc[0]}, QM1, L = ")]
+    assert summary and all("faster" in x or "slower" in x or "No compared point" in x for x in summary)
+    for x in summary:
+        L = int(x.split("L = ", 1)[1].split(":", 1)[0])
+        shown = float(re.search(r"CoarseHash \w+ finds [\d.]+ % in ([\d.,]+) µs", x).group(1).replace(",", ""))
+        assert shown in {round(u, 1) for u in ours[(ours.L == L) & (ours.radius == 20)].us_per_query}, x
 
 
 def test_report_html_holds_the_whole_report(two_noise_report):
