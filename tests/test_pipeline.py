@@ -9,6 +9,7 @@ import shutil
 import tomllib
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from vprscale.cli import main
@@ -619,6 +620,20 @@ def test_a_part_keeps_its_results_whole_and_without_this_machines_paths(tmp_path
     whole = _whole_index_bytes({**read_index_meta(copy), "path": str(copy)})
     assert whole == sum(read_index_meta(copy)["parts"].values()) > 100_000
     assert not (tmp_path / "reports" / "t.previous" / "parts").exists()
+    # kept again (here its stages are up to date): it says every result row is as kept before ...
+    assert "as_kept_before" not in record
+    run_pipeline(path, part="small")
+    again = json.loads((kept / "part.json").read_text())["as_kept_before"]
+    assert again["evals"]["e"] == {"rows": ours.num_rows, "same": ours.num_rows, "differing": {}}
+    assert again["run"]["started"] == record["run"]["started"]
+    # ... and counts, by method, a row it does not reproduce (times aside: they are measured)
+    earlier = pd.read_parquet(kept / "evals" / "e" / "results.parquet")
+    earlier.loc[0, "recall"] += 0.5
+    earlier.loc[1, "us_per_query"] *= 3
+    earlier.to_parquet(kept / "evals" / "e" / "results.parquet")
+    run_pipeline(path, part="small")
+    again = json.loads((kept / "part.json").read_text())["as_kept_before"]["evals"]["e"]
+    assert again == {"rows": ours.num_rows, "same": ours.num_rows - 1, "differing": {earlier.method[0]: 1}}
     # a part that fails keeps nothing: its previous results stand
     before = (kept / "part.json").read_bytes()
     shutil.rmtree(tmp_path / "data")

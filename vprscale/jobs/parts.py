@@ -12,7 +12,9 @@ is kept beside the pipeline's report, under ``<report out>/parts/<part>/``:
   ``components.parquet`` and ``files.json``, the bytes of each of its files;
 - ``part.json``: each stage's parameters, fingerprint, code digests (module by module), input
   fingerprints, time, peak memory and disk, the commit and version it ran at, and the part's run:
-  its wall time, whether it started from an empty folder, the machine.
+  its wall time, whether it started from an empty folder, the machine; and, for a part kept
+  again, how its result rows compare with those it replaces (``as_kept_before``): a run from
+  nothing elsewhere is meant to reproduce them, times aside, and this says whether it did.
 
 No path of the machine is kept: every path is written relative to the directory the pipeline
 ran from (the repository's root). The folder is written beside its place and renamed into it
@@ -27,6 +29,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -35,6 +39,7 @@ from vprscale.evaluation.prcurves import COLUMNS as CURVE_COLUMNS
 from vprscale.evaluation.stagerecord import PARTS
 
 TABLES = ("results.parquet", "results_m.parquet", "nn.parquet")
+MEASURED = ("us_", "queries_per_s", "timed_")  # a result column a run measures (time), not computes: prefixes
 INDEX_FILES = ("index.json", "components.parquet")
 
 
@@ -94,6 +99,8 @@ def keep_part(part: str, stages: list[dict[str, Any]], evals: dict[str, Path], i
         write_manifest(work / "indexes" / kept)
     weight = sum(f.stat().st_size for f in work.rglob("*") if f.is_file())
     record = {"part": part, "stages": rel.json(stages), "run": rel.json(run), "kept_bytes": weight}
+    if (final / "part.json").is_file():
+        record["as_kept_before"] = as_kept_before(work, final)
     (work / "part.json").write_text(json.dumps(record, indent=1, sort_keys=True))
     old = root / f".{part}.previous"
     shutil.rmtree(old, ignore_errors=True)
@@ -102,6 +109,44 @@ def keep_part(part: str, stages: list[dict[str, Any]], evals: dict[str, Path], i
     work.rename(final)
     shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def as_kept_before(new: Path, old: Path) -> dict[str, Any]:
+    """How the result rows of part folder ``new`` compare with those of ``old``, the one it
+    replaces: per evaluation, its rows, how many equal a row kept before in every column the run
+    computed (times aside), and the methods of the others; with the run that kept ``old``."""
+    try:
+        before = json.loads((old / "part.json").read_text()).get("run", {})
+    except (OSError, ValueError):
+        before = {}
+    evals = {}
+    for folder in sorted((new / "evals").iterdir()):
+        rows = pd.read_parquet(folder / "results.parquet")
+        try:
+            kept = pd.read_parquet(old / "evals" / folder.name / "results.parquet")
+        except (OSError, ValueError):  # not kept before, or unreadable: nothing to compare with
+            kept = rows.iloc[:0]
+        cols = [c for c in rows.columns if c in kept.columns and not c.startswith(MEASURED)]
+        same = np.zeros(len(rows), bool) if not cols else rows[cols].merge(
+            kept[cols].drop_duplicates(), on=cols, how="left", indicator=True)["_merge"].eq("both").to_numpy()
+        evals[folder.name] = {"rows": len(rows), "same": int(same.sum()),
+                              "differing": {str(k): int(v) for k, v in rows.method[~same].value_counts().items()}}
+    return {"run": {k: before.get(k) for k in ("commit", "started", "cpu")}, "evals": evals}
+
+
+def reproduction_lines(record: dict[str, Any]) -> list[str]:
+    """``eval-1M: 6,426 of 6,426 result rows as kept before (times aside)``, one line an evaluation
+    of a part kept again (none for a part kept the first time)."""
+    found = record.get("as_kept_before")
+    if not found:
+        return []
+    lines = []
+    for name, e in found["evals"].items():
+        line = f"{name}: {e['same']:,} of {e['rows']:,} result rows as kept before (times aside)"
+        if e["differing"]:
+            line += "; differing: " + ", ".join(f"{m} {n:,}" for m, n in e["differing"].items())
+        lines.append(line)
+    return lines
 
 
 def _copy_table(src: Path, dst: Path, rel: _Relative, indexes: dict[str, str], final: Path,

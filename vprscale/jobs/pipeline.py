@@ -55,7 +55,7 @@ from vprscale.evaluation.algorithms.registry import BUILTIN
 from vprscale.jobs import budget as budget_rules
 from vprscale.jobs import buildstages, estimates, stagegraph
 from vprscale.jobs.child import vprscale_argv
-from vprscale.jobs.parts import keep_part, kept_root, kept_stages
+from vprscale.jobs.parts import keep_part, kept_root, kept_stages, reproduction_lines
 
 STAGE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")  # a stage's name is a file name under out: no '/' or '..'
 MAX_STAGE_NAME = 100
@@ -572,6 +572,8 @@ def run_pipeline(path: str | Path, scheduler: str | None = None, force: bool = F
                                             {"from_nothing": from_nothing, "caches_empty": caches_empty},
                                             time.perf_counter() - t_start))
                 print(f"kept part {part}'s results in {summary['kept']}", file=tee_err)
+                for line in reproduction_lines(json.loads((Path(summary["kept"]) / "part.json").read_text())):
+                    print(f"  {line}", file=tee_err)
         except BaseException as exc:  # a signal too (Ctrl-C, a scheduler's SIGTERM): the record says so
             summary["status"] = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
             summary["error"] = f"{type(exc).__name__}: {exc}"
