@@ -230,6 +230,7 @@ def test_the_headline_ratio_is_against_the_fastest_point_of_the_same_recall():
     assert "No compared point reaches it" in line and "faster" not in line
 
 
+@pytest.mark.slow
 def test_times_are_set_against_each_other_from_the_run_that_measured_both(tiny_store, tiny_index, tmp_path):
     """A point two runs evaluated (CoarseHash alone, then again beside the baseline and a code, as
     a d sweep and a scale's evaluations in two parts do) is shown once, and its speed-ups are
