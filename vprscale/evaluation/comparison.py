@@ -97,10 +97,15 @@ def named_modes(rows: pd.DataFrame) -> pd.DataFrame:
     """``rows`` with a null ``mode`` named (``single`` at L = 1, ``sequence`` above: a method that
     matches sequences without modes, as the baseline does at L = 50 and 100) and each method's
     ``family`` (:func:`method_family` for results older than the column)."""
-    rows = rows.assign(mode=rows["mode"].where(rows["mode"].notna(), np.where(rows["L"] > 1, "sequence", "single")))
+    rows = rows.assign(mode=[mode_name(m, L) for m, L in zip(rows["mode"], rows["L"], strict=True)])
     if "family" not in rows.columns:
         rows["family"] = [method_family(m) for m in rows.method]
     return rows
+
+
+def mode_name(mode: Any, L: int) -> str:
+    """A row's mode, a null one named (:func:`named_modes`)."""
+    return mode if isinstance(mode, str) else "sequence" if L > 1 else "single"
 
 
 def method_family(method: str) -> str:
@@ -367,14 +372,14 @@ def as_run_measured(row: pd.Series, run: Any, twins: pd.DataFrame | None, radius
     recall must be the same, or the runs did not evaluate the same point."""
     if twins is None or twins.empty or row.get("run") == run:
         return row
-    key = (twins.run == run) & (twins.radius == radius) & (twins.part == "all")
+    key = (twins.run == run) & (twins.radius == radius) & (twins.part == "all") & (twins.recall == row.recall)
     for col in ("scale", "noise", "method", "L", "d"):
         key &= twins[col] == row[col]
-    mode = row["mode"] if isinstance(row["mode"], str) else "sequence" if row.L > 1 else "single"  # as named_modes
-    key &= named_modes(twins)["mode"].eq(mode) & (twins.recall == row.recall)
-    if not key.any():
+    found = [i for i, m, L in zip(twins.index[key], twins["mode"][key], twins.L[key], strict=True)
+             if mode_name(m, L) == mode_name(row["mode"], row.L)]
+    if not found:
         return row
-    twin, out = twins[key].iloc[0], row.copy()
+    twin, out = twins.loc[found[0]], row.copy()
     for col in (*TIMES, "run"):
         if col in out.index and col in twin.index:
             out[col] = twin[col]
